@@ -1,0 +1,10 @@
+#!/usr/bin/env bash
+# Cargo runner for thumbv7em-none-eabihf: runs the ELF ($1) under QEMU with hil-sim's `qemu-run`
+# (semihosting exit code, defmt decoded with the ELF's own table, timeout).
+# Cargo's build lock is released before runners start, so building the host tool here is fine;
+# an explicit host --target keeps the firmware's rustflags away from it.
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+host="$(rustc -vV | sed -n 's/^host: //p')"
+exec "${CARGO:-cargo}" run --quiet --release --manifest-path "$root/Cargo.toml" \
+  -p hil-sim --bin qemu-run --target "$host" -- "$@"

@@ -1,0 +1,488 @@
+//! One control tick of the drive: raw counter in, current command and telemetry out.
+//!
+//! `Drive::step` is the only per-tick entry point. The firmware's `control` task and `hil-sim`'s
+//! in-process loop both call exactly this, so the same samples give bit-identical outputs on the
+//! host and on the Cortex-M4.
+//!
+//! Order inside a tick (sampling first, as ODrive's `sampling_cb`): unwrap the motor counter,
+//! advance the trajectory, run the PID, run the error model, check faults, saturate.
+
+use fixed::types::I16F16;
+
+use crate::model::{self, ModelCoeffs, ModelKind, ModelParams, ModelState};
+use crate::rig::Rig;
+use crate::trajectory::{self, Trajectory};
+use crate::{encoder, pid, ConfigError};
+
+/// What the board samples at the start of every tick.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Sample {
+    /// Raw 16-bit motor encoder timer counter (x4 quadrature), wrapping.
+    pub motor_counter: u16,
+    /// Raw 16-bit linear-scale timer counter (x4, 0.5 um), wrapping; only calibration and
+    /// evaluation read it, the control law never does.
+    pub scale_counter: u16,
+}
+
+/// Fault bits: any set bit forces zero current until `Command::ClearFaults`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Faults(pub u8);
+
+impl Faults {
+    /// The encoder moved more in one tick than the maximum speed allows.
+    pub const ENCODER_JUMP: u8 = 1 << 0;
+    /// The following error exceeded its limit.
+    pub const FOLLOWING_ERROR: u8 = 1 << 1;
+    /// The motor position left the configured travel (plus margin).
+    pub const TRAVEL_LIMIT: u8 = 1 << 2;
+    /// The link to the host (or PIL plant) went silent.
+    pub const LINK_TIMEOUT: u8 = 1 << 3;
+    /// No fault.
+    pub const NONE: Faults = Faults(0);
+
+    /// True when no fault bit is set.
+    pub fn is_clear(self) -> bool {
+        self.0 == 0
+    }
+    /// True when `bit` is set.
+    pub fn has(self, bit: u8) -> bool {
+        self.0 & bit != 0
+    }
+}
+
+/// Everything a tick reports, in integer units.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Telemetry {
+    /// Tick counter since start.
+    pub tick: u32,
+    /// Unwrapped motor position (x_PE) in encoder counts.
+    pub motor_counts: i32,
+    /// Unwrapped linear-scale position (x_LS) in scale counts (0.5 um each).
+    pub scale_counts: i32,
+    /// Trajectory set-point, whole counts.
+    pub setpoint_counts: i32,
+    /// Set-point minus measured position, counts.
+    pub following_error_counts: i32,
+    /// Estimated transmission error y = x_LS - x_PE, micrometres.
+    pub est_error_um: I16F16,
+    /// Current command sent to the amplifier, amperes.
+    pub current_a: I16F16,
+    /// Active fault bits.
+    pub faults: Faults,
+    /// Active error model.
+    pub model: ModelKind,
+    /// A move is in progress.
+    pub moving: bool,
+}
+
+/// Result of one tick.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Output {
+    /// Current command for the amplifier, amperes (zero while faulted or disabled).
+    pub current_a: I16F16,
+    /// What happened this tick.
+    pub telemetry: Telemetry,
+}
+
+/// Commands from the link, in integer SI units so that no float crosses the wire.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Command {
+    /// Move the motor to `target_um` of nominal carriage travel.
+    MoveTo {
+        /// Target, micrometres of nominal travel from the encoder's zero.
+        target_um: i32,
+        /// Cruise speed, micrometres per second (> 0).
+        velocity_um_s: u32,
+        /// Acceleration and deceleration, micrometres per second squared (> 0).
+        accel_um_s2: u32,
+    },
+    /// Decelerate to rest at the configured acceleration.
+    Stop,
+    /// Enable the current output (the drive starts disabled).
+    Enable,
+    /// Zero current at once and stay so.
+    Disable,
+    /// Clear latched faults (the drive stays disabled until `Enable`).
+    ClearFaults,
+    /// Select the error model used for the estimate.
+    SelectModel(ModelKind),
+    /// Homing: declare that the motor now stands at `position_um` of nominal travel (motor
+    /// encoder) and that the linear scale, if fitted, reads `scale_um`. Refused while moving.
+    Home {
+        /// Motor position to assign, micrometres of nominal travel.
+        position_um: i32,
+        /// Linear-scale position to assign, micrometres.
+        scale_um: i32,
+    },
+}
+
+/// Why a command was refused; refused commands change nothing.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CommandError {
+    /// Target outside the configured travel.
+    TargetOutOfTravel,
+    /// Velocity zero or above the configured maximum.
+    VelocityOutOfRange,
+    /// Acceleration zero or above the configured maximum.
+    AccelOutOfRange,
+    /// The drive is faulted or disabled.
+    NotEnabled,
+    /// Model 3 selected but no calibration tables are loaded.
+    ModelNotCalibrated,
+    /// The command needs the drive at rest.
+    Busy,
+}
+
+impl core::fmt::Display for CommandError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str(match self {
+            CommandError::TargetOutOfTravel => "target outside the configured travel",
+            CommandError::VelocityOutOfRange => "velocity zero or above the configured maximum",
+            CommandError::AccelOutOfRange => "acceleration zero or above the configured maximum",
+            CommandError::NotEnabled => "drive disabled or faulted",
+            CommandError::ModelNotCalibrated => "model 3 has no calibration tables",
+            CommandError::Busy => "the drive must be at rest (or keep the move's limits)",
+        })
+    }
+}
+
+/// The whole drive in SI units; `Drive::new` checks it and converts it once.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DriveConfig {
+    /// Drive-train geometry.
+    pub rig: Rig,
+    /// Control rate (ticks per second); overrides the rate inside `pid`.
+    pub rate_hz: f64,
+    /// Lowest target a move may ask for, mm of nominal travel.
+    pub travel_min_mm: f64,
+    /// Highest target a move may ask for, mm of nominal travel.
+    pub travel_max_mm: f64,
+    /// The motor may overshoot the travel by this much before `TRAVEL_LIMIT` trips, mm.
+    pub travel_margin_mm: f64,
+    /// Fastest move a command may ask for, mm/s.
+    pub max_velocity_mm_s: f64,
+    /// Steepest acceleration a command may ask for, mm/s^2.
+    pub max_accel_mm_s2: f64,
+    /// Following error that trips `FOLLOWING_ERROR`, mm.
+    pub max_following_error_mm: f64,
+    /// Fastest believable motion between two samples (encoder plausibility), mm/s.
+    pub encoder_max_speed_mm_s: f64,
+    /// Position-loop gains (its `rate_hz` is replaced by the drive's).
+    pub pid: pid::Config,
+    /// Error-model parameters (Table 2 presets or a calibration).
+    pub model: ModelParams,
+    /// Model in use at start.
+    pub initial_model: ModelKind,
+}
+
+impl DriveConfig {
+    /// The paper's rig (Table 1) at 2 kHz, 0-300 mm of travel, Table 2 models, Model 1 active.
+    pub fn paper_rig() -> DriveConfig {
+        DriveConfig {
+            rig: Rig::PAPER,
+            rate_hz: 2000.0,
+            travel_min_mm: 0.0,
+            travel_max_mm: 300.0,
+            travel_margin_mm: 5.0,
+            max_velocity_mm_s: 250.0,
+            max_accel_mm_s2: 5000.0,
+            max_following_error_mm: 2.0,
+            encoder_max_speed_mm_s: 1000.0,
+            pid: pid::Config::PAPER_RIG,
+            model: ModelParams::PAPER,
+            initial_model: ModelKind::Linear,
+        }
+    }
+}
+
+/// Scale counts per micrometre: the linear scale is 500 lines/mm, x4.
+pub const SCALE_COUNTS_PER_UM: i32 = 2;
+
+/// Integer limits derived once from the configuration.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Limits {
+    /// Counts per micrometre of nominal travel, Q32.
+    counts_per_um_q32: i64,
+    target_min_counts: i32,
+    target_max_counts: i32,
+    fault_min_counts: i32,
+    fault_max_counts: i32,
+    max_velocity_um_s: u32,
+    max_accel_um_s2: u32,
+    max_following_error_counts: i32,
+}
+
+/// The drive: configuration, coefficients and state of one axis.
+#[derive(Clone, Debug)]
+pub struct Drive {
+    rig: Rig,
+    rate_hz: f64,
+    limits: Limits,
+    motor: encoder::Coeffs<u16>,
+    motor_state: encoder::State<u16>,
+    scale: encoder::Coeffs<u16>,
+    scale_state: encoder::State<u16>,
+    trajectory: Trajectory,
+    /// Limits the trajectory was last built with (velocity um/s, accel um/s^2).
+    move_limits: (u32, u32),
+    pid: pid::Coeffs,
+    pid_state: pid::State,
+    models: ModelCoeffs,
+    model_state: ModelState,
+    model: ModelKind,
+    enabled: bool,
+    faults: Faults,
+    tick: u32,
+    last: Telemetry,
+}
+
+fn finite(v: f64, field: &'static str) -> Result<f64, ConfigError> {
+    if v.is_finite() {
+        Ok(v)
+    } else {
+        Err(ConfigError::NotFinite(field))
+    }
+}
+
+/// `v` (already finite) as `i32`, or the named range error.
+fn to_i32(v: f64, field: &'static str) -> Result<i32, ConfigError> {
+    if v >= i32::MIN as f64 && v <= i32::MAX as f64 {
+        Ok(v as i32)
+    } else {
+        Err(ConfigError::OutOfRange(field))
+    }
+}
+
+impl Drive {
+    /// Checks `cfg` and builds a disabled drive at position 0 (home it with `Command::Home`).
+    pub fn new(cfg: &DriveConfig) -> Result<Drive, ConfigError> {
+        use ConfigError as E;
+        cfg.rig.validate()?;
+        let rate_hz = finite(cfg.rate_hz, "drive.rate_hz")?;
+        let cpm = cfg.rig.counts_per_mm();
+        let lo = finite(cfg.travel_min_mm, "drive.travel_min_mm")?;
+        let hi = finite(cfg.travel_max_mm, "drive.travel_max_mm")?;
+        let margin = finite(cfg.travel_margin_mm, "drive.travel_margin_mm")?;
+        if !(hi > lo) {
+            return Err(E::OutOfRange("drive.travel_max_mm"));
+        }
+        if margin < 0.0 {
+            return Err(E::OutOfRange("drive.travel_margin_mm"));
+        }
+        let vmax = finite(cfg.max_velocity_mm_s, "drive.max_velocity_mm_s")?;
+        let amax = finite(cfg.max_accel_mm_s2, "drive.max_accel_mm_s2")?;
+        let fe = finite(cfg.max_following_error_mm, "drive.max_following_error_mm")?;
+        if !(vmax > 0.0 && vmax * 1000.0 <= u32::MAX as f64) {
+            return Err(E::OutOfRange("drive.max_velocity_mm_s"));
+        }
+        if !(amax > 0.0 && amax * 1000.0 <= u32::MAX as f64) {
+            return Err(E::OutOfRange("drive.max_accel_mm_s2"));
+        }
+        if !(fe > 0.0) {
+            return Err(E::OutOfRange("drive.max_following_error_mm"));
+        }
+        let limits = Limits {
+            counts_per_um_q32: (cpm / 1000.0 * 4_294_967_296.0) as i64,
+            target_min_counts: to_i32(lo * cpm, "drive.travel_min_mm")?,
+            target_max_counts: to_i32(hi * cpm, "drive.travel_max_mm")?,
+            fault_min_counts: to_i32((lo - margin) * cpm, "drive.travel_margin_mm")?,
+            fault_max_counts: to_i32((hi + margin) * cpm, "drive.travel_margin_mm")?,
+            max_velocity_um_s: (vmax * 1000.0) as u32,
+            max_accel_um_s2: (amax * 1000.0) as u32,
+            max_following_error_counts: to_i32(fe * cpm, "drive.max_following_error_mm")?,
+        };
+        let enc = encoder::Config { max_speed_mm_s: cfg.encoder_max_speed_mm_s, rate_hz };
+        let motor = enc.build::<u16>(&cfg.rig)?;
+        let scale_per_tick = finite(cfg.encoder_max_speed_mm_s, "encoder.max_speed_mm_s")? * 1000.0
+            * SCALE_COUNTS_PER_UM as f64
+            / rate_hz;
+        let scale = encoder::Coeffs::<u16>::from_max_delta_counts(scale_per_tick as u32 + 1)
+            .map_err(|_| E::OutOfRange("encoder.max_speed_mm_s"))?;
+        let pid = pid::Config { rate_hz, ..cfg.pid }.build(&cfg.rig)?;
+        let start = trajectory::Config {
+            velocity_mm_s: vmax,
+            acceleration_mm_s2: amax,
+            deceleration_mm_s2: amax,
+            rate_hz,
+        };
+        let trajectory = Trajectory::new(start.build(&cfg.rig)?, 0);
+        let models = cfg.model.build(&cfg.rig)?;
+        Ok(Drive {
+            rig: cfg.rig,
+            rate_hz,
+            limits,
+            motor,
+            motor_state: encoder::State::new(0),
+            scale,
+            scale_state: encoder::State::new(0),
+            trajectory,
+            move_limits: (limits.max_velocity_um_s, limits.max_accel_um_s2),
+            pid,
+            pid_state: pid::State::new(),
+            models,
+            model_state: ModelState::new(0),
+            model: cfg.initial_model,
+            enabled: false,
+            faults: Faults::NONE,
+            tick: 0,
+            last: Telemetry { model: cfg.initial_model, ..Telemetry::default() },
+        })
+    }
+
+    /// Replaces the error-model parameters (a calibration). Refused while moving; the estimate
+    /// restarts on the band edge of the current direction.
+    pub fn set_model_params(&mut self, params: &ModelParams) -> Result<(), ConfigError> {
+        let models = params.build(&self.rig)?;
+        self.models = models;
+        self.model_state.reset(self.motor_state.position_counts());
+        Ok(())
+    }
+
+    /// The coefficients of the error models in use.
+    pub fn models(&self) -> &ModelCoeffs {
+        &self.models
+    }
+
+    /// Telemetry of the last tick.
+    pub fn telemetry(&self) -> Telemetry {
+        self.last
+    }
+
+    /// Whether the current output is enabled.
+    pub fn is_enabled(&self) -> bool {
+        self.enabled
+    }
+
+    /// Micrometres of nominal travel to counts (round to nearest), saturating.
+    fn um_to_counts(&self, um: i32) -> i32 {
+        // |um| * 2^33 can exceed i64: saturate, the range check then refuses it.
+        let q = (um as i64).saturating_mul(self.limits.counts_per_um_q32).saturating_add(1 << 31);
+        (q >> 32).clamp(i32::MIN as i64, i32::MAX as i64) as i32
+    }
+
+    /// Applies a command. A refused command changes nothing.
+    pub fn command(&mut self, cmd: Command) -> Result<(), CommandError> {
+        match cmd {
+            Command::MoveTo { target_um, velocity_um_s, accel_um_s2 } => {
+                if !self.enabled {
+                    return Err(CommandError::NotEnabled);
+                }
+                let target = self.um_to_counts(target_um);
+                if target < self.limits.target_min_counts || target > self.limits.target_max_counts {
+                    return Err(CommandError::TargetOutOfTravel);
+                }
+                if velocity_um_s == 0 || velocity_um_s > self.limits.max_velocity_um_s {
+                    return Err(CommandError::VelocityOutOfRange);
+                }
+                if accel_um_s2 == 0 || accel_um_s2 > self.limits.max_accel_um_s2 {
+                    return Err(CommandError::AccelOutOfRange);
+                }
+                if (velocity_um_s, accel_um_s2) != self.move_limits {
+                    // New limits only at rest: the profile's state is tied to its deceleration.
+                    let cfg = trajectory::Config {
+                        velocity_mm_s: velocity_um_s as f64 / 1000.0,
+                        acceleration_mm_s2: accel_um_s2 as f64 / 1000.0,
+                        deceleration_mm_s2: accel_um_s2 as f64 / 1000.0,
+                        rate_hz: self.rate_hz,
+                    };
+                    let coeffs = cfg.build(&self.rig).map_err(|e| match e.field() {
+                        "trajectory.velocity_mm_s" => CommandError::VelocityOutOfRange,
+                        _ => CommandError::AccelOutOfRange,
+                    })?;
+                    self.trajectory.set_coeffs(coeffs).map_err(|_| CommandError::Busy)?;
+                    self.move_limits = (velocity_um_s, accel_um_s2);
+                }
+                self.trajectory.set_target(target);
+            }
+            Command::Stop => self.trajectory.stop(),
+            Command::Enable => {
+                if !self.faults.is_clear() {
+                    return Err(CommandError::NotEnabled);
+                }
+                if !self.enabled {
+                    self.hold_here();
+                    self.enabled = true;
+                }
+            }
+            Command::Disable => self.enabled = false,
+            Command::ClearFaults => self.faults = Faults::NONE,
+            Command::SelectModel(kind) => self.model = kind,
+            Command::Home { position_um, scale_um } => {
+                if !self.trajectory.is_done() {
+                    return Err(CommandError::Busy);
+                }
+                let x = self.um_to_counts(position_um);
+                self.motor_state.reset(x);
+                let scale = (scale_um as i64 * SCALE_COUNTS_PER_UM as i64)
+                    .clamp(i32::MIN as i64, i32::MAX as i64) as i32;
+                self.scale_state.reset(scale);
+                self.model_state.reset(x);
+                self.hold_here();
+            }
+        }
+        Ok(())
+    }
+
+    /// Set-point at the measured position, loop state cleared: enabling never jerks the motor.
+    fn hold_here(&mut self) {
+        self.trajectory.reset(self.motor_state.position_counts());
+        self.pid_state.reset();
+    }
+
+    /// One control tick. Integer-only, allocation-free, bounded time; never panics.
+    pub fn step(&mut self, sample: Sample) -> Output {
+        self.tick = self.tick.wrapping_add(1);
+        let x = match self.motor.update(&mut self.motor_state, sample.motor_counter) {
+            Ok(x) => x,
+            Err(_) => {
+                self.faults.0 |= Faults::ENCODER_JUMP;
+                self.motor_state.position_counts()
+            }
+        };
+        // The scale only informs calibration; a glitch there keeps the last good reading.
+        let scale = self
+            .scale
+            .update(&mut self.scale_state, sample.scale_counter)
+            .unwrap_or(self.scale_state.position_counts());
+        if x < self.limits.fault_min_counts || x > self.limits.fault_max_counts {
+            self.faults.0 |= Faults::TRAVEL_LIMIT;
+        }
+
+        let mut current_a = I16F16::ZERO;
+        let mut following_error_counts = 0;
+        let mut setpoint_counts = x;
+        if self.enabled && self.faults.is_clear() {
+            let sp = self.trajectory.tick();
+            let out = self.pid.update(&mut self.pid_state, &sp, x);
+            following_error_counts = out.following_error_counts.to_bits() >> 8;
+            setpoint_counts = (sp.position_counts().to_bits() >> 24)
+                .clamp(i32::MIN as i64, i32::MAX as i64) as i32;
+            if following_error_counts.unsigned_abs() > self.limits.max_following_error_counts as u32 {
+                self.faults.0 |= Faults::FOLLOWING_ERROR;
+            } else {
+                current_a = out.current_a;
+            }
+        }
+        if !self.faults.is_clear() {
+            // Safe state: zero current, disabled until the host clears the fault and re-enables.
+            self.enabled = false;
+            current_a = I16F16::ZERO;
+            self.hold_here();
+        }
+
+        let est_error_um = model::estimate(&self.models, self.model, &mut self.model_state, x);
+        self.last = Telemetry {
+            tick: self.tick,
+            motor_counts: x,
+            scale_counts: scale,
+            setpoint_counts,
+            following_error_counts,
+            est_error_um,
+            current_a,
+            faults: self.faults,
+            model: self.model,
+            moving: self.enabled && !self.trajectory.is_done(),
+        };
+        Output { current_a, telemetry: self.last }
+    }
+}

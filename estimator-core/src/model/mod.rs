@@ -1,0 +1,419 @@
+//! Transmission-error models of the timing belt (paper sections 5 and 6: Models 1, 2, 3;
+//! eqs. 14-18; Table 2), in fixed point for the control tick.
+//!
+//! The models estimate `y = x_LS - x_PE`, the carriage position measured by the linear scale minus
+//! the position the motor encoder implies, from the motor position alone.
+//!
+//! # Units (our reading of Table 2)
+//! `x` is the primary (motor) encoder position in mm, `y` the position error in mm:
+//! - `m = 0.0010594`: slope of the band along travel (mm of error per mm of travel);
+//! - `h = 0.34 mm`: band height; forward motion (x increasing) rides the lower edge `m x - h`,
+//!   reverse motion the upper edge `m x`;
+//! - `h_g = 0.11 mm`: the fast jump right after a reversal (eq. 16);
+//! - Model 1: `a = b = 0.0012`, slopes of the straight transition (mm of error per mm of travel);
+//! - Model 2: `a = -0.05 /mm`, `b = -0.03 /mm` rates and `A = 0.07 mm`, `B = 0.09 mm` amplitudes of
+//!   the exponential transition.
+//!
+//! Eq. 14 reduces to `y = max(u, m x - h)` forward and `y = min(u, m x)` reverse. We bound the
+//! transition by the band on both sides (`y = clamp(u, m x - h, m x)`): with the paper's sign
+//! conventions the far side is never reached, so this changes nothing for Table 2, but it keeps the
+//! output inside the band after a run-time model switch or with unusual fitted parameters.
+//!
+//! # Interface
+//! Parameters are SI-ish `f64` ([`ModelParams`]), turned once by [`ModelParams::build`] into
+//! fixed-point [`ModelCoeffs`]; the mutable [`ModelState`] is separate; [`estimate`] runs per
+//! tick on integers only. Input: the unwrapped motor position in encoder counts (`i32`); counts
+//! are converted with [`Rig::counts_per_mm`] at build time. Output: `y` in micrometres as
+//! [`I16F16`]. All three models are compiled in and selected per call by [`ModelKind`].
+//!
+//! # Reversal detection (eqs. 15, 16) with a dead band
+//! The state tracks the extreme position reached in the current direction. A reversal is
+//! registered only when `x` moves more than `reversal_deadband_counts` back from that extreme;
+//! then `x_d` is the extreme (the turning point) and `y_d` the output at the turning point, minus
+//! `h_g` (reversal to forward) or plus `h_g` (to reverse). With a dead band of 0 any move back is a
+//! reversal, as in the paper. Standing still keeps the direction: this deviates from the literal
+//! `x(k) >= x(k-1)`, which would turn a reverse motion into a forward one at every standstill and
+//! fake a reversal at the next reverse step. Encoder jitter of up to the dead band is not a
+//! reversal; the jump `h_g` appears when the reversal is registered.
+//!
+//! The detector is shared by all models and updated on every call whatever the model; the output
+//! at the turning point is whichever model was active when the carriage was last at the extreme
+//! ([`ModelKind::None`] records no output: a reversal after an extreme reached with no model
+//! starts on the new band edge). Switching models mid-transition therefore continues the
+//! transition from the same turning point with the new model's shape; the output stays inside the
+//! band of the new model.
+//!
+//! Start state ([`ModelState::new`]): moving forward, on the lower band edge, no transition.
+//!
+//! # Fixed-point formats
+//! - positions `i32` counts; differences in `i64` (then saturated), so a jump across the whole
+//!   `i32` range neither wraps nor panics;
+//! - errors, band heights, amplitudes: [`I16F16`] um (+-32767 um, step 1.5e-5 um);
+//! - slopes `m, a, b`: [`I1F31`](fixed::types::I1F31) um per count (+-1 um/count; 1.87 mm/mm on
+//!   the paper's rig);
+//! - Model 2 rates: a 32-bit-mantissa [`Scale`] from counts to the exponent of `2^-t` (Q32.32);
+//!   `2^-t` in Q2.30 within 2e-9 (see [`fixmath::exp2_neg_q30`]);
+//! - Model 3: see [`table`].
+//!
+//! # Range and accuracy
+//! Over the whole `i32` input range nothing panics or overflows (outputs saturate). Within
+//! `|x| <= ACCURATE_RANGE_COUNTS` (2^24 counts, +-8.98 m on the paper's rig) and with outputs
+//! inside +-16 mm, every model stays within 0.05 um of its `f64` reference
+//! ([`crate::reference`]) at every step (property-tested; the measured worst case is far
+//! smaller). For Model 3 this holds for tables whose gap grows no faster than the initial gap
+//! (`|dG/dg0| <= 1`, as measured transitions do): a steeper table amplifies any difference in `y`
+//! at a turning point by that slope at every reversal, in `f64` as in fixed point.
+
+pub mod fixmath;
+
+mod convert;
+mod exponential;
+mod linear;
+pub mod table;
+
+use fixed::types::I16F16;
+
+pub use convert::MAX_ABS_UM;
+pub use exponential::{Model2Coeffs, Model2Params};
+pub use fixmath::Scale;
+pub use linear::{LinearBand, Model1Coeffs, Model1Params};
+pub use table::{
+    BandCoeffs, BandParams, Model3Coeffs, Model3Params, TransitionCoeffs, TransitionParams,
+    MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
+};
+
+use crate::rig::Rig;
+use crate::ConfigError;
+
+/// Positions within +-2^24 counts are covered by the accuracy guarantee (see the module docs).
+pub const ACCURATE_RANGE_COUNTS: i32 = 1 << 24;
+
+/// Which model [`estimate`] evaluates.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Default)]
+#[repr(u8)]
+pub enum ModelKind {
+    /// No compensation: the estimate is 0.
+    #[default]
+    None = 0,
+    /// Model 1: linear transition (eq. 14).
+    Linear = 1,
+    /// Model 2: exponential transition (eq. 17).
+    Exponential = 2,
+    /// Model 3: lookup tables (eq. 18).
+    Table = 3,
+}
+
+impl ModelKind {
+    /// Every kind, in numeric order.
+    pub const ALL: [ModelKind; 4] = [
+        ModelKind::None,
+        ModelKind::Linear,
+        ModelKind::Exponential,
+        ModelKind::Table,
+    ];
+
+    /// The kind with this number (`0..=3`), e.g. from a command byte.
+    pub const fn from_u8(v: u8) -> Option<ModelKind> {
+        match v {
+            0 => Some(ModelKind::None),
+            1 => Some(ModelKind::Linear),
+            2 => Some(ModelKind::Exponential),
+            3 => Some(ModelKind::Table),
+            _ => None,
+        }
+    }
+
+    /// `"none"`, `"model1"`, `"model2"` or `"model3"`.
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            ModelKind::None => "none",
+            ModelKind::Linear => "model1",
+            ModelKind::Exponential => "model2",
+            ModelKind::Table => "model3",
+        }
+    }
+
+    /// The inverse of [`ModelKind::as_str`].
+    pub fn parse(s: &str) -> Option<ModelKind> {
+        ModelKind::ALL.into_iter().find(|k| k.as_str() == s)
+    }
+}
+
+impl core::fmt::Display for ModelKind {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// Direction of motion as registered by the reversal detector.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Direction {
+    /// `x` increasing: lower band edge.
+    Forward,
+    /// `x` decreasing: upper band edge.
+    Reverse,
+}
+
+/// Travel after a full-band reversal (from the far edge) until a transition meets the new band
+/// edge, per direction, in mm. `None`: it does not within [`Closing::LIMIT_MM`] of travel, so the
+/// estimate would stay inside the band; the firmware should warn.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub struct Closing {
+    /// After a reversal to forward.
+    pub forward_mm: Option<I16F16>,
+    /// After a reversal to reverse.
+    pub reverse_mm: Option<I16F16>,
+}
+
+impl Closing {
+    /// Distances beyond this (mm) count as never.
+    pub const LIMIT_MM: f64 = 30_000.0;
+
+    /// Both transitions close.
+    pub fn always_closes(&self) -> bool {
+        self.forward_mm.is_some() && self.reverse_mm.is_some()
+    }
+
+    pub(crate) fn from_mm(forward: Option<f64>, reverse: Option<f64>) -> Closing {
+        let conv = |d: Option<f64>| {
+            d.filter(|d| d.is_finite() && *d >= 0.0 && *d <= Closing::LIMIT_MM)
+                .and_then(I16F16::checked_from_num)
+        };
+        Closing {
+            forward_mm: conv(forward),
+            reverse_mm: conv(reverse),
+        }
+    }
+}
+
+/// All model parameters, in SI-ish units (see the module docs for the units of Table 2).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ModelParams {
+    /// Model 1 (linear transition).
+    pub model1: Model1Params,
+    /// Model 2 (exponential transition).
+    pub model2: Model2Params,
+    /// Model 3 (lookup tables).
+    pub model3: Model3Params,
+    /// A reversal is registered only when `x` moves back more than this from its extreme.
+    pub reversal_deadband_counts: u32,
+}
+
+impl ModelParams {
+    /// Dead band of the presets: 2 counts (about 1 um of belt on the paper's rig), above the
+    /// +-1 count jitter of a quadrature encoder at standstill.
+    pub const DEFAULT_DEADBAND_COUNTS: u32 = 2;
+
+    /// Travel covered by the Model 3 band tables of [`ModelParams::PAPER`] (+-mm).
+    pub const PAPER_TRAVEL_MM: f64 = 2500.0;
+
+    /// Table 2 for Models 1 and 2; Model 3 sampled from Model 1 (no calibration yet).
+    pub const PAPER: ModelParams = ModelParams {
+        model1: Model1Params::PAPER,
+        model2: Model2Params::PAPER,
+        model3: Model3Params::from_model1(&Model1Params::PAPER, ModelParams::PAPER_TRAVEL_MM),
+        reversal_deadband_counts: ModelParams::DEFAULT_DEADBAND_COUNTS,
+    };
+
+    /// Checks every field and converts to fixed-point coefficients for `rig`. The error names
+    /// the first offending field, e.g. `"model1.h_mm"` or `"model3.forward_band.x_mm"`.
+    pub fn build(&self, rig: &Rig) -> Result<ModelCoeffs, ConfigError> {
+        rig.validate()?;
+        let cpm = rig.counts_per_mm();
+        Ok(ModelCoeffs {
+            model1: self.model1.build(cpm)?,
+            model2: self.model2.build(cpm)?,
+            model3: self.model3.build(cpm)?,
+            deadband_counts: self.reversal_deadband_counts,
+        })
+    }
+}
+
+impl Default for ModelParams {
+    fn default() -> Self {
+        ModelParams::PAPER
+    }
+}
+
+/// Fixed-point coefficients of all three models; immutable per tick. About 5 KiB, dominated by
+/// Model 3's tables.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ModelCoeffs {
+    model1: Model1Coeffs,
+    model2: Model2Coeffs,
+    model3: Model3Coeffs,
+    deadband_counts: u32,
+}
+
+impl ModelCoeffs {
+    /// Model 1's coefficients.
+    pub fn model1(&self) -> &Model1Coeffs {
+        &self.model1
+    }
+
+    /// Model 2's coefficients.
+    pub fn model2(&self) -> &Model2Coeffs {
+        &self.model2
+    }
+
+    /// Model 3's coefficients (tables).
+    pub fn model3(&self) -> &Model3Coeffs {
+        &self.model3
+    }
+
+    /// The reversal dead band.
+    pub fn deadband_counts(&self) -> u32 {
+        self.deadband_counts
+    }
+
+    /// Closing distances of `kind` (both `Some(0)` for [`ModelKind::None`]); `None` in either
+    /// direction is worth a warning at start-up.
+    pub fn closing(&self, kind: ModelKind) -> Closing {
+        match kind {
+            ModelKind::None => Closing::from_mm(Some(0.0), Some(0.0)),
+            ModelKind::Linear => self.model1.closing(),
+            ModelKind::Exponential => self.model2.closing(),
+            ModelKind::Table => self.model3.closing(),
+        }
+    }
+}
+
+/// Per-tick state: the reversal detector, the turning point and Model 3's caches (72 bytes).
+///
+/// Model 3's caches are checked against the coefficients where that is cheap (the band segment
+/// cache compares the segment's length); the `g0` cell and the interpolated transition rows are
+/// refreshed at every reversal. After replacing the coefficients call [`ModelState::reset`]: a
+/// stale cache costs accuracy until the next reversal, never safety.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ModelState {
+    pub(crate) dir: Direction,
+    /// Extreme position reached in the current direction.
+    pub(crate) x_ext_counts: i32,
+    /// Output when the carriage was last at `x_ext` (valid if a model was active then).
+    pub(crate) y_ext_um: I16F16,
+    pub(crate) y_ext_valid: bool,
+    /// Turning point of the last reversal and the output there (before `h_g`).
+    pub(crate) x_d_counts: i32,
+    pub(crate) y_d_um: I16F16,
+    /// A transition from `(x_d, y_d)` is in progress (false at start-up).
+    pub(crate) transition: bool,
+    /// Model 3: band segment caches per direction and the `g0` cell of the current transition.
+    segments: [table::SegmentCache; 2],
+    pub(crate) g0_cell: table::Cell,
+    pub(crate) g0_valid: bool,
+    pub(crate) rows: table::RowCache,
+}
+
+impl ModelState {
+    /// Start at `x0_counts`, moving forward, on the lower band edge.
+    pub const fn new(x0_counts: i32) -> ModelState {
+        ModelState {
+            dir: Direction::Forward,
+            x_ext_counts: x0_counts,
+            y_ext_um: I16F16::ZERO,
+            y_ext_valid: false,
+            x_d_counts: x0_counts,
+            y_d_um: I16F16::ZERO,
+            transition: false,
+            segments: [table::SegmentCache::EMPTY; 2],
+            g0_cell: table::Cell { lo: 0, hi: 0, t: 0 },
+            g0_valid: false,
+            rows: table::RowCache::EMPTY,
+        }
+    }
+
+    /// Back to the start state at `x0_counts` (e.g. after homing or new coefficients).
+    pub fn reset(&mut self, x0_counts: i32) {
+        *self = ModelState::new(x0_counts);
+    }
+
+    /// Forgets the transition but keeps the direction: the estimate continues on the band edge of
+    /// the current direction from `x_counts` (e.g. after new coefficients while standing still).
+    pub fn settle(&mut self, x_counts: i32) {
+        let dir = self.dir;
+        *self = ModelState::new(x_counts);
+        self.dir = dir;
+    }
+
+    /// Direction of motion as last registered.
+    pub fn direction(&self) -> Direction {
+        self.dir
+    }
+
+    /// Position of the last turning point `x_d` (the start position before any reversal).
+    pub fn turning_point_counts(&self) -> i32 {
+        self.x_d_counts
+    }
+
+    /// Error at the last turning point, before the jump `h_g`.
+    pub fn turning_point_error_um(&self) -> I16F16 {
+        self.y_d_um
+    }
+
+    /// Whether a transition is in progress (a reversal was registered with a model active).
+    pub fn in_transition(&self) -> bool {
+        self.transition
+    }
+
+    pub(crate) fn segment_cache(&mut self, dir: Direction) -> &mut table::SegmentCache {
+        match dir {
+            Direction::Forward => &mut self.segments[0],
+            Direction::Reverse => &mut self.segments[1],
+        }
+    }
+
+    /// Copies the other direction's band segment cache into `dir`'s (at a reversal).
+    pub(crate) fn seed_segment_cache(&mut self, dir: Direction) {
+        self.segments = match dir {
+            Direction::Forward => [self.segments[1]; 2],
+            Direction::Reverse => [self.segments[0]; 2],
+        };
+    }
+
+    /// Eqs. 15-16 with the dead band: update the extreme, or register a reversal.
+    #[inline]
+    fn track(&mut self, deadband_counts: u32, x: i32) {
+        let back = match self.dir {
+            Direction::Forward => self.x_ext_counts as i64 - x as i64,
+            Direction::Reverse => x as i64 - self.x_ext_counts as i64,
+        };
+        if back < 0 {
+            self.x_ext_counts = x;
+        } else if back > deadband_counts as i64 {
+            self.dir = match self.dir {
+                Direction::Forward => Direction::Reverse,
+                Direction::Reverse => Direction::Forward,
+            };
+            self.x_d_counts = self.x_ext_counts;
+            self.y_d_um = self.y_ext_um;
+            self.transition = self.y_ext_valid;
+            self.x_ext_counts = x;
+            // Model 3's g0 cell is recomputed on its next tick.
+            self.g0_valid = false;
+        }
+    }
+}
+
+/// One tick: update the reversal detector with `x_counts` (unwrapped motor encoder counts) and
+/// return the estimated error `y = x_LS - x_PE` of model `kind`, in micrometres.
+///
+/// Integer-only, bounded time, no panics for any input.
+pub fn estimate(
+    coeffs: &ModelCoeffs,
+    kind: ModelKind,
+    state: &mut ModelState,
+    x_counts: i32,
+) -> I16F16 {
+    state.track(coeffs.deadband_counts, x_counts);
+    let y = match kind {
+        ModelKind::None => I16F16::ZERO,
+        ModelKind::Linear => linear::eval(&coeffs.model1, state, x_counts),
+        ModelKind::Exponential => exponential::eval(&coeffs.model2, state, x_counts),
+        ModelKind::Table => table::eval(&coeffs.model3, state, x_counts),
+    };
+    if x_counts == state.x_ext_counts {
+        state.y_ext_um = y;
+        state.y_ext_valid = kind != ModelKind::None;
+    }
+    y
+}

@@ -1,0 +1,724 @@
+//! Model 3 (eq. 18): lookup tables.
+//!
+//! Our parametrisation of the paper's `Λ_f, Λ_r, Λ_ft, Λ_rt`:
+//! - **Band tables** `Λ_f(x)` (lower, forward) and `Λ_r(x)` (upper, reverse): an explicit, strictly
+//!   increasing axis along travel (mm in the parameters, rounded to encoder counts at build time)
+//!   with error values in um; linear interpolation, clamped to the end values outside the axis.
+//! - **Transition tables** `G_f(d, g0)`, `G_r(d, g0)`: the remaining gap (um, `>= 0`) between the
+//!   error and the new direction's band edge, as a function of the travel since the reversal
+//!   `d = |x - x_d|` and of the initial gap `g0 = max(0, y_d - Λ_f(x_d))` forward
+//!   (`max(0, Λ_r(x_d) - y_d)` reverse), where `y_d` is the error at the turning point. Both axes
+//!   are uniform and start at 0 (steps `d_step_mm`, `g0_step_um`), so a tick finds its cell by a
+//!   multiply and a shift. The fast jump `h_g` is not applied: the table holds it (its `d = 0`
+//!   row). Forward `y = Λ_f(x) + G_f(d, g0)`, reverse `y = Λ_r(x) - G_r(d, g0)`, bilinear in the
+//!   cell; beyond the last `d` the last row is held (no jump), beyond the last `g0` the last
+//!   column.
+//!
+//! `g0` is clamped at 0 rather than taken as `|y_d - Λ(x_d)|`: the two agree whenever the turning
+//! point lies inside the band, and a turning point outside it then starts on the edge instead of
+//! mirrored to the far side of it.
+//!
+//! Storage: band axes `i32` counts and values `I16F16` um (1 KiB per direction at 128 points);
+//! gaps `U11F5` um (0..2047.97 um in steps of 1/32 um, far finer than the 0.5 um linear scale),
+//! 1.5 KiB per direction at 32 x 24. The whole of [`Model3Coeffs`] is about 5 KiB.
+//!
+//! Per tick: the band segment is found from the previous tick's segment (one or two compares; a
+//! 7-step binary search after a jump), the fraction within the segment by one multiply with the
+//! segment's reciprocal length, cached in the state (computed with two 32/32 `UDIV`s when the
+//! segment changes), the cell of the transition table by one multiply; `g0`'s cell is found once
+//! per reversal (on the first Model 3 tick after it) and cached in the state.
+
+use fixed::types::{I16F16, U11F5};
+
+use super::convert::{finite, um_q16, MAX_ABS_UM};
+use super::fixmath::{lerp_q32, round_i32, Recip};
+use super::linear::Model1Params;
+use super::{Closing, Direction, ModelState};
+use crate::ConfigError;
+
+/// Most points of one band table (`Λ_f` or `Λ_r`).
+pub const MAX_BAND_POINTS: usize = 128;
+/// Most rows (travel since the reversal, `d`) of one transition table.
+pub const MAX_TRANSITION_D: usize = 32;
+/// Most columns (initial gap, `g0`) of one transition table.
+pub const MAX_TRANSITION_G0: usize = 24;
+
+/// One band table in SI-ish units: `len` points `(x_mm[i], y_um[i])`; entries past `len` are
+/// ignored.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BandParams {
+    /// Number of points used, `2..=MAX_BAND_POINTS`.
+    pub len: usize,
+    /// Positions along travel (mm), strictly increasing (also after rounding to counts).
+    pub x_mm: [f64; MAX_BAND_POINTS],
+    /// Error at each position (um), within +-[`MAX_ABS_UM`].
+    pub y_um: [f64; MAX_BAND_POINTS],
+}
+
+impl BandParams {
+    /// A table with no points (invalid until filled).
+    pub const EMPTY: BandParams = BandParams {
+        len: 0,
+        x_mm: [0.0; MAX_BAND_POINTS],
+        y_um: [0.0; MAX_BAND_POINTS],
+    };
+
+    /// A table from `(x_mm, y_um)` points; `None` if there are more than [`MAX_BAND_POINTS`].
+    pub fn from_points(points: &[(f64, f64)]) -> Option<BandParams> {
+        if points.len() > MAX_BAND_POINTS {
+            return None;
+        }
+        let mut b = BandParams::EMPTY;
+        b.len = points.len();
+        for (i, &(x, y)) in points.iter().enumerate() {
+            b.x_mm[i] = x;
+            b.y_um[i] = y;
+        }
+        Some(b)
+    }
+
+    /// The used points `(x_mm, y_um)`.
+    fn points(&self) -> impl Iterator<Item = (f64, f64)> + '_ {
+        self.x_mm
+            .iter()
+            .copied()
+            .zip(self.y_um.iter().copied())
+            .take(self.len)
+    }
+
+    /// Linear interpolation in `f64`, clamped outside the axis (build-time checks).
+    fn value_at(&self, x_mm: f64) -> f64 {
+        let mut prev: Option<(f64, f64)> = None;
+        for (x1, y1) in self.points() {
+            match prev {
+                None if x_mm <= x1 => return y1,
+                Some((x0, y0)) if x_mm < x1 => {
+                    return y0 + (x_mm - x0) / (x1 - x0) * (y1 - y0);
+                }
+                _ => prev = Some((x1, y1)),
+            }
+        }
+        prev.map_or(0.0, |(_, y)| y)
+    }
+}
+
+/// One transition table: `gap_um[i][j] = G(i * d_step_mm, j * g0_step_um)`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TransitionParams {
+    /// Rows used (`d` axis), `2..=MAX_TRANSITION_D`.
+    pub n_d: usize,
+    /// Columns used (`g0` axis), `2..=MAX_TRANSITION_G0`.
+    pub n_g0: usize,
+    /// Spacing of the `d` axis (mm of travel since the reversal), at least two encoder counts.
+    pub d_step_mm: f64,
+    /// Spacing of the `g0` axis (um of initial gap), at least 2^-15 um.
+    pub g0_step_um: f64,
+    /// Remaining gap to the band edge (um), `0..=U11F5::MAX` (2047.97 um).
+    pub gap_um: [[f64; MAX_TRANSITION_G0]; MAX_TRANSITION_D],
+}
+
+impl TransitionParams {
+    /// A table with no cells (invalid until filled).
+    pub const EMPTY: TransitionParams = TransitionParams {
+        n_d: 0,
+        n_g0: 0,
+        d_step_mm: 0.0,
+        g0_step_um: 0.0,
+        gap_um: [[0.0; MAX_TRANSITION_G0]; MAX_TRANSITION_D],
+    };
+}
+
+/// Model 3 parameters: band and transition tables per direction.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Model3Params {
+    /// `Λ_f`: the lower band edge followed moving forward.
+    pub forward_band: BandParams,
+    /// `Λ_r`: the upper band edge followed moving in reverse.
+    pub reverse_band: BandParams,
+    /// `G_f`: transition after a reversal to forward.
+    pub forward_transition: TransitionParams,
+    /// `G_r`: transition after a reversal to reverse.
+    pub reverse_transition: TransitionParams,
+}
+
+/// Points of the band tables [`Model3Params::from_model1`] makes.
+pub const FROM_MODEL1_BAND_POINTS: usize = 9;
+
+impl Model3Params {
+    /// Tables sampled from Model 1, for use before a calibration exists: straight band tables
+    /// `m x - h` and `m x` (um) over `[-travel_mm, travel_mm]`, and full 32 x 24 transition tables
+    /// of Model 1's gap `clamp(g0 - h_g - (a + m) d, 0, h)` (reverse: `b`), with `g0` from 0 to `h`
+    /// and `d` from 0 to just past the closing distance (at least 1 mm; 200 mm if the transition
+    /// never closes). Reproduces Model 1 up to the bilinear interpolation across the kink where the
+    /// transition meets the edge (a few um with Table 2; measured in the tests).
+    pub const fn from_model1(p: &Model1Params, travel_mm: f64) -> Model3Params {
+        let m = p.m_mm_per_mm;
+        let h_um = p.h_mm * 1000.0;
+        let mut forward_band = BandParams::EMPTY;
+        let mut reverse_band = BandParams::EMPTY;
+        forward_band.len = FROM_MODEL1_BAND_POINTS;
+        reverse_band.len = FROM_MODEL1_BAND_POINTS;
+        let mut i = 0;
+        while i < FROM_MODEL1_BAND_POINTS {
+            let x = -travel_mm + 2.0 * travel_mm * i as f64 / (FROM_MODEL1_BAND_POINTS - 1) as f64;
+            forward_band.x_mm[i] = x;
+            reverse_band.x_mm[i] = x;
+            forward_band.y_um[i] = (m * x - p.h_mm) * 1000.0;
+            reverse_band.y_um[i] = m * x * 1000.0;
+            i += 1;
+        }
+        Model3Params {
+            forward_band,
+            reverse_band,
+            forward_transition: model1_transition(p, p.slope_a_mm_per_mm, h_um),
+            reverse_transition: model1_transition(p, p.slope_b_mm_per_mm, h_um),
+        }
+    }
+}
+
+const fn model1_transition(p: &Model1Params, slope: f64, h_um: f64) -> TransitionParams {
+    let closing_slope = slope + p.m_mm_per_mm; // mm of gap closed per mm of travel
+    let gap_mm = p.h_mm - p.h_g_mm;
+    let mut span_mm = if closing_slope > 0.0 && gap_mm > 0.0 {
+        gap_mm / closing_slope
+    } else {
+        200.0
+    };
+    // At least 1 mm, so that a row spans encoder counts on any plausible rig.
+    if span_mm < 1.0 {
+        span_mm = 1.0;
+    }
+    let mut t = TransitionParams::EMPTY;
+    t.n_d = MAX_TRANSITION_D;
+    t.n_g0 = MAX_TRANSITION_G0;
+    // The last row lies one step past the closing distance, so it is all zeros.
+    t.d_step_mm = span_mm / (MAX_TRANSITION_D - 2) as f64;
+    // Up to the band height, but at least 1 um (a degenerate band).
+    t.g0_step_um = if h_um > 1.0 { h_um } else { 1.0 } / (MAX_TRANSITION_G0 - 1) as f64;
+    let mut i = 0;
+    while i < MAX_TRANSITION_D {
+        let d_mm = i as f64 * t.d_step_mm;
+        let mut j = 0;
+        while j < MAX_TRANSITION_G0 {
+            let g0 = j as f64 * t.g0_step_um;
+            let mut g = g0 - p.h_g_mm * 1000.0 - closing_slope * d_mm * 1000.0;
+            if g < 0.0 {
+                g = 0.0;
+            }
+            if g > h_um {
+                g = h_um;
+            }
+            t.gap_um[i][j] = g;
+            j += 1;
+        }
+        i += 1;
+    }
+    t
+}
+
+/// A band table in fixed point: axis in encoder counts, values in Q16.16 um.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct BandCoeffs {
+    len: u8,
+    x_counts: [i32; MAX_BAND_POINTS],
+    y_um: [I16F16; MAX_BAND_POINTS],
+}
+
+/// A transition table in fixed point.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct TransitionCoeffs {
+    n_d: u8,
+    n_g0: u8,
+    /// Rows per count of travel in Q0.32: `d * rows_q32` is the row position in Q32.32, one
+    /// `UMULL` whose high word is the row and low word the fraction. Steps of at least two counts
+    /// keep it below 2^31; the step is honoured to `1 / rows_q32` relative (the reference uses
+    /// the same quantised value).
+    rows_q32: u32,
+    /// Columns per Q16.16 unit of initial gap, in Q0.32 (steps of at least two units).
+    cols_q32: u32,
+    gap_um: [[U11F5; MAX_TRANSITION_G0]; MAX_TRANSITION_D],
+}
+
+/// Model 3 in fixed point; build with [`Model3Params::build`].
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Model3Coeffs {
+    forward_band: BandCoeffs,
+    reverse_band: BandCoeffs,
+    forward_transition: TransitionCoeffs,
+    reverse_transition: TransitionCoeffs,
+    closing: Closing,
+}
+
+struct BandFields {
+    len: &'static str,
+    x: &'static str,
+    y: &'static str,
+}
+
+struct TransitionFields {
+    n_d: &'static str,
+    n_g0: &'static str,
+    d_step: &'static str,
+    g0_step: &'static str,
+    gap: &'static str,
+}
+
+const _: () = assert!(MAX_BAND_POINTS.is_power_of_two() && MAX_TRANSITION_D.is_power_of_two());
+
+const FWD_BAND: BandFields = BandFields {
+    len: "model3.forward_band.len",
+    x: "model3.forward_band.x_mm",
+    y: "model3.forward_band.y_um",
+};
+const REV_BAND: BandFields = BandFields {
+    len: "model3.reverse_band.len",
+    x: "model3.reverse_band.x_mm",
+    y: "model3.reverse_band.y_um",
+};
+const FWD_TRANSITION: TransitionFields = TransitionFields {
+    n_d: "model3.forward_transition.n_d",
+    n_g0: "model3.forward_transition.n_g0",
+    d_step: "model3.forward_transition.d_step_mm",
+    g0_step: "model3.forward_transition.g0_step_um",
+    gap: "model3.forward_transition.gap_um",
+};
+const REV_TRANSITION: TransitionFields = TransitionFields {
+    n_d: "model3.reverse_transition.n_d",
+    n_g0: "model3.reverse_transition.n_g0",
+    d_step: "model3.reverse_transition.d_step_mm",
+    g0_step: "model3.reverse_transition.g0_step_um",
+    gap: "model3.reverse_transition.gap_um",
+};
+
+impl Model3Params {
+    /// Checks and quantises the tables for a rig with `counts_per_mm` counts per mm.
+    ///
+    /// Errors name the table and field: NaN/inf (`NotFinite`), a point count outside its limits
+    /// (`TableSize`), an axis not strictly increasing after rounding to counts (`NotMonotonic`),
+    /// a value outside its format, a negative gap, or a reverse band below the forward band
+    /// (`OutOfRange`, on `model3.reverse_band.y_um`).
+    pub fn build(&self, counts_per_mm: f64) -> Result<Model3Coeffs, ConfigError> {
+        let forward_band = build_band(&self.forward_band, counts_per_mm, &FWD_BAND)?;
+        let reverse_band = build_band(&self.reverse_band, counts_per_mm, &REV_BAND)?;
+        check_band_order(&self.forward_band, &self.reverse_band)?;
+        let forward_transition =
+            build_transition(&self.forward_transition, counts_per_mm, &FWD_TRANSITION)?;
+        let reverse_transition =
+            build_transition(&self.reverse_transition, counts_per_mm, &REV_TRANSITION)?;
+        let closing = Closing::from_mm(
+            forward_transition.closing_mm(counts_per_mm),
+            reverse_transition.closing_mm(counts_per_mm),
+        );
+        Ok(Model3Coeffs {
+            forward_band,
+            reverse_band,
+            forward_transition,
+            reverse_transition,
+            closing,
+        })
+    }
+}
+
+fn build_band(
+    p: &BandParams,
+    counts_per_mm: f64,
+    f: &BandFields,
+) -> Result<BandCoeffs, ConfigError> {
+    if p.len < 2 || p.len > MAX_BAND_POINTS {
+        return Err(ConfigError::TableSize(f.len));
+    }
+    let mut c = BandCoeffs {
+        len: p.len as u8,
+        x_counts: [0; MAX_BAND_POINTS],
+        y_um: [I16F16::ZERO; MAX_BAND_POINTS],
+    };
+    for i in 0..p.len {
+        let x = finite(p.x_mm[i], f.x)? * counts_per_mm;
+        c.x_counts[i] = round_i32(x).ok_or(ConfigError::OutOfRange(f.x))?;
+        c.y_um[i] = um_q16(p.y_um[i], -MAX_ABS_UM, f.y)?;
+        if i > 0 && c.x_counts[i] <= c.x_counts[i - 1] {
+            return Err(ConfigError::NotMonotonic(f.x));
+        }
+    }
+    Ok(c)
+}
+
+/// `Λ_r >= Λ_f` everywhere; both are piecewise linear, so checking every knot of both suffices.
+fn check_band_order(fwd: &BandParams, rev: &BandParams) -> Result<(), ConfigError> {
+    let below = |x: f64| rev.value_at(x) < fwd.value_at(x);
+    let mut knots = fwd.points().chain(rev.points()).map(|(x, _)| x);
+    if knots.any(below) {
+        return Err(ConfigError::OutOfRange(REV_BAND.y));
+    }
+    Ok(())
+}
+
+fn build_transition(
+    p: &TransitionParams,
+    counts_per_mm: f64,
+    f: &TransitionFields,
+) -> Result<TransitionCoeffs, ConfigError> {
+    if p.n_d < 2 || p.n_d > MAX_TRANSITION_D {
+        return Err(ConfigError::TableSize(f.n_d));
+    }
+    if p.n_g0 < 2 || p.n_g0 > MAX_TRANSITION_G0 {
+        return Err(ConfigError::TableSize(f.n_g0));
+    }
+    // Steps of at least two counts / two Q16.16 units keep the positions' scale below 2^32.
+    let d_step_counts = finite(p.d_step_mm, f.d_step)? * counts_per_mm;
+    if d_step_counts < 2.0 {
+        return Err(ConfigError::OutOfRange(f.d_step));
+    }
+    let g0_step_bits = finite(p.g0_step_um, f.g0_step)? * 65536.0;
+    if g0_step_bits < 2.0 || p.g0_step_um > MAX_ABS_UM {
+        return Err(ConfigError::OutOfRange(f.g0_step));
+    }
+    let inv = |step: f64, field| -> Result<u32, ConfigError> {
+        let v = round_i32(4_294_967_296.0 / step).ok_or(ConfigError::OutOfRange(field))?;
+        if v < 1 {
+            // A step beyond 2^33 units cannot be resolved.
+            return Err(ConfigError::OutOfRange(field));
+        }
+        Ok(v as u32)
+    };
+    let mut c = TransitionCoeffs {
+        n_d: p.n_d as u8,
+        n_g0: p.n_g0 as u8,
+        rows_q32: inv(d_step_counts, f.d_step)?,
+        cols_q32: inv(g0_step_bits, f.g0_step)?,
+        gap_um: [[U11F5::ZERO; MAX_TRANSITION_G0]; MAX_TRANSITION_D],
+    };
+    for i in 0..p.n_d {
+        for j in 0..p.n_g0 {
+            let g = finite(p.gap_um[i][j], f.gap)?;
+            c.gap_um[i][j] = U11F5::checked_from_num(g).ok_or(ConfigError::OutOfRange(f.gap))?;
+        }
+    }
+    Ok(c)
+}
+
+impl BandCoeffs {
+    /// Number of points.
+    pub fn len(&self) -> usize {
+        self.len as usize
+    }
+
+    /// Always false for built coefficients (at least two points).
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// The quantised points `(x_counts, y_um)`.
+    pub fn points(&self) -> impl Iterator<Item = (i32, I16F16)> + '_ {
+        self.x_counts
+            .iter()
+            .copied()
+            .zip(self.y_um.iter().copied())
+            .take(self.len())
+    }
+
+    // MAX_BAND_POINTS is a power of two: masking an index proves it in bounds to the compiler
+    // (no panic path, no bounds-check branch); every index used is below `len` anyway.
+    #[inline]
+    fn x(&self, i: usize) -> i32 {
+        self.x_counts[i & (MAX_BAND_POINTS - 1)]
+    }
+
+    #[inline]
+    fn y(&self, i: usize) -> i32 {
+        self.y_um[i & (MAX_BAND_POINTS - 1)].to_bits()
+    }
+
+    /// `Λ(x)` as Q16.16 um bits, using and updating `cache` (the segment found last time and its
+    /// reciprocal length; any content is accepted).
+    ///
+    /// Bounded: the cached segment and its two neighbours are tried first (the usual case at
+    /// control rates), otherwise a binary search of at most 7 steps. The fraction within the
+    /// segment needs a division only when the segment changes (two `UDIV`s in
+    /// [`Recip::new`]); otherwise it is one `UMULL` with the cached reciprocal.
+    #[inline]
+    pub(crate) fn eval(&self, x: i32, cache: &mut SegmentCache) -> i32 {
+        let n = self.len();
+        let last = n.saturating_sub(1);
+        // Fast path: still in the cached segment (its length matches: same table).
+        let h = cache.seg as usize;
+        if h < last {
+            let (x0, x1) = (self.x(h), self.x(h + 1));
+            if x0 <= x && x < x1 && x1.wrapping_sub(x0) as u32 == cache.len {
+                let t = cache.recip.frac(x.wrapping_sub(x0) as u32);
+                return lerp_q32(self.y(h), self.y(h + 1), t);
+            }
+        }
+        if n < 2 || x <= self.x(0) {
+            return self.y(0);
+        }
+        if x >= self.x(last) {
+            return self.y(last);
+        }
+        // Invariant from here: x(0) < x < x(last); find i with x(i) <= x < x(i + 1), trying the
+        // neighbours of the cached segment first.
+        let h = h.min(last - 1);
+        let i = if self.x(h) <= x {
+            if x < self.x(h + 1) {
+                h
+            } else if h + 2 <= last && x < self.x(h + 2) {
+                h + 1
+            } else {
+                self.search(x, h + 1, last)
+            }
+        } else if h >= 1 && self.x(h - 1) <= x {
+            h - 1
+        } else {
+            self.search(x, 0, h)
+        };
+        let (x0, x1) = (self.x(i), self.x(i + 1));
+        // Both differences are in [0, 2^32): exact in wrapping u32 arithmetic.
+        let len = x1.wrapping_sub(x0) as u32;
+        *cache = SegmentCache {
+            seg: i as u8,
+            len,
+            recip: Recip::new(len),
+        };
+        let t = cache.recip.frac(x.wrapping_sub(x0) as u32);
+        lerp_q32(self.y(i), self.y(i + 1), t)
+    }
+
+    /// The `i` in `[lo, hi)` with `x(i) <= x < x(i + 1)`, given `x(lo) <= x < x(hi)`: at most 7
+    /// halvings for 128 points.
+    #[inline(never)]
+    fn search(&self, x: i32, mut lo: usize, mut hi: usize) -> usize {
+        while hi > lo + 1 {
+            let mid = lo + (hi - lo) / 2;
+            if self.x(mid) <= x {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        lo
+    }
+}
+
+/// Per-direction cache of the band segment in use: its index, length (counts) and reciprocal.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub(crate) struct SegmentCache {
+    seg: u8,
+    len: u32,
+    recip: Recip,
+}
+
+impl SegmentCache {
+    /// Matches no segment (a zero length never occurs in a built table).
+    pub(crate) const EMPTY: SegmentCache = SegmentCache {
+        seg: 0,
+        len: 0,
+        recip: Recip::ZERO,
+    };
+}
+
+/// A cell coordinate along one uniform axis: lower index, upper index, fraction in Q0.32.
+/// Past the end of the axis both indices are the last one and the fraction is 0 (hold).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub(crate) struct Cell {
+    pub lo: u8,
+    pub hi: u8,
+    pub t: u32,
+}
+
+impl Cell {
+    #[inline]
+    fn locate(pos_q32: u64, n: u8) -> Cell {
+        let last = n.saturating_sub(1) as u64;
+        let i = pos_q32 >> 32;
+        if i >= last {
+            Cell {
+                lo: last as u8,
+                hi: last as u8,
+                t: 0,
+            }
+        } else {
+            Cell {
+                lo: i as u8,
+                hi: i as u8 + 1,
+                t: pos_q32 as u32,
+            }
+        }
+    }
+}
+
+impl TransitionCoeffs {
+    /// Rows (`d` axis).
+    pub fn n_d(&self) -> usize {
+        self.n_d as usize
+    }
+
+    /// Columns (`g0` axis).
+    pub fn n_g0(&self) -> usize {
+        self.n_g0 as usize
+    }
+
+    /// The quantised gap at row `i`, column `j`.
+    pub fn gap_um(&self, i: usize, j: usize) -> Option<U11F5> {
+        if i >= self.n_d() || j >= self.n_g0() {
+            return None;
+        }
+        self.gap_um.get(i).and_then(|row| row.get(j)).copied()
+    }
+
+    /// Rows per count of travel as used per tick (the quantised inverse of the row spacing).
+    pub fn rows_per_count(&self) -> f64 {
+        self.rows_q32 as f64 / 4_294_967_296.0
+    }
+
+    /// Columns per um of initial gap as used per tick (the quantised inverse of the spacing).
+    pub fn columns_per_um(&self) -> f64 {
+        self.cols_q32 as f64 * 65536.0 / 4_294_967_296.0
+    }
+
+    /// Travel after which every row is zero (all transitions have closed), in mm; `None` if the
+    /// last row holds a non-zero gap.
+    fn closing_mm(&self, counts_per_mm: f64) -> Option<f64> {
+        let mut first_zero = self.n_d();
+        while first_zero > 0 {
+            let row = first_zero - 1;
+            let all_zero = (0..self.n_g0()).all(|j| self.gap_um(row, j) == Some(U11F5::ZERO));
+            if !all_zero {
+                break;
+            }
+            first_zero = row;
+        }
+        if first_zero == self.n_d() {
+            None
+        } else {
+            Some(first_zero as f64 / self.rows_per_count() / counts_per_mm)
+        }
+    }
+
+    /// Column cell of the initial gap `g0` (Q16.16 um bits, `>= 0`).
+    #[inline]
+    pub(crate) fn g0_cell(&self, g0_bits: i32) -> Cell {
+        Cell::locate(g0_bits.max(0) as u64 * self.cols_q32 as u64, self.n_g0)
+    }
+
+    #[inline]
+    fn g(&self, i: u8, j: u8) -> i32 {
+        // Rows: MAX_TRANSITION_D is a power of two, masking proves the bound; columns: checked.
+        let row = &self.gap_um[i as usize & (MAX_TRANSITION_D - 1)];
+        let raw = row.get(j as usize).map_or(0, |v| v.to_bits());
+        // U11F5 -> Q16.16: < 2^27, no overflow.
+        (raw as i32) << 11
+    }
+
+    /// `G(d, g0)` in Q16.16 um bits for `d_counts` of travel and the column cell `col` of `g0`.
+    ///
+    /// `g0` is fixed during a transition, so the two rows around `d`, interpolated at `g0`, are
+    /// kept in `rows` and recomputed only when `d` enters another row pair: a typical tick is one
+    /// multiply (the row position) and one interpolation.
+    #[inline]
+    pub(crate) fn eval(&self, d_counts: u32, col: Cell, rows: &mut RowCache) -> i32 {
+        let row = Cell::locate(d_counts as u64 * self.rows_q32 as u64, self.n_d);
+        if !rows.valid || rows.lo != row.lo || rows.hi != row.hi {
+            *rows = RowCache {
+                valid: true,
+                lo: row.lo,
+                hi: row.hi,
+                near: lerp_q32(self.g(row.lo, col.lo), self.g(row.lo, col.hi), col.t),
+                far: lerp_q32(self.g(row.hi, col.lo), self.g(row.hi, col.hi), col.t),
+            };
+        }
+        lerp_q32(rows.near, rows.far, row.t)
+    }
+}
+
+/// The two rows of the transition table around the current `d`, interpolated at the
+/// transition's `g0` (Q16.16 um bits).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub(crate) struct RowCache {
+    pub valid: bool,
+    lo: u8,
+    hi: u8,
+    near: i32,
+    far: i32,
+}
+
+impl RowCache {
+    /// Empty: recomputed on first use.
+    pub(crate) const EMPTY: RowCache = RowCache {
+        valid: false,
+        lo: 0,
+        hi: 0,
+        near: 0,
+        far: 0,
+    };
+}
+
+impl Model3Coeffs {
+    /// The band table followed in direction `dir` (`Λ_f` forward, `Λ_r` reverse).
+    pub fn band(&self, dir: Direction) -> &BandCoeffs {
+        match dir {
+            Direction::Forward => &self.forward_band,
+            Direction::Reverse => &self.reverse_band,
+        }
+    }
+
+    /// The transition table used after a reversal into direction `dir`.
+    pub fn transition(&self, dir: Direction) -> &TransitionCoeffs {
+        match dir {
+            Direction::Forward => &self.forward_transition,
+            Direction::Reverse => &self.reverse_transition,
+        }
+    }
+
+    /// Travel after which the tables' transitions have closed, per direction.
+    pub fn closing(&self) -> Closing {
+        self.closing
+    }
+}
+
+/// The column cell of `g0` for the transition in progress: `g0 = max(0, y_d - Λ_f(x_d))` forward,
+/// `max(0, Λ_r(x_d) - y_d)` reverse. Computed once per reversal, on the first Model 3 tick after
+/// it (a reversal under another model costs nothing here; switching to Model 3 mid-transition
+/// gives the same cell as computing it at the reversal).
+#[inline(never)]
+fn g0_cell(c: &Model3Coeffs, s: &mut ModelState) -> Cell {
+    let dir = s.dir;
+    // The turning point was last evaluated in the other direction's band: start from that
+    // segment. A segment cache is valid for any table whose segment at that index has the same
+    // length (the reciprocal depends on the length only), so with a shared axis this hits, and
+    // otherwise it just falls back to the search.
+    s.seed_segment_cache(dir);
+    let edge = c.band(dir).eval(s.x_d_counts, s.segment_cache(dir));
+    let y_d = s.y_d_um.to_bits() as i64;
+    let g0 = match dir {
+        Direction::Forward => y_d - edge as i64,
+        Direction::Reverse => edge as i64 - y_d,
+    };
+    let g0 = g0.clamp(0, i32::MAX as i64) as i32;
+    c.transition(dir).g0_cell(g0)
+}
+
+/// One step of eq. 18 in our parametrisation.
+#[inline]
+pub(crate) fn eval(c: &Model3Coeffs, s: &mut ModelState, x_counts: i32) -> I16F16 {
+    let dir = s.dir;
+    if !s.transition {
+        return I16F16::from_bits(c.band(dir).eval(x_counts, s.segment_cache(dir)));
+    }
+    if !s.g0_valid {
+        s.g0_cell = g0_cell(c, s);
+        s.g0_valid = true;
+        s.rows.valid = false;
+    }
+    let edge = c.band(dir).eval(x_counts, s.segment_cache(dir));
+    let dx = x_counts as i64 - s.x_d_counts as i64;
+    let d = match dir {
+        Direction::Forward => dx,
+        Direction::Reverse => -dx,
+    };
+    let d = d.clamp(0, u32::MAX as i64) as u32;
+    let gap = c.transition(dir).eval(d, s.g0_cell, &mut s.rows);
+    I16F16::from_bits(match dir {
+        Direction::Forward => edge.saturating_add(gap),
+        Direction::Reverse => edge.saturating_sub(gap),
+    })
+}

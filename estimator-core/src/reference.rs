@@ -1,0 +1,279 @@
+//! `f64` reference of the transmission-error models, written straight from the paper's equations
+//! (eqs. 14-18) in the paper's units (mm), for tests and the host simulator.
+//!
+//! Same semantics as [`crate::model`]: the same reversal detector (integer counts, dead band,
+//! direction kept at standstill), the same start state, the same parameters converted with the
+//! same `counts_per_mm`. Models 1 and 2 use the SI parameters as given. Model 3 uses the table
+//! values of the *quantised* coefficients converted back to `f64`, so that only the arithmetic is
+//! compared, not the quantisation of calibration data.
+
+use crate::model::{BandCoeffs, Direction, ModelKind, ModelParams, TransitionCoeffs};
+use crate::model::{Model1Params, Model2Params};
+use crate::rig::Rig;
+use crate::ConfigError;
+
+/// A Model 3 band table as `f64`: `(x_counts, y_mm)`.
+#[derive(Clone, Debug)]
+struct RefBand(Vec<(f64, f64)>);
+
+impl RefBand {
+    fn from_coeffs(b: &BandCoeffs) -> RefBand {
+        RefBand(
+            b.points()
+                .map(|(x, y)| (x as f64, y.to_num::<f64>() / 1000.0))
+                .collect(),
+        )
+    }
+
+    /// Linear interpolation, clamped outside the axis.
+    fn at(&self, x: f64) -> f64 {
+        let p = &self.0;
+        if x <= p[0].0 {
+            return p[0].1;
+        }
+        for w in p.windows(2) {
+            let ((x0, y0), (x1, y1)) = (w[0], w[1]);
+            if x < x1 {
+                return y0 + (y1 - y0) * (x - x0) / (x1 - x0);
+            }
+        }
+        p[p.len() - 1].1
+    }
+}
+
+/// A Model 3 transition table as `f64` (gaps in mm).
+#[derive(Clone, Debug)]
+struct RefTransition {
+    rows_per_count: f64,
+    cols_per_mm: f64,
+    gap_mm: Vec<Vec<f64>>,
+}
+
+impl RefTransition {
+    fn from_coeffs(t: &TransitionCoeffs) -> RefTransition {
+        RefTransition {
+            rows_per_count: t.rows_per_count(),
+            cols_per_mm: t.columns_per_um() * 1000.0,
+            gap_mm: (0..t.n_d())
+                .map(|i| {
+                    (0..t.n_g0())
+                        .map(|j| t.gap_um(i, j).unwrap().to_num::<f64>() / 1000.0)
+                        .collect()
+                })
+                .collect(),
+        }
+    }
+
+    /// Cell along a uniform axis: (lower, upper, fraction); held at the last index.
+    fn cell(pos: f64, n: usize) -> (usize, usize, f64) {
+        let last = n - 1;
+        let i = pos.floor();
+        if i >= last as f64 {
+            (last, last, 0.0)
+        } else {
+            (i as usize, i as usize + 1, pos - i)
+        }
+    }
+
+    /// Bilinear `G(d, g0)` (mm) at `d` counts of travel and `g0` mm of initial gap.
+    fn at(&self, d_counts: f64, g0_mm: f64) -> f64 {
+        let (i0, i1, s) = Self::cell(d_counts * self.rows_per_count, self.gap_mm.len());
+        let (j0, j1, t) = Self::cell(g0_mm * self.cols_per_mm, self.gap_mm[0].len());
+        let g = &self.gap_mm;
+        (1.0 - s) * ((1.0 - t) * g[i0][j0] + t * g[i0][j1])
+            + s * ((1.0 - t) * g[i1][j0] + t * g[i1][j1])
+    }
+}
+
+/// The reference models with their own reversal detector.
+#[derive(Clone, Debug)]
+pub struct Reference {
+    counts_per_mm: f64,
+    deadband_counts: u32,
+    m1: Model1Params,
+    m2: Model2Params,
+    band_f: RefBand,
+    band_r: RefBand,
+    trans_f: RefTransition,
+    trans_r: RefTransition,
+    // Detector and turning point (errors in mm).
+    dir: Direction,
+    x_ext: i32,
+    y_ext_mm: f64,
+    y_ext_valid: bool,
+    x_d: i32,
+    y_d_mm: f64,
+    transition: bool,
+    g0_mm: f64,
+}
+
+impl Reference {
+    /// The reference for `params` on `rig`, starting at `x0_counts` like
+    /// [`ModelState::new`](crate::model::ModelState::new). Fails where `params.build(rig)` fails.
+    pub fn new(params: &ModelParams, rig: &Rig, x0_counts: i32) -> Result<Reference, ConfigError> {
+        let c = params.build(rig)?;
+        let m3 = c.model3();
+        Ok(Reference {
+            counts_per_mm: rig.counts_per_mm(),
+            deadband_counts: params.reversal_deadband_counts,
+            m1: params.model1,
+            m2: params.model2,
+            band_f: RefBand::from_coeffs(m3.band(Direction::Forward)),
+            band_r: RefBand::from_coeffs(m3.band(Direction::Reverse)),
+            trans_f: RefTransition::from_coeffs(m3.transition(Direction::Forward)),
+            trans_r: RefTransition::from_coeffs(m3.transition(Direction::Reverse)),
+            dir: Direction::Forward,
+            x_ext: x0_counts,
+            y_ext_mm: 0.0,
+            y_ext_valid: false,
+            x_d: x0_counts,
+            y_d_mm: 0.0,
+            transition: false,
+            g0_mm: 0.0,
+        })
+    }
+
+    /// Back to the start state at `x0_counts`.
+    pub fn reset(&mut self, x0_counts: i32) {
+        self.dir = Direction::Forward;
+        self.x_ext = x0_counts;
+        self.y_ext_mm = 0.0;
+        self.y_ext_valid = false;
+        self.x_d = x0_counts;
+        self.y_d_mm = 0.0;
+        self.transition = false;
+        self.g0_mm = 0.0;
+    }
+
+    /// Direction as last registered.
+    pub fn direction(&self) -> Direction {
+        self.dir
+    }
+
+    /// One step: the error estimate of `kind` at `x_counts`, in micrometres.
+    pub fn estimate_um(&mut self, kind: ModelKind, x_counts: i32) -> f64 {
+        self.track(x_counts);
+        let y_mm = match kind {
+            ModelKind::None => 0.0,
+            ModelKind::Linear => self.model1(x_counts),
+            ModelKind::Exponential => self.model2(x_counts),
+            ModelKind::Table => self.model3(x_counts),
+        };
+        if x_counts == self.x_ext {
+            self.y_ext_mm = y_mm;
+            self.y_ext_valid = kind != ModelKind::None;
+        }
+        y_mm * 1000.0
+    }
+
+    /// Eqs. 15, 16: a reversal when `x` is more than the dead band back from the extreme.
+    fn track(&mut self, x: i32) {
+        let back = match self.dir {
+            Direction::Forward => self.x_ext as i64 - x as i64,
+            Direction::Reverse => x as i64 - self.x_ext as i64,
+        };
+        if back < 0 {
+            self.x_ext = x;
+        } else if back > self.deadband_counts as i64 {
+            self.dir = match self.dir {
+                Direction::Forward => Direction::Reverse,
+                Direction::Reverse => Direction::Forward,
+            };
+            self.x_d = self.x_ext;
+            self.y_d_mm = self.y_ext_mm;
+            self.transition = self.y_ext_valid;
+            self.x_ext = x;
+            let x_d = self.x_d as f64;
+            self.g0_mm = match self.dir {
+                Direction::Forward => self.y_d_mm - self.band_f.at(x_d),
+                Direction::Reverse => self.band_r.at(x_d) - self.y_d_mm,
+            }
+            .max(0.0);
+        }
+    }
+
+    fn mm(&self, counts: f64) -> f64 {
+        counts / self.counts_per_mm
+    }
+
+    /// `x(k) - x_d(k)` in mm.
+    fn since_turn_mm(&self, x: i32) -> f64 {
+        self.mm(x as f64 - self.x_d as f64)
+    }
+
+    /// Eq. 14, bounded by the band on both sides.
+    fn model1(&self, x: i32) -> f64 {
+        let p = &self.m1;
+        let xm = self.mm(x as f64);
+        let (lower, upper) = (p.m_mm_per_mm * xm - p.h_mm, p.m_mm_per_mm * xm);
+        if !self.transition {
+            return match self.dir {
+                Direction::Forward => lower,
+                Direction::Reverse => upper,
+            };
+        }
+        let u = match self.dir {
+            Direction::Forward => {
+                (self.y_d_mm - p.h_g_mm) - p.slope_a_mm_per_mm * self.since_turn_mm(x)
+            }
+            Direction::Reverse => {
+                (self.y_d_mm + p.h_g_mm) - p.slope_b_mm_per_mm * self.since_turn_mm(x)
+            }
+        };
+        u.max(lower).min(upper)
+    }
+
+    /// Eq. 17, bounded by the band on both sides.
+    fn model2(&self, x: i32) -> f64 {
+        let p = &self.m2;
+        let xm = self.mm(x as f64);
+        let (lower, upper) = (p.m_mm_per_mm * xm - p.h_mm, p.m_mm_per_mm * xm);
+        if !self.transition {
+            return match self.dir {
+                Direction::Forward => lower,
+                Direction::Reverse => upper,
+            };
+        }
+        let dx = self.since_turn_mm(x);
+        let u = match self.dir {
+            Direction::Forward => {
+                let e = (p.rate_a_per_mm * dx.max(0.0)).exp();
+                (self.y_d_mm - p.h_g_mm) - p.amplitude_a_mm * (1.0 - e)
+            }
+            Direction::Reverse => {
+                let e = (-p.rate_b_per_mm * dx.min(0.0)).exp();
+                (self.y_d_mm + p.h_g_mm) + p.amplitude_b_mm * (1.0 - e)
+            }
+        };
+        u.max(lower).min(upper)
+    }
+
+    /// Eq. 18 in our parametrisation (see [`crate::model::table`]).
+    fn model3(&self, x: i32) -> f64 {
+        let xf = x as f64;
+        // Travel since the turning point in the current direction (>= 1 count in a transition).
+        let dx = xf - self.x_d as f64;
+        let d = match self.dir {
+            Direction::Forward => dx.max(0.0),
+            Direction::Reverse => (-dx).max(0.0),
+        };
+        match self.dir {
+            Direction::Forward => {
+                let edge = self.band_f.at(xf);
+                if self.transition {
+                    edge + self.trans_f.at(d, self.g0_mm)
+                } else {
+                    edge
+                }
+            }
+            Direction::Reverse => {
+                let edge = self.band_r.at(xf);
+                if self.transition {
+                    edge - self.trans_r.at(d, self.g0_mm)
+                } else {
+                    edge
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,751 @@
+//! Trapezoidal velocity profile in motor encoder counts, one step per control tick.
+//!
+//! Position, velocity and acceleration share one fixed-point grid, [`I40F24`]: counts,
+//! counts/tick and counts/tick² with 24 fractional bits. Sharing the grid makes
+//! `velocity += dv` and `position += velocity` exact integer additions, so the setpoint lands on the
+//! target count with no residual and no drift, however long the move. 24 bits resolve 0.013 mm/s²
+//! of acceleration at 20 kHz on [`Rig::PAPER`]; the 40 integer bits leave room for any `i32`
+//! target plus the overshoot of a reversal, so differences never overflow.
+//!
+//! # Algorithm
+//! Each tick picks the fastest speed `w` that (a) changes the speed by at most one tick of
+//! acceleration (speeding up) or deceleration (slowing down), (b) does not exceed the velocity
+//! limit, and (c) still lets the carriage stop exactly on the target: the distance covered by `w`
+//! and then full braking, `w + (w - d) + (w - 2d) + ... ` (the run-out `S(w)`), must fit in the
+//! distance left. Writing `w = (n - 1) d + r` with `0 < r <= d`, `S(w) = n r + d n (n - 1) / 2`:
+//! one 32x32->64 and one 32x64 multiply, no division and no square root. `n` and `r` are kept up
+//! to date by additions as the speed changes, because the decomposition would otherwise need a
+//! division.
+//!
+//! Once `S(w) <= remaining` holds it holds forever (braking by exactly `d` from `w` leaves
+//! `S(w - d) = S(w) - w`), so the profile always arrives, and within one deceleration of rest
+//! `S(w) = w`, so the last step takes exactly what is left. When `S(w) > remaining` the speed is
+//! raised above `w - d` by `slack / 2^ceil(log2(n + 1))`, a shift standing in for `slack / n`:
+//! it never overshoots and absorbs at least half the slack each tick.
+//!
+//! If the carriage cannot stop at a new target (behind it, or too close ahead) it brakes at full
+//! deceleration to rest, then starts a fresh move back: a reversal passes through zero velocity
+//! (one tick at `v = 0` at most) and never steps the velocity.
+
+use fixed::types::I40F24;
+
+use crate::rig::Rig;
+use crate::ConfigError;
+
+/// Fractional bits of the counts grid shared by position, velocity and acceleration.
+const FRAC_BITS: u32 = 24;
+const ONE_COUNT: i64 = 1 << FRAC_BITS;
+/// Fastest profile: 2048 counts/tick (2.2 m/s at 2 kHz, 548 mm/s at 500 Hz on the paper's rig).
+const MAX_VELOCITY_BITS: u64 = 1 << (11 + FRAC_BITS);
+/// Steepest ramp: just under 64 counts/tick² (8.5 m/s² at 500 Hz); keeps `r + k < 2^31`.
+const MAX_ACCEL_BITS: u64 = (1 << 30) - 1;
+/// Longest braking distance from full speed: 2^31 counts (1150 m). Bounds every run-out, so the
+/// run-out arithmetic fits `u64` and positions stay within ±2^32 counts.
+const MAX_RUN_OUT_BITS: u128 = 1 << (31 + FRAC_BITS);
+
+/// Motion limits in SI units, converted by [`Config::build`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Config {
+    /// Cruise speed (velocity limit).
+    pub velocity_mm_s: f64,
+    /// Acceleration limit while speeding up.
+    pub acceleration_mm_s2: f64,
+    /// Deceleration limit while slowing down (a positive number).
+    pub deceleration_mm_s2: f64,
+    /// Control rate: one profile step per tick.
+    pub rate_hz: f64,
+}
+
+impl Config {
+    /// Moderate moves for the paper's rig at 2 kHz: 100 mm/s (the middle of the paper's 5-250 mm/s
+    /// tests) and 2000 mm/s² both ways, which the 150 W motor through 23.7:1 delivers with about
+    /// 2 A of the 8 A limit (≈33 kg effective mass, mostly reflected rotor inertia).
+    pub const PAPER_RIG: Config = Config {
+        velocity_mm_s: 100.0,
+        acceleration_mm_s2: 2000.0,
+        deceleration_mm_s2: 2000.0,
+        rate_hz: 2000.0,
+    };
+
+    /// Converts to per-tick limits in counts, rounding every limit down so the profile never
+    /// exceeds what was asked for.
+    pub fn build(&self, rig: &Rig) -> Result<Coeffs, ConfigError> {
+        rig.validate()?;
+        let rate_hz = self.rate_hz;
+        if !rate_hz.is_finite() {
+            return Err(ConfigError::NotFinite("trajectory.rate_hz"));
+        }
+        if !(100.0..=100_000.0).contains(&rate_hz) {
+            return Err(ConfigError::OutOfRange("trajectory.rate_hz"));
+        }
+        let counts_per_mm = rig.counts_per_mm();
+        let velocity = grid_floor(
+            self.velocity_mm_s,
+            counts_per_mm / rate_hz,
+            MAX_VELOCITY_BITS,
+            "trajectory.velocity_mm_s",
+        )?;
+        let per_tick2 = counts_per_mm / (rate_hz * rate_hz);
+        let acceleration = grid_floor(
+            self.acceleration_mm_s2,
+            per_tick2,
+            MAX_ACCEL_BITS,
+            "trajectory.acceleration_mm_s2",
+        )?;
+        let deceleration = grid_floor(
+            self.deceleration_mm_s2,
+            per_tick2,
+            MAX_ACCEL_BITS,
+            "trajectory.deceleration_mm_s2",
+        )?;
+        Coeffs::new(
+            I40F24::from_bits(velocity as i64),
+            I40F24::from_bits(acceleration as i64),
+            I40F24::from_bits(deceleration as i64),
+        )
+    }
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self::PAPER_RIG
+    }
+}
+
+/// `value * scale` on the counts grid, rounded down; `1 ..= max_bits` LSBs.
+fn grid_floor(value: f64, scale: f64, max_bits: u64, field: &'static str) -> Result<u64, ConfigError> {
+    if !value.is_finite() {
+        return Err(ConfigError::NotFinite(field));
+    }
+    let bits = value * scale * ONE_COUNT as f64;
+    if !(bits >= 1.0 && bits <= max_bits as f64) {
+        return Err(ConfigError::OutOfRange(field));
+    }
+    // Truncation is floor for a positive value (`f64::floor` is not in `core`).
+    Ok(bits as u64)
+}
+
+/// Per-tick limits on the counts grid, with the constants the per-tick step needs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Coeffs {
+    /// Velocity limit, LSBs of counts/tick.
+    velocity: u64,
+    /// Acceleration limit, LSBs of counts/tick².
+    accel: u32,
+    /// Deceleration limit, LSBs of counts/tick².
+    decel: u32,
+    /// `accel = accel_decels * decel + accel_rem`, `accel_rem < decel`.
+    accel_decels: u32,
+    accel_rem: u32,
+    /// `velocity = (velocity_n - 1) * decel + velocity_r`, `0 < velocity_r <= decel`.
+    velocity_n: u32,
+    velocity_r: u32,
+    /// Run-out from the velocity limit: beyond it the brake check is skipped.
+    velocity_run_out: u64,
+}
+
+impl Coeffs {
+    /// Coefficients from limits already on the counts grid (no floats): velocity in counts/tick,
+    /// acceleration and deceleration in counts/tick², all positive. Velocity up to 2048
+    /// counts/tick, acceleration and deceleration below 64 counts/tick², braking distance from
+    /// full speed up to 2^31 counts (else the deceleration is named as out of range).
+    pub fn new(
+        velocity_counts_per_tick: I40F24,
+        acceleration_counts_per_tick2: I40F24,
+        deceleration_counts_per_tick2: I40F24,
+    ) -> Result<Self, ConfigError> {
+        let in_range = |x: I40F24, max: u64, field| {
+            let bits = x.to_bits();
+            if bits >= 1 && bits as u64 <= max {
+                Ok(bits as u64)
+            } else {
+                Err(ConfigError::OutOfRange(field))
+            }
+        };
+        let velocity = in_range(
+            velocity_counts_per_tick,
+            MAX_VELOCITY_BITS,
+            "trajectory.velocity_mm_s",
+        )?;
+        let accel = in_range(
+            acceleration_counts_per_tick2,
+            MAX_ACCEL_BITS,
+            "trajectory.acceleration_mm_s2",
+        )? as u32;
+        let decel = in_range(
+            deceleration_counts_per_tick2,
+            MAX_ACCEL_BITS,
+            "trajectory.deceleration_mm_s2",
+        )? as u32;
+        // Divisions are fine here: once per configuration, never per tick.
+        let velocity_n = velocity.div_ceil(decel as u64);
+        let run_out =
+            velocity_n as u128 * (velocity_n as u128 - 1) / 2 * decel as u128 + velocity_n as u128 * decel as u128;
+        // Upper bound (r <= d) of the run-out; rejects before `velocity_n` can overflow a u32.
+        if run_out > MAX_RUN_OUT_BITS {
+            return Err(ConfigError::OutOfRange("trajectory.deceleration_mm_s2"));
+        }
+        let velocity_n = velocity_n as u32;
+        let velocity_r = (velocity - (velocity_n as u64 - 1) * decel as u64) as u32;
+        Ok(Self {
+            velocity,
+            accel,
+            decel,
+            accel_decels: accel / decel,
+            accel_rem: accel % decel,
+            velocity_n,
+            velocity_r,
+            velocity_run_out: run_out_bits(decel, velocity_n, velocity_r),
+        })
+    }
+
+    /// Velocity limit.
+    pub fn velocity_counts_per_tick(&self) -> I40F24 {
+        I40F24::from_bits(self.velocity as i64)
+    }
+
+    /// Acceleration limit.
+    pub fn acceleration_counts_per_tick2(&self) -> I40F24 {
+        I40F24::from_bits(self.accel as i64)
+    }
+
+    /// Deceleration limit.
+    pub fn deceleration_counts_per_tick2(&self) -> I40F24 {
+        I40F24::from_bits(self.decel as i64)
+    }
+
+    /// Distance needed to stop from the velocity limit, counting the current tick.
+    pub fn run_out_counts(&self) -> I40F24 {
+        I40F24::from_bits(self.velocity_run_out as i64)
+    }
+}
+
+impl Default for Coeffs {
+    fn default() -> Self {
+        match Config::PAPER_RIG.build(&Rig::PAPER) {
+            Ok(c) => c,
+            // Unreachable: the default configuration is valid (tested). A slow fallback rather
+            // than a panic path.
+            Err(_) => Self {
+                velocity: 1,
+                accel: 1,
+                decel: 1,
+                accel_decels: 1,
+                accel_rem: 0,
+                velocity_n: 1,
+                velocity_r: 1,
+                velocity_run_out: 1,
+            },
+        }
+    }
+}
+
+/// Distance in LSBs covered by speed `w = (n - 1) d + r` this tick and by full braking after:
+/// `w + (w - d) + ... + r = n r + d n (n - 1) / 2`. Exact: `n <= 2^28` and the result is at most
+/// the run-out from the velocity limit (< 2^55) for every speed the profile can reach.
+#[inline(always)]
+fn run_out_bits(d: u32, n: u32, r: u32) -> u64 {
+    let n = n as u64;
+    // 32x32->64: n < 2^32.
+    let triangle = (n * n.saturating_sub(1)) >> 1;
+    (d as u64)
+        .wrapping_mul(triangle)
+        .wrapping_add(n * r as u64)
+}
+
+/// The fastest speed in `[lo, hi]` whose run-out fits in `ahead`, given
+/// `S(lo) = lo_run_out <= ahead < S(hi)`; each speed as `(w, n, r)`. Never overshoots; may fall
+/// short of the optimum by less than half the remaining slack, which the next tick takes up.
+#[inline]
+fn fit(
+    d: u32,
+    (lo, lo_n, lo_r): (u64, u32, u32),
+    lo_run_out: u64,
+    hi: (u64, u32, u32),
+    ahead: u64,
+) -> (u64, u32, u32) {
+    // 1. Whole decelerations above `lo`: `lo + j d` is `(lo_n + j, lo_r)`, so its run-out needs no
+    // division. Bisect for the largest `j` that fits. `j_max` counts the whole steps below `hi`;
+    // it is 1 or 2 when acceleration <= deceleration, and the first probe (`j = 1`, i.e. holding the
+    // current speed) usually settles a braking tick. At most 29 probes (`n < 2^28`).
+    //
+    // Arithmetic here and in `tick` cannot wrap (speeds <= the velocity limit, `n < 2^28`,
+    // `r + k < 2^31`, run-outs < 2^55); it is spelled `wrapping_*` so that debug and release
+    // builds compile to the same panic-free code.
+    let j_max = hi.1.wrapping_sub(lo_n).wrapping_sub((hi.2 < lo_r) as u32);
+    let (mut j_fit, mut run_fit) = (0u32, lo_run_out);
+    let mut j_over = j_max.wrapping_add(1);
+    while j_over.wrapping_sub(j_fit) > 1 {
+        let j = j_fit.wrapping_add(j_over.wrapping_sub(j_fit) >> 1);
+        let run = run_out_bits(d, lo_n.wrapping_add(j), lo_r);
+        if run <= ahead {
+            (j_fit, run_fit) = (j, run);
+        } else {
+            j_over = j;
+        }
+    }
+    let base = lo.wrapping_add(j_fit as u64 * d as u64);
+    let n = lo_n.wrapping_add(j_fit);
+    // 2. Within one deceleration above `base` the slope of `S` is at most `n + 1`, so
+    // `k = slack >> ceil(log2(n + 1)) <= slack / (n + 1)` keeps `S(base + k) <= ahead`, and takes
+    // at least half the slack.
+    let slack = ahead.wrapping_sub(run_fit);
+    let k = core::cmp::min(slack >> (u32::BITS - n.leading_zeros()), d as u64) as u32;
+    let w = base.wrapping_add(k as u64);
+    if w >= hi.0 {
+        return hi;
+    }
+    let (mut n, mut r) = (n, lo_r.wrapping_add(k));
+    if r > d {
+        r -= d;
+        n = n.wrapping_add(1);
+    }
+    (w, n, r)
+}
+
+/// One tick of the profile: where the carriage should be at the end of the tick.
+///
+/// Every `Setpoint` is within the ranges the PID's 32-bit datapath relies on: position within the
+/// `i32` count range, |velocity| <= 2048 counts/tick, |acceleration| < 64 counts/tick². The
+/// profile stays within them by construction (it never passes its target, so the position stays
+/// between the start and the targets); [`Setpoint::new`] saturates anything else.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Setpoint {
+    /// LSBs of I40F24 counts, counts/tick and counts/tick².
+    pub(crate) position: i64,
+    pub(crate) velocity: i64,
+    pub(crate) acceleration: i64,
+    pub(crate) done: bool,
+}
+
+impl Setpoint {
+    /// A setpoint from arbitrary values, saturated to the ranges above; `done` if not moving.
+    pub fn new(
+        position_counts: I40F24,
+        velocity_counts_per_tick: I40F24,
+        acceleration_counts_per_tick2: I40F24,
+    ) -> Self {
+        let velocity = velocity_counts_per_tick
+            .to_bits()
+            .clamp(-(MAX_VELOCITY_BITS as i64), MAX_VELOCITY_BITS as i64);
+        Self {
+            position: position_counts.to_bits().clamp(
+                (i32::MIN as i64) << FRAC_BITS,
+                ((i32::MAX as i64) << FRAC_BITS) | (ONE_COUNT - 1),
+            ),
+            velocity,
+            acceleration: acceleration_counts_per_tick2
+                .to_bits()
+                .clamp(-(MAX_ACCEL_BITS as i64), MAX_ACCEL_BITS as i64),
+            done: velocity == 0,
+        }
+    }
+
+    /// A setpoint standing still at `position_counts`.
+    pub fn at_rest(position_counts: i32) -> Self {
+        Self {
+            position: (position_counts as i64) << FRAC_BITS,
+            velocity: 0,
+            acceleration: 0,
+            done: true,
+        }
+    }
+
+    /// Setpoint position.
+    pub fn position_counts(&self) -> I40F24 {
+        I40F24::from_bits(self.position)
+    }
+
+    /// Step taken this tick (`position - previous position`): the feed-forward velocity.
+    pub fn velocity_counts_per_tick(&self) -> I40F24 {
+        I40F24::from_bits(self.velocity)
+    }
+
+    /// Velocity change this tick: the feed-forward acceleration.
+    pub fn acceleration_counts_per_tick2(&self) -> I40F24 {
+        I40F24::from_bits(self.acceleration)
+    }
+
+    /// At rest on the target.
+    pub fn is_done(&self) -> bool {
+        self.done
+    }
+}
+
+/// [`Trajectory::set_coeffs`] refused: the profile is moving.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct NotAtRest;
+
+/// The profile generator: limits plus state.
+///
+/// Unlike the encoder and the PID, limits and state live together: the state carries a
+/// decomposition of the speed in units of the deceleration, which is only valid for the limits
+/// it was built with, so limits can change only at rest ([`Trajectory::set_coeffs`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Trajectory {
+    coeffs: Coeffs,
+    /// LSBs of counts.
+    position: i64,
+    target: i64,
+    /// LSBs of counts/tick, signed.
+    velocity: i64,
+    /// `|velocity| = (n - 1) * decel + r`, `0 < r <= decel`; at rest `n = 0, r = decel`.
+    n: u32,
+    r: u32,
+}
+
+impl Trajectory {
+    /// At rest on `position_counts`.
+    pub fn new(coeffs: Coeffs, position_counts: i32) -> Self {
+        let position = (position_counts as i64) << FRAC_BITS;
+        Self {
+            coeffs,
+            position,
+            target: position,
+            velocity: 0,
+            n: 0,
+            r: coeffs.decel,
+        }
+    }
+
+    /// Jumps to rest on `position_counts` (e.g. the measured position when re-enabling the
+    /// drive), dropping the target.
+    pub fn reset(&mut self, position_counts: i32) {
+        *self = Self::new(self.coeffs, position_counts);
+    }
+
+    /// Moves to `target_counts`, starting from the current state: a target behind the carriage (or
+    /// too close to stop for) is reached by braking to rest and coming back.
+    pub fn set_target(&mut self, target_counts: i32) {
+        self.target = (target_counts as i64) << FRAC_BITS;
+    }
+
+    /// Decelerates to rest at the deceleration limit; the stopping point (generally between two
+    /// counts) becomes the target.
+    pub fn stop(&mut self) {
+        // Distance of full braking after this tick: S(speed - d).
+        let run_out = run_out_bits(self.coeffs.decel, self.n.saturating_sub(1), self.r) as i64;
+        self.target = if self.velocity >= 0 {
+            self.position.wrapping_add(run_out)
+        } else {
+            self.position.wrapping_sub(run_out)
+        };
+    }
+
+    /// Replaces the limits; only at zero velocity.
+    pub fn set_coeffs(&mut self, coeffs: Coeffs) -> Result<(), NotAtRest> {
+        if self.velocity != 0 {
+            return Err(NotAtRest);
+        }
+        self.coeffs = coeffs;
+        self.n = 0;
+        self.r = coeffs.decel;
+        Ok(())
+    }
+
+    /// The limits in use.
+    pub fn coeffs(&self) -> &Coeffs {
+        &self.coeffs
+    }
+
+    /// Setpoint position after the last tick.
+    pub fn position_counts(&self) -> I40F24 {
+        I40F24::from_bits(self.position)
+    }
+
+    /// Velocity of the last tick.
+    pub fn velocity_counts_per_tick(&self) -> I40F24 {
+        I40F24::from_bits(self.velocity)
+    }
+
+    /// Where the profile is going (a whole count).
+    pub fn target_counts(&self) -> I40F24 {
+        I40F24::from_bits(self.target)
+    }
+
+    /// At rest on the target.
+    pub fn is_done(&self) -> bool {
+        self.velocity == 0 && self.position == self.target
+    }
+
+    /// The fastest admissible speed after `speed`: one acceleration faster, capped at the
+    /// velocity limit; with its decomposition.
+    #[inline(always)]
+    fn faster(&self, speed: u64) -> (u64, u32, u32) {
+        let c = &self.coeffs;
+        let up = speed.wrapping_add(c.accel as u64);
+        if up >= c.velocity {
+            (c.velocity, c.velocity_n, c.velocity_r)
+        } else {
+            let mut n = self.n.wrapping_add(c.accel_decels);
+            let mut r = self.r.wrapping_add(c.accel_rem);
+            if r > c.decel {
+                r -= c.decel;
+                n = n.wrapping_add(1);
+            }
+            (up, n, r)
+        }
+    }
+
+    /// Advances one tick. Bounded, division-free integer arithmetic.
+    #[inline]
+    pub fn tick(&mut self) -> Setpoint {
+        let d = self.coeffs.decel;
+        let to_go = self.target.wrapping_sub(self.position);
+        let v = self.velocity;
+        if v == 0 && to_go == 0 {
+            return self.setpoint(0);
+        }
+        // Work along the direction of travel (or of the target, from rest); `ahead` is negative
+        // if the target is behind.
+        let backwards = if v != 0 { v < 0 } else { to_go < 0 };
+        let ahead = if backwards {
+            to_go.wrapping_neg()
+        } else {
+            to_go
+        };
+        let speed = v.unsigned_abs();
+        // Slowest admissible speed: one deceleration slower, not below rest.
+        let (lo, lo_n, lo_r) = if self.n >= 2 {
+            (speed.wrapping_sub(d as u64), self.n.wrapping_sub(1), self.r)
+        } else {
+            (0, 0, d)
+        };
+        let (w, n, r) = if ahead >= self.coeffs.velocity_run_out as i64 {
+            // Far away: no speed up to the limit can need braking yet.
+            self.faster(speed)
+        } else {
+            let lo_run_out = run_out_bits(d, lo_n, lo_r) as i64;
+            if ahead < lo_run_out {
+                // Cannot stop at the target: brake fully, come back from rest.
+                (lo, lo_n, lo_r)
+            } else {
+                let hi = self.faster(speed);
+                if run_out_bits(d, hi.1, hi.2) as i64 <= ahead {
+                    hi
+                } else {
+                    fit(d, (lo, lo_n, lo_r), lo_run_out as u64, hi, ahead as u64)
+                }
+            }
+        };
+        let velocity = if backwards {
+            (w as i64).wrapping_neg()
+        } else {
+            w as i64
+        };
+        self.position = self.position.wrapping_add(velocity);
+        self.velocity = velocity;
+        self.n = n;
+        self.r = r;
+        self.setpoint(velocity.wrapping_sub(v))
+    }
+
+    #[inline(always)]
+    fn setpoint(&self, acceleration: i64) -> Setpoint {
+        Setpoint {
+            position: self.position,
+            velocity: self.velocity,
+            acceleration,
+            done: self.is_done(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn bits(x: I40F24) -> i64 {
+        x.to_bits()
+    }
+
+    /// Runs to rest on the target, checking the limits every tick; returns (ticks, peak speed).
+    fn run(t: &mut Trajectory, max_ticks: u64) -> (u64, i64) {
+        let c = *t.coeffs();
+        let (vmax, a, d) = (c.velocity as i64, c.accel as i64, c.decel as i64);
+        let mut prev = t.tick();
+        let mut peak = 0;
+        let mut ticks = 1;
+        while !prev.is_done() {
+            let s = t.tick();
+            let (v0, v1) = (bits(prev.velocity_counts_per_tick()), bits(s.velocity_counts_per_tick()));
+            assert!(v1.abs() <= vmax);
+            assert_eq!(bits(s.position_counts()) - bits(prev.position_counts()), v1);
+            assert_eq!(bits(s.acceleration_counts_per_tick2()), v1 - v0);
+            assert!(v0.signum() * v1.signum() >= 0, "sign flip without rest");
+            if v1.abs() > v0.abs() {
+                assert!(v1.abs() - v0.abs() <= a);
+            } else {
+                assert!(v0.abs() - v1.abs() <= d);
+            }
+            peak = peak.max(v1.abs());
+            prev = s;
+            ticks += 1;
+            assert!(ticks <= max_ticks, "no arrival within {max_ticks} ticks");
+        }
+        assert_eq!(bits(prev.position_counts()), t.target);
+        assert_eq!(prev.velocity_counts_per_tick(), 0);
+        (ticks, peak)
+    }
+
+    fn coeffs(v: f64, a: f64, d: f64) -> Coeffs {
+        Coeffs::new(I40F24::from_num(v), I40F24::from_num(a), I40F24::from_num(d)).unwrap()
+    }
+
+    #[test]
+    fn paper_rig_defaults() {
+        let c = Config::PAPER_RIG.build(&Rig::PAPER).unwrap();
+        assert_eq!(c, Coeffs::default());
+        // 100 mm/s at 2 kHz: 93.39 counts/tick; 2000 mm/s²: 0.934 counts/tick².
+        let v: f64 = c.velocity_counts_per_tick().to_num();
+        assert!((v - 93.39449).abs() < 1e-5, "{v}");
+        let a: f64 = c.acceleration_counts_per_tick2().to_num();
+        assert!((a - 0.933945).abs() < 1e-6, "{a}");
+        assert!(c.velocity_counts_per_tick() <= I40F24::from_num(100.0 * Rig::PAPER.counts_per_mm() / 2000.0));
+    }
+
+    #[test]
+    fn config_errors_name_the_field() {
+        let rig = Rig::PAPER;
+        let ok = Config::PAPER_RIG;
+        let field = |c: Config| c.build(&rig).unwrap_err().field();
+        assert_eq!(field(Config { velocity_mm_s: f64::NAN, ..ok }), "trajectory.velocity_mm_s");
+        assert_eq!(field(Config { velocity_mm_s: 0.0, ..ok }), "trajectory.velocity_mm_s");
+        assert_eq!(field(Config { velocity_mm_s: -5.0, ..ok }), "trajectory.velocity_mm_s");
+        assert_eq!(field(Config { velocity_mm_s: 1e9, ..ok }), "trajectory.velocity_mm_s");
+        assert_eq!(field(Config { acceleration_mm_s2: f64::INFINITY, ..ok }), "trajectory.acceleration_mm_s2");
+        assert_eq!(field(Config { acceleration_mm_s2: 0.0, ..ok }), "trajectory.acceleration_mm_s2");
+        assert_eq!(field(Config { acceleration_mm_s2: 1e12, ..ok }), "trajectory.acceleration_mm_s2");
+        assert_eq!(field(Config { deceleration_mm_s2: -1.0, ..ok }), "trajectory.deceleration_mm_s2");
+        // Stopping from 100 mm/s at 1e-6 mm/s² would take far more than 2^31 counts.
+        assert_eq!(field(Config { deceleration_mm_s2: 1e-6, ..ok }), "trajectory.deceleration_mm_s2");
+        assert_eq!(field(Config { rate_hz: f64::NAN, ..ok }), "trajectory.rate_hz");
+        assert_eq!(field(Config { rate_hz: 1.0, ..ok }), "trajectory.rate_hz");
+        let mut bad_rig = rig;
+        bad_rig.pulley_teeth = 0;
+        assert_eq!(ok.build(&bad_rig).unwrap_err().field(), "rig.pulley_teeth");
+        assert!(Coeffs::new(I40F24::ZERO, I40F24::ONE, I40F24::ONE).is_err());
+        assert!(Coeffs::new(I40F24::ONE, I40F24::from_num(64), I40F24::ONE).is_err());
+        assert!(Coeffs::new(I40F24::from_num(2049), I40F24::ONE, I40F24::ONE).is_err());
+    }
+
+    #[test]
+    fn zero_length_move_is_done_at_once() {
+        let mut t = Trajectory::new(Coeffs::default(), 42);
+        assert!(t.is_done());
+        t.set_target(42);
+        let s = t.tick();
+        assert!(s.is_done());
+        assert_eq!(s.position_counts(), 42);
+        assert_eq!(s.velocity_counts_per_tick(), 0);
+        assert_eq!(s.acceleration_counts_per_tick2(), 0);
+    }
+
+    #[test]
+    fn trapezoid_reaches_cruise_and_lands_exactly() {
+        let c = coeffs(10.0, 0.5, 0.25);
+        let mut t = Trajectory::new(c, -1000);
+        t.set_target(1000);
+        let (ticks, peak) = run(&mut t, 10_000);
+        assert_eq!(peak, c.velocity as i64);
+        // Continuous optimum: 2000/10 + 10/2 (1/0.5 + 1/0.25) = 230 ticks.
+        assert!((230..=233).contains(&ticks), "{ticks}");
+        assert_eq!(t.position_counts(), 1000);
+    }
+
+    #[test]
+    fn short_move_is_triangular() {
+        let c = coeffs(10.0, 0.5, 0.5);
+        let mut t = Trajectory::new(c, 0);
+        t.set_target(-50);
+        let (ticks, peak) = run(&mut t, 1000);
+        // Peak of a symmetric triangle: sqrt(a L) = 5 counts/tick, 20 ticks.
+        let peak = peak as f64 / ONE_COUNT as f64;
+        assert!(peak < 10.0 && (peak - 5.0).abs() < 0.6, "{peak}");
+        assert!((20..=23).contains(&ticks), "{ticks}");
+    }
+
+    #[test]
+    fn one_count_move_with_tiny_velocity() {
+        let c = coeffs(0.001, 1e-5, 1e-5);
+        let mut t = Trajectory::new(c, 7);
+        t.set_target(8);
+        let (ticks, _) = run(&mut t, 2000);
+        assert!(ticks >= 1000, "{ticks}");
+        assert_eq!(t.position_counts(), 8);
+    }
+
+    #[test]
+    fn reversal_mid_move_is_continuous() {
+        let c = Coeffs::default();
+        let mut t = Trajectory::new(c, 0);
+        t.set_target(200_000);
+        for _ in 0..500 {
+            t.tick();
+        }
+        let v = t.velocity_counts_per_tick();
+        assert!(v > 0);
+        t.set_target(-100);
+        let s = t.tick();
+        assert_eq!(
+            bits(s.acceleration_counts_per_tick2()),
+            -(c.decel as i64),
+            "full braking, one deceleration"
+        );
+        run(&mut t, 100_000);
+        assert_eq!(t.position_counts(), -100);
+    }
+
+    #[test]
+    fn stop_decelerates_at_the_limit() {
+        let c = Coeffs::default();
+        let mut t = Trajectory::new(c, 0);
+        t.set_target(-1_000_000);
+        for _ in 0..1000 {
+            t.tick();
+        }
+        let p0 = t.position_counts();
+        let v0: f64 = -t.velocity_counts_per_tick().to_num::<f64>();
+        assert!(v0 > 90.0, "cruising backwards");
+        t.stop();
+        let (ticks, _) = run(&mut t, 100_000);
+        let d: f64 = c.deceleration_counts_per_tick2().to_num();
+        let brake = v0 * v0 / (2.0 * d);
+        let travelled: f64 = (p0 - t.position_counts()).to_num();
+        // Discrete braking covers v0²/2d - v0/2.
+        assert!((travelled - (brake - v0 / 2.0)).abs() <= 0.01, "{travelled} vs {brake}");
+        assert!((ticks as f64 - v0 / d).abs() <= 1.0, "{ticks}");
+        // Stopping at rest stays put.
+        t.stop();
+        assert!(t.tick().is_done());
+    }
+
+    #[test]
+    fn huge_move_end_to_end() {
+        let c = coeffs(2000.0, 40.0, 50.0);
+        let mut t = Trajectory::new(c, i32::MIN);
+        t.set_target(i32::MAX);
+        let (ticks, _) = run(&mut t, 2_200_000);
+        assert!(ticks > 2 * (i32::MAX as u64) / 2000);
+        assert_eq!(t.position_counts(), i32::MAX);
+        t.set_target(i32::MIN);
+        run(&mut t, 2_200_000);
+        assert_eq!(t.position_counts(), i32::MIN);
+    }
+
+    #[test]
+    fn coeffs_change_only_at_rest() {
+        let mut t = Trajectory::new(Coeffs::default(), 0);
+        t.set_target(10_000);
+        t.tick();
+        let fast = coeffs(200.0, 1.0, 1.0);
+        assert_eq!(t.set_coeffs(fast), Err(NotAtRest));
+        run(&mut t, 100_000);
+        assert_eq!(t.set_coeffs(fast), Ok(()));
+        t.set_target(0);
+        // 10000 counts at 1 count/tick² never reaches 200 counts/tick: a 2 x 100 tick triangle.
+        let (ticks, peak) = run(&mut t, 1000);
+        assert!((200..=203).contains(&ticks), "{ticks}");
+        assert!(peak <= 100 * ONE_COUNT);
+    }
+}

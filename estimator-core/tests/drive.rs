@@ -1,0 +1,266 @@
+//! `Drive::step` and `Drive::command` against a lumped-mass motor model.
+
+use estimator_core::drive::{Command, CommandError, Drive, DriveConfig, Faults, Sample};
+use estimator_core::model::ModelKind;
+
+/// Rigid stage: 1.09 m/s^2 per ampere (the PID defaults' design point), light viscous loss.
+struct Mass {
+    x_counts: f64,
+    v_counts_s: f64,
+    cpm: f64,
+}
+
+impl Mass {
+    fn new(x_mm: f64) -> Mass {
+        let cpm = estimator_core::rig::Rig::PAPER.counts_per_mm();
+        Mass { x_counts: x_mm * cpm, v_counts_s: 0.0, cpm }
+    }
+    fn sample(&self) -> Sample {
+        Sample { motor_counter: (self.x_counts.floor() as i64) as u16, scale_counter: 0 }
+    }
+    fn step(&mut self, current_a: f64, dt: f64) {
+        let a_counts_s2 = current_a * 1.09e3 * self.cpm - 2.0 * self.v_counts_s;
+        self.v_counts_s += a_counts_s2 * dt;
+        self.x_counts += self.v_counts_s * dt;
+    }
+}
+
+fn homed(x_mm: f64) -> (Drive, Mass) {
+    let mut d = Drive::new(&DriveConfig::paper_rig()).unwrap();
+    let m = Mass::new(x_mm);
+    d.step(m.sample());
+    d.command(Command::Home { position_um: (x_mm * 1000.0) as i32, scale_um: 0 }).unwrap();
+    (d, m)
+}
+
+fn run(d: &mut Drive, m: &mut Mass, ticks: usize) -> Vec<estimator_core::drive::Output> {
+    (0..ticks)
+        .map(|_| {
+            let o = d.step(m.sample());
+            m.step(o.current_a.to_num::<f64>(), 1.0 / 2000.0);
+            o
+        })
+        .collect()
+}
+
+fn mv(target_mm: f64) -> Command {
+    Command::MoveTo { target_um: (target_mm * 1000.0) as i32, velocity_um_s: 80_000, accel_um_s2: 1_000_000 }
+}
+
+#[test]
+fn disabled_drive_outputs_zero_and_refuses_moves() {
+    let (mut d, mut m) = homed(50.0);
+    assert_eq!(d.command(mv(60.0)), Err(CommandError::NotEnabled));
+    for o in run(&mut d, &mut m, 100) {
+        assert_eq!(o.current_a.to_bits(), 0);
+        assert!(!o.telemetry.moving);
+    }
+}
+
+#[test]
+fn move_arrives_and_holds() {
+    let (mut d, mut m) = homed(50.0);
+    d.command(Command::Enable).unwrap();
+    d.command(mv(120.0)).unwrap();
+    let outs = run(&mut d, &mut m, 2000 * 3);
+    let last = outs.last().unwrap().telemetry;
+    assert!(!last.moving && last.faults.is_clear());
+    let target = (120.0 * m.cpm).round() as i32;
+    assert_eq!(last.setpoint_counts, target);
+    assert!((last.motor_counts - target).abs() <= 2, "{} vs {}", last.motor_counts, target);
+    // Following error stays small throughout a moderate move.
+    let worst = outs.iter().map(|o| o.telemetry.following_error_counts.abs()).max().unwrap();
+    assert!(worst < (0.5 * m.cpm) as i32, "following error {worst} counts");
+}
+
+#[test]
+fn refused_commands_change_nothing() {
+    let (mut d, mut m) = homed(50.0);
+    d.command(Command::Enable).unwrap();
+    run(&mut d, &mut m, 10);
+    let before = d.telemetry();
+    let bad = [
+        (Command::MoveTo { target_um: 400_000, velocity_um_s: 1000, accel_um_s2: 1000 }, CommandError::TargetOutOfTravel),
+        (Command::MoveTo { target_um: -1, velocity_um_s: 1000, accel_um_s2: 1000 }, CommandError::TargetOutOfTravel),
+        (Command::MoveTo { target_um: 60_000, velocity_um_s: 0, accel_um_s2: 1000 }, CommandError::VelocityOutOfRange),
+        (Command::MoveTo { target_um: 60_000, velocity_um_s: u32::MAX, accel_um_s2: 1000 }, CommandError::VelocityOutOfRange),
+        (Command::MoveTo { target_um: 60_000, velocity_um_s: 1000, accel_um_s2: 0 }, CommandError::AccelOutOfRange),
+        (Command::MoveTo { target_um: i32::MIN, velocity_um_s: 1, accel_um_s2: 1 }, CommandError::TargetOutOfTravel),
+    ];
+    for (cmd, err) in bad {
+        assert_eq!(d.command(cmd), Err(err), "{cmd:?}");
+    }
+    let after = run(&mut d, &mut m, 1)[0].telemetry;
+    assert_eq!(after.setpoint_counts, before.setpoint_counts);
+    assert!(!after.moving);
+}
+
+#[test]
+fn new_limits_mid_move_are_refused_same_limits_retarget() {
+    let (mut d, mut m) = homed(50.0);
+    d.command(Command::Enable).unwrap();
+    d.command(mv(200.0)).unwrap();
+    run(&mut d, &mut m, 400);
+    let other = Command::MoveTo { target_um: 100_000, velocity_um_s: 40_000, accel_um_s2: 1_000_000 };
+    assert_eq!(d.command(other), Err(CommandError::Busy));
+    // Same limits: an abrupt reversal is accepted and the set-point velocity never steps.
+    d.command(mv(60.0)).unwrap();
+    let outs = run(&mut d, &mut m, 2000 * 4);
+    let sp: Vec<i64> = outs.iter().map(|o| o.telemetry.setpoint_counts as i64).collect();
+    let max_dv = sp.windows(3).map(|w| ((w[2] - w[1]) - (w[1] - w[0])).abs()).max().unwrap();
+    // 1000 mm/s^2 at 2 kHz is 0.47 counts/tick^2; whole-count rounding adds at most 2.
+    assert!(max_dv <= 3, "set-point velocity stepped by {max_dv} counts/tick");
+    assert_eq!(*sp.last().unwrap(), (60.0 * m.cpm).round() as i64);
+}
+
+#[test]
+fn encoder_jump_faults_to_zero_current_until_cleared() {
+    let (mut d, mut m) = homed(50.0);
+    d.command(Command::Enable).unwrap();
+    d.command(mv(100.0)).unwrap();
+    run(&mut d, &mut m, 500);
+    let s = m.sample();
+    let o = d.step(Sample { motor_counter: s.motor_counter.wrapping_add(20_000), ..s });
+    assert!(o.telemetry.faults.has(Faults::ENCODER_JUMP));
+    assert_eq!(o.current_a.to_bits(), 0);
+    for o in run(&mut d, &mut m, 200) {
+        assert_eq!(o.current_a.to_bits(), 0);
+    }
+    assert_eq!(d.command(Command::Enable), Err(CommandError::NotEnabled));
+    d.command(Command::ClearFaults).unwrap();
+    assert!(!d.is_enabled(), "clearing faults does not re-enable by itself");
+    d.command(Command::Enable).unwrap();
+    let o = run(&mut d, &mut m, 1)[0];
+    assert!(o.telemetry.faults.is_clear());
+}
+
+#[test]
+fn following_error_fault_when_the_motor_is_stalled() {
+    let (mut d, m) = homed(50.0);
+    d.command(Command::Enable).unwrap();
+    d.command(mv(100.0)).unwrap();
+    // The counter never moves: a seized axis or a dead amplifier.
+    let mut tripped = None;
+    for k in 0..4000 {
+        let o = d.step(m.sample());
+        if !o.telemetry.faults.is_clear() {
+            tripped = Some((k, o));
+            break;
+        }
+    }
+    let (k, o) = tripped.expect("following error must trip");
+    assert!(o.telemetry.faults.has(Faults::FOLLOWING_ERROR));
+    assert_eq!(o.current_a.to_bits(), 0);
+    assert!(k < 2000, "tripped only after {k} ticks");
+}
+
+#[test]
+fn travel_limit_fault() {
+    let (mut d, m) = homed(50.0);
+    d.command(Command::Enable).unwrap();
+    let mut s = m.sample();
+    // Walk the counter down past 0 - margin (5 mm) at a plausible speed.
+    let mut faulted = false;
+    for _ in 0..2000 {
+        s.motor_counter = s.motor_counter.wrapping_sub(500);
+        let o = d.step(s);
+        if o.telemetry.faults.has(Faults::TRAVEL_LIMIT) {
+            faulted = true;
+            assert_eq!(o.current_a.to_bits(), 0);
+            assert!(o.telemetry.motor_counts < -(5.0 * m.cpm) as i32);
+            break;
+        }
+    }
+    assert!(faulted);
+}
+
+#[test]
+fn home_is_refused_while_moving_and_model_select_applies() {
+    let (mut d, mut m) = homed(50.0);
+    d.command(Command::Enable).unwrap();
+    d.command(mv(100.0)).unwrap();
+    run(&mut d, &mut m, 10);
+    assert_eq!(d.command(Command::Home { position_um: 0, scale_um: 0 }), Err(CommandError::Busy));
+    d.command(Command::SelectModel(ModelKind::Table)).unwrap();
+    let o = run(&mut d, &mut m, 1)[0];
+    assert_eq!(o.telemetry.model, ModelKind::Table);
+    assert_ne!(o.telemetry.est_error_um.to_bits(), 0);
+}
+
+#[test]
+fn same_inputs_same_outputs() {
+    let go = || {
+        let (mut d, mut m) = homed(30.0);
+        d.command(Command::Enable).unwrap();
+        d.command(Command::SelectModel(ModelKind::Exponential)).unwrap();
+        d.command(mv(90.0)).unwrap();
+        let mut outs = run(&mut d, &mut m, 1500);
+        d.command(mv(40.0)).unwrap();
+        outs.extend(run(&mut d, &mut m, 3000));
+        outs
+    };
+    assert_eq!(go(), go());
+}
+
+#[test]
+fn bad_configuration_names_the_field() {
+    let mut c = DriveConfig::paper_rig();
+    c.travel_max_mm = f64::NAN;
+    assert_eq!(Drive::new(&c).unwrap_err().field(), "drive.travel_max_mm");
+    let mut c = DriveConfig::paper_rig();
+    c.max_following_error_mm = -1.0;
+    assert_eq!(Drive::new(&c).unwrap_err().field(), "drive.max_following_error_mm");
+    let mut c = DriveConfig::paper_rig();
+    c.model.model1.h_mm = -0.1;
+    assert_eq!(Drive::new(&c).unwrap_err().field(), "model1.h_mm");
+}
+
+mod props {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn any_command() -> impl Strategy<Value = Command> {
+        prop_oneof![
+            (any::<i32>(), any::<u32>(), any::<u32>()).prop_map(|(t, v, a)| Command::MoveTo {
+                target_um: t,
+                velocity_um_s: v,
+                accel_um_s2: a
+            }),
+            (0i32..300_000, 1u32..250_000, 1u32..5_000_000).prop_map(|(t, v, a)| Command::MoveTo {
+                target_um: t,
+                velocity_um_s: v,
+                accel_um_s2: a
+            }),
+            Just(Command::Stop),
+            Just(Command::Enable),
+            Just(Command::Disable),
+            Just(Command::ClearFaults),
+            (0u8..4).prop_map(|k| Command::SelectModel(ModelKind::from_u8(k).unwrap())),
+            (any::<i32>(), any::<i32>()).prop_map(|(p, s)| Command::Home { position_um: p, scale_um: s }),
+        ]
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+        /// Whatever arrives, in any order, with any counter values: no panic, and a fault or a
+        /// disabled drive always means zero current.
+        #[test]
+        fn never_panics_and_faults_are_safe(
+            steps in prop::collection::vec((prop::option::of(any_command()), any::<u16>(), any::<u16>(), any::<bool>()), 1..400)
+        ) {
+            let (mut d, mut m) = homed(100.0);
+            for (cmd, raw, scale, glitch) in steps {
+                if let Some(c) = cmd {
+                    let _ = d.command(c);
+                }
+                let s = if glitch { Sample { motor_counter: raw, scale_counter: scale } } else { m.sample() };
+                let o = d.step(s);
+                if !o.telemetry.faults.is_clear() || !d.is_enabled() {
+                    prop_assert_eq!(o.current_a.to_bits(), 0);
+                }
+                prop_assert!(o.current_a.to_num::<f64>().abs() <= 8.0);
+                m.step(o.current_a.to_num::<f64>(), 1.0 / 2000.0);
+            }
+        }
+    }
+}

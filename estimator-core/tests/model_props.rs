@@ -1,0 +1,443 @@
+//! Property tests: every fixed-point model against its `f64` reference over random trajectories
+//! and random valid parameters, and freedom from panics and overflow over the whole `i32` range.
+//!
+//! Trajectories are random walks with reversals (steps up to 400 counts per tick), standstills,
+//! single-count jitter and huge jumps, starting anywhere in `+-ACCURATE_RANGE_COUNTS`. The
+//! accuracy tests use a fixed seed and print the worst difference they saw.
+
+use std::cell::Cell;
+
+use estimator_core::fixed::types::I16F16;
+use estimator_core::model::{
+    estimate, BandParams, Model1Params, Model2Params, Model3Params, ModelKind, ModelParams,
+    ModelState, TransitionParams, ACCURATE_RANGE_COUNTS, MAX_BAND_POINTS, MAX_TRANSITION_D,
+    MAX_TRANSITION_G0,
+};
+use estimator_core::reference::Reference;
+use estimator_core::rig::Rig;
+use proptest::prelude::*;
+use proptest::test_runner::{Config, RngAlgorithm, TestRng, TestRunner};
+
+/// The accuracy every model must hold against its reference, in um.
+const TOLERANCE_UM: f64 = 0.05;
+
+/// One move of the trajectory generator.
+#[derive(Clone, Debug)]
+enum Move {
+    /// `n` ticks of `step` counts (negative: reverse).
+    Run { step: i32, n: u16 },
+    /// Stand still with +-1 count of jitter for `n` ticks.
+    Jitter { n: u8 },
+    /// Jump to a position given as a fraction of the range.
+    Jump(f64),
+}
+
+fn moves() -> impl Strategy<Value = Vec<Move>> {
+    let mv = prop_oneof![
+        8 => (-400i32..=400, 1u16..200).prop_map(|(step, n)| Move::Run { step, n }),
+        // Long runs: far enough to close transitions.
+        2 => (-400i32..=400, 200u16..2000).prop_map(|(step, n)| Move::Run { step, n }),
+        1 => (1u8..20).prop_map(|n| Move::Jitter { n }),
+        1 => (-1.0f64..1.0).prop_map(Move::Jump),
+    ];
+    prop::collection::vec(mv, 1..40)
+}
+
+/// Expands moves into positions inside `+-limit`.
+fn positions(x0: i32, moves: &[Move], limit: i32) -> Vec<i32> {
+    let mut out = Vec::new();
+    let mut x = x0;
+    for (k, m) in moves.iter().enumerate() {
+        match *m {
+            Move::Run { step, n } => {
+                for _ in 0..n {
+                    x = (x + step).clamp(-limit, limit);
+                    out.push(x);
+                }
+            }
+            Move::Jitter { n } => {
+                for i in 0..n {
+                    let j = [0, 1, 0, -1][(i as usize + k) % 4];
+                    out.push((x + j).clamp(-limit, limit));
+                }
+            }
+            Move::Jump(f) => {
+                x = (f * limit as f64) as i32;
+                out.push(x);
+            }
+        }
+    }
+    out
+}
+
+/// A rig with 300..4700 counts per mm.
+fn rigs() -> impl Strategy<Value = Rig> {
+    (2.0f64..60.0, prop::sample::select(vec![12u32, 20, 36])).prop_map(|(gear_ratio, teeth)| Rig {
+        gear_ratio,
+        pulley_teeth: teeth,
+        ..Rig::PAPER
+    })
+}
+
+/// Model 1 and 2 parameters around Table 2, with the band slope limited so that the outputs stay
+/// within +-16 mm over `+-ACCURATE_RANGE_COUNTS`.
+fn band_and_models(cpm: f64) -> impl Strategy<Value = (Model1Params, Model2Params)> {
+    let range_mm = ACCURATE_RANGE_COUNTS as f64 / cpm;
+    let m_max = 12.0 / range_mm;
+    (
+        prop_oneof![Just(0.0), -m_max..m_max],
+        0.0f64..1.0,
+        0.0f64..1.0,
+        1e-4f64..0.01,
+        1e-4f64..0.01,
+        -1.0f64..-1e-3,
+        -1.0f64..-1e-3,
+        0.0f64..1.0,
+        0.0f64..1.0,
+    )
+        .prop_map(|(m, h, hg, a, b, ra, rb, aa, ab)| {
+            let m1 = Model1Params {
+                m_mm_per_mm: m,
+                h_mm: h,
+                h_g_mm: hg * h,
+                slope_a_mm_per_mm: a,
+                slope_b_mm_per_mm: b,
+            };
+            let m2 = Model2Params {
+                m_mm_per_mm: m,
+                h_mm: h,
+                h_g_mm: hg * h,
+                rate_a_per_mm: ra,
+                rate_b_per_mm: rb,
+                amplitude_a_mm: aa * h,
+                amplitude_b_mm: ab * h,
+            };
+            (m1, m2)
+        })
+}
+
+/// Table sizes: often the largest, otherwise random.
+fn size(max: usize) -> impl Strategy<Value = usize> {
+    prop_oneof![1 => Just(max), 2 => 2..=max]
+}
+
+/// Random band tables on a shared, strictly increasing axis inside the accurate range; the
+/// reverse band lies a random non-negative height above the forward band.
+fn bands(cpm: f64) -> impl Strategy<Value = (BandParams, BandParams)> {
+    let range_mm = ACCURATE_RANGE_COUNTS as f64 / cpm;
+    (
+        size(MAX_BAND_POINTS),
+        prop::collection::vec((0.01f64..1.0, -1.0f64..1.0, 0.0f64..1.0), MAX_BAND_POINTS),
+        -1.0f64..0.5,
+        -12_000.0f64..12_000.0,
+    )
+        .prop_map(move |(n, pts, start, y0)| {
+            let start_mm = start * range_mm;
+            // Spread n segments over at most the rest of the range.
+            let total: f64 = pts.iter().take(n).map(|p| p.0).sum();
+            let span = (range_mm - start_mm) * 0.999;
+            let mut f = BandParams::EMPTY;
+            let mut r = BandParams::EMPTY;
+            f.len = n;
+            r.len = n;
+            let (mut x, mut y) = (start_mm, y0);
+            for (i, &(dx, dy, hgt)) in pts.iter().take(n).enumerate() {
+                f.x_mm[i] = x;
+                r.x_mm[i] = x;
+                f.y_um[i] = y;
+                r.y_um[i] = y + 1500.0 * hgt;
+                x += span * dx / total;
+                y = (y + 400.0 * dy).clamp(-13_000.0, 13_000.0);
+            }
+            (f, r)
+        })
+}
+
+/// A random transition table whose gap changes by at most one step per `g0` step
+/// (`|dG/dg0| <= 1`, like a measured transition).
+fn transition() -> impl Strategy<Value = TransitionParams> {
+    (
+        size(MAX_TRANSITION_D),
+        size(MAX_TRANSITION_G0),
+        0.5f64..50.0,
+        1.0f64..80.0,
+        prop::collection::vec(0.0f64..100.0, MAX_TRANSITION_D),
+        prop::collection::vec(-1.0f64..1.0, MAX_TRANSITION_D * MAX_TRANSITION_G0),
+    )
+        .prop_map(|(n_d, n_g0, d_step, g0_step, first, slopes)| {
+            let mut t = TransitionParams::EMPTY;
+            t.n_d = n_d;
+            t.n_g0 = n_g0;
+            t.d_step_mm = d_step;
+            t.g0_step_um = g0_step;
+            for i in 0..n_d {
+                let mut g = first[i];
+                for j in 0..n_g0 {
+                    t.gap_um[i][j] = g;
+                    g = (g + slopes[i * MAX_TRANSITION_G0 + j] * g0_step).clamp(0.0, 2000.0);
+                }
+            }
+            t
+        })
+}
+
+/// A random valid parameter set and rig.
+fn params() -> impl Strategy<Value = (Rig, ModelParams)> {
+    rigs().prop_flat_map(|rig| {
+        let cpm = rig.counts_per_mm();
+        (
+            Just(rig),
+            band_and_models(cpm),
+            bands(cpm),
+            transition(),
+            transition(),
+            prop_oneof![Just(0u32), 0u32..6],
+            any::<bool>(),
+        )
+            .prop_map(|(rig, (m1, m2), (bf, br), tf, tr, db, from_m1)| {
+                let model3 = if from_m1 {
+                    Model3Params::from_model1(&m1, 0.99 * ACCURATE_RANGE_COUNTS as f64 / rig.counts_per_mm())
+                } else {
+                    Model3Params {
+                        forward_band: bf,
+                        reverse_band: br,
+                        forward_transition: tf,
+                        reverse_transition: tr,
+                    }
+                };
+                (
+                    rig,
+                    ModelParams {
+                        model1: m1,
+                        model2: m2,
+                        model3,
+                        reversal_deadband_counts: db,
+                    },
+                )
+            })
+    })
+}
+
+fn case() -> impl Strategy<Value = ((Rig, ModelParams), i32, Vec<Move>)> {
+    (
+        params(),
+        -ACCURATE_RANGE_COUNTS..=ACCURATE_RANGE_COUNTS,
+        moves(),
+    )
+}
+
+/// Runs `kinds(k)` along the case's trajectory in fixed point and in the reference; returns the
+/// worst difference in um, or an error at the first step that exceeds the tolerance.
+fn compare(
+    rig: &Rig,
+    p: &ModelParams,
+    x0: i32,
+    moves: &[Move],
+    kinds: impl Fn(usize) -> ModelKind,
+) -> Result<f64, TestCaseError> {
+    let c = p.build(rig).map_err(|e| TestCaseError::fail(format!("build: {e}")))?;
+    let mut s = ModelState::new(x0);
+    let mut r = Reference::new(p, rig, x0).unwrap();
+    let mut worst = 0.0f64;
+    for (k, &x) in positions(x0, moves, ACCURATE_RANGE_COUNTS).iter().enumerate() {
+        let kind = kinds(k);
+        let y = estimate(&c, kind, &mut s, x).to_num::<f64>();
+        let yr = r.estimate_um(kind, x);
+        let diff = (y - yr).abs();
+        worst = worst.max(diff);
+        prop_assert!(
+            diff <= TOLERANCE_UM,
+            "{kind} step {k} x={x}: fixed {y} um, reference {yr} um"
+        );
+        prop_assert_eq!(s.direction(), r.direction());
+    }
+    Ok(worst)
+}
+
+fn runner(cases: u32, seed: u8) -> TestRunner {
+    let config = Config {
+        cases,
+        failure_persistence: None,
+        ..Config::default()
+    };
+    TestRunner::new_with_rng(config, TestRng::from_seed(RngAlgorithm::ChaCha, &[seed; 32]))
+}
+
+fn accuracy(kind: ModelKind, seed: u8) {
+    let worst = Cell::new(0.0f64);
+    runner(160, seed)
+        .run(&case(), |((rig, p), x0, mv)| {
+            let w = compare(&rig, &p, x0, &mv, |_| kind)?;
+            worst.set(worst.get().max(w));
+            Ok(())
+        })
+        .unwrap();
+    println!("{kind}: max |fixed - f64| = {:.3e} um", worst.get());
+}
+
+#[test]
+fn model1_matches_reference() {
+    accuracy(ModelKind::Linear, 1);
+}
+
+#[test]
+fn model2_matches_reference() {
+    accuracy(ModelKind::Exponential, 2);
+}
+
+#[test]
+fn model3_matches_reference() {
+    accuracy(ModelKind::Table, 3);
+}
+
+#[test]
+fn switching_models_matches_reference() {
+    let worst = Cell::new(0.0f64);
+    runner(96, 4)
+        .run(&(case(), prop::collection::vec(0u8..4, 1..20)), |(((rig, p), x0, mv), sw)| {
+            let every = 1 + 997 / sw.len();
+            let kind = |k: usize| ModelKind::from_u8(sw[(k / every) % sw.len()]).unwrap();
+            let w = compare(&rig, &p, x0, &mv, kind)?;
+            worst.set(worst.get().max(w));
+            Ok(())
+        })
+        .unwrap();
+    println!("switching: max |fixed - f64| = {:.3e} um", worst.get());
+}
+
+/// Extreme but valid parameters: slopes and rates near their format limits, large bands and
+/// tables, any dead band.
+fn extreme_params() -> impl Strategy<Value = (Rig, ModelParams)> {
+    (
+        params(),
+        prop_oneof![Just(1.8f64), Just(-1.8), -1.8f64..1.8],
+        prop_oneof![Just(16.0f64), 0.0f64..16.0],
+        prop_oneof![Just(1.8f64), 0.0f64..1.8],
+        prop_oneof![Just(-1000.0f64), -1000.0f64..0.0],
+        any::<u32>(),
+    )
+        .prop_map(|((_, mut p), m, h, a, rate, db)| {
+            let rig = Rig::PAPER;
+            p.model1.m_mm_per_mm = m;
+            p.model1.h_mm = h;
+            p.model1.h_g_mm = h;
+            p.model1.slope_a_mm_per_mm = a;
+            p.model1.slope_b_mm_per_mm = 1.8 - a;
+            p.model2.m_mm_per_mm = m;
+            p.model2.h_mm = h;
+            p.model2.h_g_mm = h / 2.0;
+            p.model2.rate_a_per_mm = rate;
+            p.model2.rate_b_per_mm = -1000.0 - rate;
+            p.model2.amplitude_a_mm = 16.0 - h;
+            p.model2.amplitude_b_mm = h;
+            p.reversal_deadband_counts = db % 4 * (db >> 30);
+            (rig, p)
+        })
+}
+
+/// Positions anywhere in `i32`, including the extremes and steps across them.
+fn wild_positions() -> impl Strategy<Value = Vec<i32>> {
+    let x = prop_oneof![
+        4 => any::<i32>(),
+        1 => Just(i32::MIN),
+        1 => Just(i32::MAX),
+        1 => Just(0),
+        1 => i32::MIN..i32::MIN + 500,
+        1 => i32::MAX - 500..=i32::MAX,
+    ];
+    let walk = (x, prop::collection::vec(-400i32..=400, 0..50)).prop_map(|(x0, steps)| {
+        let mut v = vec![x0];
+        let mut x = x0;
+        for s in steps {
+            x = x.saturating_add(s);
+            v.push(x);
+        }
+        v
+    });
+    prop::collection::vec(walk, 1..20).prop_map(|w| w.concat())
+}
+
+#[test]
+fn no_panics_over_the_whole_i32_range() {
+    runner(256, 5)
+        .run(
+            &(extreme_params(), wild_positions(), prop::collection::vec(0u8..4, 1..8)),
+            |((rig, p), xs, kinds)| {
+                let c = p.build(&rig).map_err(|e| TestCaseError::fail(format!("{e}")))?;
+                let mut s = ModelState::new(xs[0]);
+                for (k, &x) in xs.iter().enumerate() {
+                    let kind = ModelKind::from_u8(kinds[k % kinds.len()]).unwrap();
+                    let y: I16F16 = estimate(&c, kind, &mut s, x);
+                    // Defined, and in the band for Models 1 and 2 wherever the band fits.
+                    if kind == ModelKind::Linear && x.unsigned_abs() < 1 << 20 {
+                        let m = p.model1.m_mm_per_mm * x as f64 / rig.counts_per_mm() * 1000.0;
+                        let yf = y.to_num::<f64>();
+                        prop_assert!(yf <= m + 0.01 && yf >= m - p.model1.h_mm * 1000.0 - 0.01);
+                    }
+                }
+                Ok(())
+            },
+        )
+        .unwrap();
+}
+
+#[test]
+fn largest_tables_and_extremes_do_not_panic() {
+    // Every table at its size limit, spanning the whole i32 range of counts.
+    let rig = Rig::PAPER;
+    let cpm = rig.counts_per_mm();
+    let mut p = ModelParams::PAPER;
+    let span_mm = (i32::MAX as f64 - 1.0) / cpm;
+    for band in [&mut p.model3.forward_band, &mut p.model3.reverse_band] {
+        band.len = MAX_BAND_POINTS;
+        for i in 0..MAX_BAND_POINTS {
+            band.x_mm[i] = -span_mm + 2.0 * span_mm * i as f64 / (MAX_BAND_POINTS - 1) as f64;
+            band.y_um[i] = if i % 2 == 0 { -15_000.0 } else { 15_000.0 };
+        }
+    }
+    p.model3.reverse_band.y_um = p.model3.forward_band.y_um;
+    for t in [&mut p.model3.forward_transition, &mut p.model3.reverse_transition] {
+        t.n_d = MAX_TRANSITION_D;
+        t.n_g0 = MAX_TRANSITION_G0;
+        t.d_step_mm = 2.5 / cpm;
+        t.g0_step_um = 2.5 / 65536.0;
+        for row in t.gap_um.iter_mut() {
+            for g in row.iter_mut() {
+                *g = 2047.96875;
+            }
+        }
+    }
+    let c = p.build(&rig).expect("largest tables build");
+    let mut s = ModelState::new(0);
+    let xs = [
+        0,
+        i32::MAX,
+        i32::MIN,
+        i32::MAX,
+        -1,
+        1,
+        i32::MIN + 1,
+        i32::MAX - 1,
+        0,
+        -100,
+        100,
+        i32::MIN,
+    ];
+    for kind in ModelKind::ALL {
+        for &x in &xs {
+            let _ = estimate(&c, kind, &mut s, x);
+        }
+    }
+    // Long steps through every segment both ways.
+    for kind in ModelKind::ALL {
+        let mut x = i32::MIN;
+        while x < i32::MAX - (1 << 24) {
+            let _ = estimate(&c, kind, &mut s, x);
+            x += 1 << 24;
+        }
+        while x > i32::MIN + (1 << 24) {
+            let _ = estimate(&c, kind, &mut s, x);
+            x -= 3 << 22;
+        }
+    }
+}

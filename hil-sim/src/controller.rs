@@ -1,0 +1,46 @@
+//! What drives the simulated plant each tick: the core in-process, or the firmware under QEMU.
+//!
+//! Scenario runs are written once against this trait, so the in-process run and the
+//! processor-in-the-loop run execute the very same scenario code and can be compared tick by tick.
+
+use estimator_core::drive::{Command, CommandError, Drive, Output, Sample};
+
+/// Why a controller call failed.
+#[derive(Debug)]
+pub enum ControlError {
+    /// The drive refused the command; nothing changed.
+    Refused(CommandError),
+    /// The link to the firmware failed (QEMU exited, timed out, or sent garbage).
+    Link(String),
+}
+
+impl std::fmt::Display for ControlError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ControlError::Refused(e) => write!(f, "command refused: {e:?}"),
+            ControlError::Link(e) => write!(f, "link to the firmware failed: {e}"),
+        }
+    }
+}
+
+impl std::error::Error for ControlError {}
+
+/// A drive controller the simulator can close the loop through.
+pub trait Controller {
+    /// Sends a command (applied before the next tick).
+    fn command(&mut self, cmd: Command) -> Result<(), ControlError>;
+    /// Runs one control tick on `sample`.
+    fn step(&mut self, sample: Sample) -> Result<Output, ControlError>;
+}
+
+/// The core running in this process: the reference for every PIL comparison.
+pub struct InProcess(pub Drive);
+
+impl Controller for InProcess {
+    fn command(&mut self, cmd: Command) -> Result<(), ControlError> {
+        self.0.command(cmd).map_err(ControlError::Refused)
+    }
+    fn step(&mut self, sample: Sample) -> Result<Output, ControlError> {
+        Ok(self.0.step(sample))
+    }
+}

@@ -1,0 +1,472 @@
+//! Plant parameters: every physical constant of the simulated rig, in SI units with the unit in
+//! the field name, loaded from TOML.
+//!
+//! The default preset, `presets/paper-rig.toml`, is embedded in the binary ([`PlantParams::paper_rig`]);
+//! its comments say where each value comes from. Symbols in the doc comments are those of the
+//! paper's section 2 (eqs. 2-12) and eq. 13.
+
+use estimator_core::rig::Rig;
+use serde::{Deserialize, Serialize};
+
+/// The embedded default preset (the paper's rig, Table 1, tuned to section 4's observations).
+pub const PAPER_RIG_TOML: &str = include_str!("../presets/paper-rig.toml");
+
+/// Everything the plant needs; see the module docs.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlantParams {
+    /// Brushed DC motor.
+    pub motor: Motor,
+    /// Transconductance (current-mode) amplifier.
+    pub amplifier: Amplifier,
+    /// Built-in two-stage gearbox.
+    pub gearbox: Gearbox,
+    /// Driving pulley (pinion).
+    pub pulley: Pulley,
+    /// Timing belt: spans, teeth, form error.
+    pub belt: Belt,
+    /// LuGre friction between pulley and belt (eq. 11).
+    pub friction: Friction,
+    /// Carriage on its guide (eq. 2).
+    pub carriage: Carriage,
+    /// Primary encoder on the motor shaft.
+    pub encoder: Encoder,
+    /// Linear scale on the carriage.
+    pub scale: Scale,
+    /// Guide-way angular errors seen through the Abbe offsets (eq. 13).
+    pub abbe: Abbe,
+    /// Run-to-run (non-repeatable) variation drawn from the seed.
+    pub variation: Variation,
+    /// Numerical integration.
+    pub integration: Integration,
+}
+
+/// Brushed DC motor: torque `kt * i`, rotor inertia, viscous and brush/bearing Coulomb loss.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Motor {
+    /// Torque constant kt.
+    pub torque_constant_nm_per_a: f64,
+    /// Rotor (and encoder, first gear) inertia.
+    pub rotor_inertia_kg_m2: f64,
+    /// Viscous loss.
+    pub viscous_nm_s_per_rad: f64,
+    /// Coulomb torque of brushes, bearings and the gear train, referred to the motor shaft.
+    pub coulomb_nm: f64,
+}
+
+/// Current-mode amplifier: the command is a current; the current loop is a first-order lag.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Amplifier {
+    /// Time constant of the current loop.
+    pub current_lag_s: f64,
+    /// Commands are clamped to +-this.
+    pub current_limit_a: f64,
+}
+
+/// Gearbox between motor and pulley, with backlash and stiffness at the output shaft.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Gearbox {
+    /// Motor revolutions per output revolution.
+    pub ratio: f64,
+    /// Total backlash at the output shaft.
+    pub backlash_rad: f64,
+    /// Torsional stiffness at the output shaft, once the backlash is closed.
+    pub stiffness_nm_per_rad: f64,
+    /// Contact damping at the output shaft, only while the backlash is closed.
+    pub damping_nm_s_per_rad: f64,
+    /// Inertia of the output gear, shaft and pulley.
+    pub output_inertia_kg_m2: f64,
+}
+
+/// Driving pulley: tooth count, eccentricity rho and initial angle theta_0 (eq. 12), wrap angle.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Pulley {
+    /// Number of teeth.
+    pub teeth: u32,
+    /// Eccentricity rho of the pitch circle.
+    pub eccentricity_m: f64,
+    /// Initial angle theta_0 of the eccentricity.
+    pub eccentricity_angle_rad: f64,
+    /// Wrap (engagement) angle alpha of the belt on the pulley (eq. 5).
+    pub wrap_angle_rad: f64,
+}
+
+/// Timing belt: pitch, spans (eqs. 4-10), teeth (eq. 3) and the tooth-mesh form error.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Belt {
+    /// Nominal pitch.
+    pub pitch_m: f64,
+    /// Relative pitch error of the unloaded belt (manufacturing); the preload strain adds to it.
+    pub pitch_error: f64,
+    /// Axial rigidity AE of the belt (cords), in newtons per unit strain.
+    pub axial_rigidity_n: f64,
+    /// Preload (installation tension) F-bar.
+    pub preload_n: f64,
+    /// Total free length L of the two spans.
+    pub free_length_m: f64,
+    /// Span length L0 between pulley and carriage clamp at x = 0 (span 1 is L0 + x).
+    pub span_offset_m: f64,
+    /// Belt mass lumped at the pulley (wrapped belt plus a share of the spans).
+    pub lumped_mass_kg: f64,
+    /// Visco-elastic damping of the spans (belt piece against carriage).
+    pub span_damping_n_s_per_m: f64,
+    /// Half gap h between belt and pulley teeth (eq. 3): the dead zone is |r theta - x| < h.
+    pub tooth_half_gap_m: f64,
+    /// Overall tooth rigidity k of the teeth in mesh (eq. 3).
+    pub tooth_stiffness_n_per_m: f64,
+    /// Tooth contact damping, only while a flank is in contact.
+    pub tooth_damping_n_s_per_m: f64,
+    /// Amplitude of the mesh form error, one period per tooth pitch.
+    pub form_error_m: f64,
+    /// Phase of the mesh form error at pulley angle 0.
+    pub form_error_phase_rad: f64,
+}
+
+/// LuGre friction coefficient mu(u) between pulley and belt (eq. 11) plus bristle renewal.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Friction {
+    /// false removes all pulley-belt friction (the paper's undamped Fig. 4 case).
+    pub enabled: bool,
+    /// Bristle stiffness sigma_0 (mu per metre of mean bristle deflection).
+    pub sigma0_per_m: f64,
+    /// Bristle damping sigma_1.
+    pub sigma1_s_per_m: f64,
+    /// Viscous term sigma_2.
+    pub sigma2_s_per_m: f64,
+    /// Kinetic coefficient mu_k.
+    pub mu_kinetic: f64,
+    /// Static coefficient mu_s.
+    pub mu_static: f64,
+    /// Stribeck velocity v_s.
+    pub stribeck_velocity_m_per_s: f64,
+    /// Stribeck exponent a.
+    pub stribeck_exponent: f64,
+    /// Bristle renewal: belt enters the wrap unstrained and leaves it carrying its deflection, so
+    /// the mean deflection relaxes by `renewal_factor / (alpha R)` per metre of pulley travel.
+    /// 2 is the value for a uniform contact pressure; 0 gives eq. 11 exactly.
+    pub renewal_factor: f64,
+}
+
+/// Carriage: mass m and Coulomb friction f_c (eq. 2), travel limits with end stops.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Carriage {
+    /// Moving mass m.
+    pub mass_kg: f64,
+    /// Mean Coulomb friction f_c of the guide bearings.
+    pub coulomb_n: f64,
+    /// Relative variation of f_c along the guide (bearing preload), repeatable.
+    pub coulomb_ripple: f64,
+    /// Wavelength of that variation.
+    pub coulomb_ripple_wavelength_m: f64,
+    /// Phase of that variation at x = 0.
+    pub coulomb_ripple_phase_rad: f64,
+    /// Lower end stop.
+    pub travel_min_m: f64,
+    /// Upper end stop.
+    pub travel_max_m: f64,
+}
+
+/// Quadrature encoder on the motor shaft; counted x4 by a 16-bit timer.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Encoder {
+    /// Lines per revolution on each channel.
+    pub lines: u32,
+}
+
+/// Linear scale on the carriage; counted x4 by a 16-bit timer.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scale {
+    /// Signal periods per millimetre on each channel (Table 1: 500).
+    pub lines_per_mm: u32,
+    /// Standard deviation of the white reading noise, per control tick.
+    pub noise_sd_m: f64,
+}
+
+/// One sinusoidal component of a guide-way angular error profile.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Wave {
+    /// Amplitude.
+    pub amplitude_rad: f64,
+    /// Wavelength along the travel.
+    pub wavelength_m: f64,
+    /// Phase at x = 0.
+    pub phase_rad: f64,
+}
+
+/// Abbe terms of eq. 13: the scale reads `x + A_z eps_y(x) - A_y eps_z(x)`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Abbe {
+    /// Abbe offset A_y.
+    pub offset_y_m: f64,
+    /// Abbe offset A_z.
+    pub offset_z_m: f64,
+    /// Angular error eps_y(x) (pitch), a sum of waves.
+    pub eps_y: Vec<Wave>,
+    /// Angular error eps_z(x) (yaw), a sum of waves.
+    pub eps_z: Vec<Wave>,
+}
+
+/// Relative standard deviations of the parameters redrawn for every run (seed).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Variation {
+    /// mu_k and mu_s (one common factor).
+    pub belt_friction_rel_sd: f64,
+    /// sigma_0.
+    pub bristle_stiffness_rel_sd: f64,
+    /// f_c.
+    pub carriage_friction_rel_sd: f64,
+    /// F-bar.
+    pub preload_rel_sd: f64,
+}
+
+/// Numerical integration.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Integration {
+    /// Longest internal step; `Plant::step` splits a tick into equal substeps no longer than this.
+    pub max_substep_s: f64,
+}
+
+impl PlantParams {
+    /// The embedded `paper-rig` preset.
+    pub fn paper_rig() -> Self {
+        Self::from_toml_str(PAPER_RIG_TOML).expect("embedded preset paper-rig.toml is valid")
+    }
+
+    /// Parses and validates a TOML preset.
+    pub fn from_toml_str(s: &str) -> Result<Self, String> {
+        let p: PlantParams = toml::from_str(s).map_err(|e| format!("plant parameters: {e}"))?;
+        p.validate()?;
+        Ok(p)
+    }
+
+    /// Serialises to TOML (loses the preset's comments).
+    pub fn to_toml_string(&self) -> String {
+        toml::to_string(self).expect("plant parameters serialise")
+    }
+
+    /// The nominal drive-train geometry the controller assumes (encoder counts <-> millimetres).
+    pub fn rig(&self) -> Rig {
+        Rig {
+            encoder_lines: self.encoder.lines,
+            gear_ratio: self.gearbox.ratio,
+            belt_pitch_mm: self.belt.pitch_m * 1e3,
+            pulley_teeth: self.pulley.teeth,
+        }
+    }
+
+    /// Nominal pitch radius of the pulley (pitch times teeth over 2 pi).
+    pub fn nominal_radius_m(&self) -> f64 {
+        self.belt.pitch_m * self.pulley.teeth as f64 / core::f64::consts::TAU
+    }
+
+    /// Effective radius: the belt is conveyed one belt pitch per pulley tooth, and the belt pitch
+    /// under preload is the nominal one times `(1 + pitch_error + F-bar / AE)`.
+    pub fn effective_radius_m(&self) -> f64 {
+        self.nominal_radius_m() * (1.0 + self.belt.pitch_error + self.belt.preload_n / self.belt.axial_rigidity_n)
+    }
+
+    /// Span stiffness (both spans in parallel, eq. 6) at carriage position `x_m`.
+    pub fn span_stiffness_n_per_m(&self, x_m: f64) -> f64 {
+        let l1 = self.belt.span_offset_m + x_m;
+        let l2 = self.belt.free_length_m - l1;
+        self.belt.axial_rigidity_n * self.belt.free_length_m / (l1 * l2)
+    }
+
+    /// Checks every field; the error names the first offending one.
+    pub fn validate(&self) -> Result<(), String> {
+        let mut c = Check::default();
+        let m = &self.motor;
+        c.pos("motor.torque_constant_nm_per_a", m.torque_constant_nm_per_a);
+        c.pos("motor.rotor_inertia_kg_m2", m.rotor_inertia_kg_m2);
+        c.nonneg("motor.viscous_nm_s_per_rad", m.viscous_nm_s_per_rad);
+        c.nonneg("motor.coulomb_nm", m.coulomb_nm);
+        let a = &self.amplifier;
+        c.pos("amplifier.current_lag_s", a.current_lag_s);
+        c.pos("amplifier.current_limit_a", a.current_limit_a);
+        let g = &self.gearbox;
+        c.range("gearbox.ratio", g.ratio, 1e-3, 1e4);
+        c.range("gearbox.backlash_rad", g.backlash_rad, 0.0, 0.1);
+        c.pos("gearbox.stiffness_nm_per_rad", g.stiffness_nm_per_rad);
+        c.nonneg("gearbox.damping_nm_s_per_rad", g.damping_nm_s_per_rad);
+        c.pos("gearbox.output_inertia_kg_m2", g.output_inertia_kg_m2);
+        let p = &self.pulley;
+        c.test("pulley.teeth", (3..=1000).contains(&p.teeth), "must be in 3..=1000");
+        c.nonneg("pulley.eccentricity_m", p.eccentricity_m);
+        c.finite("pulley.eccentricity_angle_rad", p.eccentricity_angle_rad);
+        c.range("pulley.wrap_angle_rad", p.wrap_angle_rad, 0.1, 2.0 * core::f64::consts::TAU);
+        let b = &self.belt;
+        c.range("belt.pitch_m", b.pitch_m, 1e-4, 0.1);
+        c.range("belt.pitch_error", b.pitch_error, -0.05, 0.05);
+        c.pos("belt.axial_rigidity_n", b.axial_rigidity_n);
+        c.pos("belt.preload_n", b.preload_n);
+        c.pos("belt.free_length_m", b.free_length_m);
+        c.pos("belt.span_offset_m", b.span_offset_m);
+        c.pos("belt.lumped_mass_kg", b.lumped_mass_kg);
+        c.nonneg("belt.span_damping_n_s_per_m", b.span_damping_n_s_per_m);
+        c.range("belt.tooth_half_gap_m", b.tooth_half_gap_m, 0.0, b.pitch_m / 2.0);
+        c.pos("belt.tooth_stiffness_n_per_m", b.tooth_stiffness_n_per_m);
+        c.nonneg("belt.tooth_damping_n_s_per_m", b.tooth_damping_n_s_per_m);
+        c.range("belt.form_error_m", b.form_error_m, 0.0, b.pitch_m / 10.0);
+        c.finite("belt.form_error_phase_rad", b.form_error_phase_rad);
+        let f = &self.friction;
+        c.pos("friction.sigma0_per_m", f.sigma0_per_m);
+        c.nonneg("friction.sigma1_s_per_m", f.sigma1_s_per_m);
+        c.nonneg("friction.sigma2_s_per_m", f.sigma2_s_per_m);
+        c.range("friction.mu_kinetic", f.mu_kinetic, 1e-6, 5.0);
+        c.range("friction.mu_static", f.mu_static, f.mu_kinetic, 5.0);
+        c.pos("friction.stribeck_velocity_m_per_s", f.stribeck_velocity_m_per_s);
+        c.range("friction.stribeck_exponent", f.stribeck_exponent, 0.1, 10.0);
+        c.range("friction.renewal_factor", f.renewal_factor, 0.0, 10.0);
+        let k = &self.carriage;
+        c.pos("carriage.mass_kg", k.mass_kg);
+        c.nonneg("carriage.coulomb_n", k.coulomb_n);
+        c.range("carriage.coulomb_ripple", k.coulomb_ripple, 0.0, 0.9);
+        c.pos("carriage.coulomb_ripple_wavelength_m", k.coulomb_ripple_wavelength_m);
+        c.finite("carriage.coulomb_ripple_phase_rad", k.coulomb_ripple_phase_rad);
+        c.finite("carriage.travel_min_m", k.travel_min_m);
+        c.finite("carriage.travel_max_m", k.travel_max_m);
+        c.test("carriage.travel_max_m", k.travel_max_m > k.travel_min_m, "must exceed travel_min_m");
+        // Both spans must stay longer than a tenth of L0 anywhere between the end stops.
+        c.test(
+            "belt.span_offset_m",
+            b.span_offset_m + k.travel_min_m > 0.1 * b.span_offset_m,
+            "span 1 (L0 + x) must stay positive down to carriage.travel_min_m",
+        );
+        c.test(
+            "belt.free_length_m",
+            b.free_length_m - b.span_offset_m - k.travel_max_m > 0.1 * b.span_offset_m,
+            "span 2 (L - L0 - x) must stay positive up to carriage.travel_max_m",
+        );
+        c.test(
+            "friction.sigma0_per_m",
+            f.mu_static / f.sigma0_per_m < b.pitch_m,
+            "bristle pre-sliding (mu_s / sigma0) must be shorter than a pitch",
+        );
+        c.test("encoder.lines", (1..=1 << 20).contains(&self.encoder.lines), "must be in 1..=2^20");
+        c.test("scale.lines_per_mm", (1..=100_000).contains(&self.scale.lines_per_mm), "must be in 1..=100000");
+        c.nonneg("scale.noise_sd_m", self.scale.noise_sd_m);
+        let ab = &self.abbe;
+        c.finite("abbe.offset_y_m", ab.offset_y_m);
+        c.finite("abbe.offset_z_m", ab.offset_z_m);
+        for (name, waves) in [("abbe.eps_y", &ab.eps_y), ("abbe.eps_z", &ab.eps_z)] {
+            for w in waves.iter() {
+                c.range(name, w.amplitude_rad, 0.0, 1e-2);
+                c.pos(name, w.wavelength_m);
+                c.finite(name, w.phase_rad);
+            }
+        }
+        let v = &self.variation;
+        c.range("variation.belt_friction_rel_sd", v.belt_friction_rel_sd, 0.0, 0.2);
+        c.range("variation.bristle_stiffness_rel_sd", v.bristle_stiffness_rel_sd, 0.0, 0.2);
+        c.range("variation.carriage_friction_rel_sd", v.carriage_friction_rel_sd, 0.0, 0.2);
+        c.range("variation.preload_rel_sd", v.preload_rel_sd, 0.0, 0.2);
+        let h = self.integration.max_substep_s;
+        c.range("integration.max_substep_s", h, 1e-7, 1e-3);
+        if c.err.is_none() {
+            // Explicit (symplectic) update of the stiffest contact: keep omega * h well below 2.
+            let w = self.stiffest_mode_rad_s();
+            c.test(
+                "integration.max_substep_s",
+                w * h < 0.5,
+                &format!("too long for the stiffest mode ({w:.0} rad/s): need omega * h < 0.5"),
+            );
+        }
+        c.err.map_or(Ok(()), Err)
+    }
+
+    /// Highest natural frequency of the contact springs (tooth and gear against the lightest
+    /// masses), the explicit integrator's stability bound.
+    pub fn stiffest_mode_rad_s(&self) -> f64 {
+        let r = self.nominal_radius_m();
+        let m_pulley = self.gearbox.output_inertia_kg_m2 / (r * r);
+        let m_belt = self.belt.lumped_mass_kg;
+        let tooth = self.belt.tooth_stiffness_n_per_m * (1.0 / m_pulley + 1.0 / m_belt);
+        let k_span = self
+            .span_stiffness_n_per_m(self.carriage.travel_min_m)
+            .max(self.span_stiffness_n_per_m(self.carriage.travel_max_m));
+        let belt = (self.belt.tooth_stiffness_n_per_m + k_span) / m_belt;
+        let gear = self.gearbox.stiffness_nm_per_rad / self.gearbox.output_inertia_kg_m2
+            + self.belt.tooth_stiffness_n_per_m / m_pulley;
+        tooth.max(belt).max(gear).sqrt()
+    }
+}
+
+/// Collects the first validation failure.
+#[derive(Default)]
+struct Check {
+    err: Option<String>,
+}
+
+impl Check {
+    fn test(&mut self, field: &str, ok: bool, why: &str) {
+        if !ok && self.err.is_none() {
+            self.err = Some(format!("{field}: {why}"));
+        }
+    }
+    fn finite(&mut self, field: &str, v: f64) {
+        self.test(field, v.is_finite(), &format!("{v} is not a finite number"));
+    }
+    fn pos(&mut self, field: &str, v: f64) {
+        self.finite(field, v);
+        self.test(field, v > 0.0, &format!("{v} must be > 0"));
+    }
+    fn nonneg(&mut self, field: &str, v: f64) {
+        self.finite(field, v);
+        self.test(field, v >= 0.0, &format!("{v} must be >= 0"));
+    }
+    fn range(&mut self, field: &str, v: f64, lo: f64, hi: f64) {
+        self.finite(field, v);
+        self.test(field, (lo..=hi).contains(&v), &format!("{v} must be in [{lo}, {hi}]"));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn paper_rig_loads_and_matches_the_firmware_geometry() {
+        let p = PlantParams::paper_rig();
+        assert_eq!(p.rig(), Rig::PAPER);
+        assert!((p.nominal_radius_m() * 1e3 - Rig::PAPER.pulley_radius_mm()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn toml_round_trip() {
+        let p = PlantParams::paper_rig();
+        let q = PlantParams::from_toml_str(&p.to_toml_string()).unwrap();
+        assert_eq!(p, q);
+    }
+
+    #[test]
+    fn errors_name_the_field() {
+        let bad = PAPER_RIG_TOML.replace("mass_kg = 2.5", "mass_kg = -2.5");
+        let e = PlantParams::from_toml_str(&bad).unwrap_err();
+        assert!(e.starts_with("carriage.mass_kg:"), "{e}");
+
+        let bad = PAPER_RIG_TOML.replace("max_substep_s = 2.0e-5", "max_substep_s = 5.0e-4");
+        let e = PlantParams::from_toml_str(&bad).unwrap_err();
+        assert!(e.starts_with("integration.max_substep_s:"), "{e}");
+
+        let bad = PAPER_RIG_TOML.replace("[carriage]", "[carriage]\ncolour = 3");
+        let e = PlantParams::from_toml_str(&bad).unwrap_err();
+        assert!(e.contains("colour"), "{e}");
+
+        let mut p = PlantParams::paper_rig();
+        p.friction.mu_static = 0.5 * p.friction.mu_kinetic;
+        assert!(p.validate().unwrap_err().starts_with("friction.mu_static:"));
+    }
+}

@@ -1,0 +1,141 @@
+//! PNG figures in the style of the paper: the hysteresis loop (Fig. 11) and each model's estimate
+//! and error profile along a scenario (Figs. 19-24).
+
+use std::path::Path;
+
+use plotters::prelude::*;
+
+use crate::run::Trace;
+
+/// Where the report looks for a TrueType font (Debian's fonts-dejavu-core).
+pub const FONT_PATHS: &[&str] = &[
+    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
+    "/usr/share/fonts/TTF/DejaVuSans.ttf",
+];
+
+/// Registers a font for plot text once; Err says which files were tried.
+pub fn init_fonts() -> Result<(), String> {
+    static DONE: std::sync::OnceLock<Result<(), String>> = std::sync::OnceLock::new();
+    DONE.get_or_init(|| {
+        for p in FONT_PATHS {
+            if let Ok(bytes) = std::fs::read(p) {
+                let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
+                return plotters::style::register_font("sans-serif", FontStyle::Normal, bytes)
+                    .map_err(|_| format!("{p}: not a usable TrueType font"));
+            }
+        }
+        Err(format!("no font found (tried {}); install fonts-dejavu-core", FONT_PATHS.join(", ")))
+    })
+    .clone()
+}
+
+type PlotResult = Result<(), Box<dyn std::error::Error>>;
+
+fn range(vals: impl Iterator<Item = f64>) -> (f64, f64) {
+    let (lo, hi) = vals.fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), v| (l.min(v), h.max(v)));
+    if !(hi > lo) {
+        return (lo - 1.0, lo + 1.0);
+    }
+    let pad = 0.05 * (hi - lo);
+    (lo - pad, hi + pad)
+}
+
+/// Keeps at most `n` evenly spaced points of a long series (plots need no 400k points).
+fn thin(len: usize, n: usize) -> impl Iterator<Item = usize> {
+    let step = len.div_ceil(n.max(1)).max(1);
+    (0..len).step_by(step)
+}
+
+/// Fig. 11: Delta x = x_LS - x_PE against x_PE, every trace overlaid.
+pub fn hysteresis(path: &Path, title: &str, traces: &[Trace]) -> PlotResult {
+    init_fonts()?;
+    let root = BitMapBackend::new(path, (1000, 600)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let xs = range(traces.iter().flat_map(|t| (0..t.records.len()).map(move |i| t.x_pe_mm(i))));
+    let ys = range(traces.iter().flat_map(|t| (0..t.records.len()).map(move |i| t.dx_um(i))));
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 22))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(xs.0..xs.1, ys.0..ys.1)?;
+    chart.configure_mesh().x_desc("x_PE (mm)").y_desc("x_LS - x_PE (um)").draw()?;
+    for (k, t) in traces.iter().enumerate() {
+        let color = Palette99::pick(k).mix(0.8);
+        chart.draw_series(LineSeries::new(
+            thin(t.records.len(), 20_000).map(|i| (t.x_pe_mm(i), t.dx_um(i))),
+            color.stroke_width(1),
+        ))?;
+    }
+    root.present()?;
+    Ok(())
+}
+
+/// Figs. 19-24: measured Delta x and the model's estimate y against time (top), and the
+/// estimation error e = Delta x - y (bottom).
+pub fn estimate(path: &Path, title: &str, trace: &Trace, y_um: &[f64]) -> PlotResult {
+    init_fonts()?;
+    let root = BitMapBackend::new(path, (1000, 700)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let (top, bottom) = root.split_vertically(420);
+    let n = trace.records.len();
+    let t_end = trace.records.last().map_or(1.0, |r| r.t_s);
+    let ys = range((0..n).map(|i| trace.dx_um(i)).chain(y_um.iter().copied()));
+    let mut c = ChartBuilder::on(&top)
+        .caption(title, ("sans-serif", 22))
+        .margin(12)
+        .x_label_area_size(30)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..t_end, ys.0..ys.1)?;
+    c.configure_mesh().y_desc("um").draw()?;
+    c.draw_series(LineSeries::new(
+        thin(n, 20_000).map(|i| (trace.records[i].t_s, trace.dx_um(i))),
+        BLUE.stroke_width(1),
+    ))?
+    .label("measured x_LS - x_PE")
+    .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLUE));
+    c.draw_series(LineSeries::new(
+        thin(n, 20_000).map(|i| (trace.records[i].t_s, y_um[i])),
+        RED.stroke_width(1),
+    ))?
+    .label("estimate y")
+    .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RED));
+    c.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw()?;
+
+    let es = range((0..n).map(|i| trace.dx_um(i) - y_um[i]));
+    let mut c = ChartBuilder::on(&bottom)
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..t_end, es.0..es.1)?;
+    c.configure_mesh().x_desc("time (s)").y_desc("error e (um)").draw()?;
+    c.draw_series(LineSeries::new(
+        thin(n, 20_000).map(|i| (trace.records[i].t_s, trace.dx_um(i) - y_um[i])),
+        BLACK.stroke_width(1),
+    ))?;
+    root.present()?;
+    Ok(())
+}
+
+/// The scenario itself (Fig. 18): motor position against time.
+pub fn scenario(path: &Path, title: &str, trace: &Trace) -> PlotResult {
+    init_fonts()?;
+    let root = BitMapBackend::new(path, (1000, 400)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let n = trace.records.len();
+    let t_end = trace.records.last().map_or(1.0, |r| r.t_s);
+    let xs = range((0..n).map(|i| trace.x_pe_mm(i)));
+    let mut c = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 22))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..t_end, xs.0..xs.1)?;
+    c.configure_mesh().x_desc("time (s)").y_desc("x_PE (mm)").draw()?;
+    c.draw_series(LineSeries::new(
+        thin(n, 20_000).map(|i| (trace.records[i].t_s, trace.x_pe_mm(i))),
+        BLUE.stroke_width(2),
+    ))?;
+    root.present()?;
+    Ok(())
+}

@@ -1,0 +1,192 @@
+//! Closed-loop scenario runs: plant <-> controller, one record per control tick.
+
+use estimator_core::drive::{Command, Output, Sample};
+use estimator_core::rig::Rig;
+
+use crate::controller::{ControlError, Controller};
+use crate::plant::{Plant, PlantParams};
+use crate::scenario::Scenario;
+
+/// One control tick as recorded for calibration, evaluation and plots.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Record {
+    /// Simulated time, seconds.
+    pub t_s: f64,
+    /// Motor position x_PE as the drive unwrapped it, counts.
+    pub motor_counts: i32,
+    /// Carriage position x_LS from the linear scale (0.5 um counts, as read), millimetres.
+    pub x_ls_mm: f64,
+    /// Trajectory set-point, counts.
+    pub setpoint_counts: i32,
+    /// Commanded direction (sign of the set-point's motion, held at rest): +1 or -1.
+    pub cmd_dir: i8,
+    /// The drive's output (current and telemetry).
+    pub out: Output,
+}
+
+/// A finished run.
+#[derive(Clone, Debug)]
+pub struct Trace {
+    /// Scenario name.
+    pub scenario: String,
+    /// Noise seed of the plant.
+    pub seed: u64,
+    /// Counts per millimetre used to turn x_PE into millimetres.
+    pub counts_per_mm: f64,
+    /// One record per tick.
+    pub records: Vec<Record>,
+}
+
+impl Trace {
+    /// x_PE in millimetres at record `i`.
+    pub fn x_pe_mm(&self, i: usize) -> f64 {
+        self.records[i].motor_counts as f64 / self.counts_per_mm
+    }
+    /// Delta x = x_LS - x_PE in micrometres at record `i` (the paper's eq. 13).
+    pub fn dx_um(&self, i: usize) -> f64 {
+        (self.records[i].x_ls_mm - self.x_pe_mm(i)) * 1000.0
+    }
+}
+
+/// Settings of one run.
+#[derive(Clone, Debug)]
+pub struct RunConfig {
+    /// Control rate, Hz (the drive's own rate).
+    pub rate_hz: f64,
+    /// Plant noise seed.
+    pub seed: u64,
+    /// Rest after the last move before the run ends, seconds.
+    pub settle_s: f64,
+}
+
+impl Default for RunConfig {
+    fn default() -> Self {
+        RunConfig { rate_hz: 2000.0, seed: 1, settle_s: 0.2 }
+    }
+}
+
+/// Why a run stopped early.
+#[derive(Debug)]
+pub enum RunError {
+    /// The controller failed or refused a command.
+    Control(ControlError),
+    /// The drive latched a fault (bits) at time `t_s`.
+    Fault { bits: u8, t_s: f64 },
+    /// The scenario did not finish within its time budget.
+    Timeout(f64),
+}
+
+impl std::fmt::Display for RunError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            RunError::Control(e) => write!(f, "{e}"),
+            RunError::Fault { bits, t_s } => write!(f, "drive fault 0x{bits:02x} at t = {t_s:.4} s"),
+            RunError::Timeout(t) => write!(f, "scenario still moving after {t:.1} s of simulated time"),
+        }
+    }
+}
+
+impl std::error::Error for RunError {}
+
+impl From<ControlError> for RunError {
+    fn from(e: ControlError) -> Self {
+        RunError::Control(e)
+    }
+}
+
+/// Rough upper bound of a scenario's duration, for the time-out.
+fn budget_s(s: &Scenario) -> f64 {
+    let mut x = s.start_mm;
+    let mut t = 0.0;
+    for m in &s.moves {
+        let d = (m.to_mm - x).abs();
+        t += d / m.velocity_mm_s + 2.0 * m.velocity_mm_s / m.accel_mm_s2 + m.dwell_ms as f64 / 1000.0;
+        x = m.to_mm;
+    }
+    2.0 * t + 5.0
+}
+
+/// Runs `scenario` through `controller` on a fresh plant. `progress` is called with the fraction
+/// of the scenario done (moves commanded), for progress bars.
+pub fn run(
+    scenario: &Scenario,
+    plant_params: &PlantParams,
+    rig: &Rig,
+    controller: &mut dyn Controller,
+    cfg: &RunConfig,
+    progress: &mut dyn FnMut(f64),
+) -> Result<Trace, RunError> {
+    let dt = 1.0 / cfg.rate_hz;
+    let mut plant = Plant::new(plant_params, scenario.start_mm, cfg.seed);
+    let start_um = (scenario.start_mm * 1000.0).round() as i32;
+    let scale_um = (plant.scale_counts() as f64 * 0.5).round() as i32;
+    let sample = |p: &Plant| Sample { motor_counter: p.motor_counter(), scale_counter: p.scale_counter() };
+
+    // One tick at rest so the drive has seen the counters before homing.
+    controller.step(sample(&plant))?;
+    controller.command(Command::Home { position_um: start_um, scale_um })?;
+    controller.command(Command::Enable)?;
+
+    let budget = budget_s(scenario);
+    let mut records = Vec::with_capacity((budget * cfg.rate_hz * 0.6) as usize);
+    let mut next = 0usize; // next move to command
+    let mut next_at: Option<f64> = Some(0.0); // time it is due, None = when the drive is at rest
+    let mut rest_since: Option<f64> = None;
+    let mut last_sp = i32::MIN;
+    let mut cmd_dir: i8 = 1;
+    let mut t = 0.0;
+    let mut tick: u64 = 0;
+    loop {
+        // Commands due this tick go in before the step.
+        let due = match next_at {
+            Some(at) => t >= at - 0.5 * dt,
+            None => rest_since.is_some_and(|since| t >= since - 0.5 * dt),
+        };
+        if due && next < scenario.moves.len() {
+            let m = &scenario.moves[next];
+            controller.command(Command::MoveTo {
+                target_um: (m.to_mm * 1000.0).round() as i32,
+                velocity_um_s: (m.velocity_mm_s * 1000.0).round() as u32,
+                accel_um_s2: (m.accel_mm_s2 * 1000.0).round() as u32,
+            })?;
+            next_at = m.retarget_after_ms.map(|ms| t + ms as f64 / 1000.0);
+            rest_since = None;
+            next += 1;
+            progress(next as f64 / scenario.moves.len() as f64);
+        } else if due && next == scenario.moves.len() {
+            break;
+        }
+
+        let out = controller.step(sample(&plant))?;
+        let tel = out.telemetry;
+        if !tel.faults.is_clear() {
+            return Err(RunError::Fault { bits: tel.faults.0, t_s: t });
+        }
+        if last_sp != i32::MIN && tel.setpoint_counts != last_sp {
+            cmd_dir = if tel.setpoint_counts > last_sp { 1 } else { -1 };
+        }
+        last_sp = tel.setpoint_counts;
+        records.push(Record {
+            t_s: t,
+            motor_counts: tel.motor_counts,
+            x_ls_mm: plant.scale_counts() as f64 * 0.5e-3,
+            setpoint_counts: tel.setpoint_counts,
+            cmd_dir,
+            out,
+        });
+        plant.step(out.current_a.to_num::<f64>(), dt);
+        tick += 1;
+        t = tick as f64 * dt;
+
+        // Arrival of a move without retarget: rest for its dwell (or the final settle).
+        if next_at.is_none() && rest_since.is_none() && !tel.moving {
+            let dwell = scenario.moves[next - 1].dwell_ms as f64 / 1000.0;
+            let extra = if next == scenario.moves.len() { dwell + cfg.settle_s } else { dwell };
+            rest_since = Some(t + extra);
+        }
+        if t > budget {
+            return Err(RunError::Timeout(t));
+        }
+    }
+    Ok(Trace { scenario: scenario.name.clone(), seed: cfg.seed, counts_per_mm: rig.counts_per_mm(), records })
+}

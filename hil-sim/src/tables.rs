@@ -1,0 +1,230 @@
+//! Model 3's tables measured from recorded (x_PE, x_LS) samples, the way the paper builds them
+//! from Fig. 15-type reversal runs: per-direction band tables along travel and per-direction 2-D
+//! transition tables of the remaining gap after a reversal.
+//!
+//! Parametrisation (estimator-core's Model 3): after a reversal at the turning point x_d, the error
+//! is y = band_new(x) + s * G(d, g0), with d = |x - x_d| the travel since the turning point,
+//! g0 = |y_turn - band_new(x_d)| the gap to the new band edge at the turning point and s the side
+//! of the band the new edge lies on. G is fitted by regularised linear least squares on a bilinear
+//! grid, with G(0, g0) = g0 imposed strongly so that the estimate is continuous at a reversal.
+
+/// A stroke between two reversals, found with the drive's own reversal rule.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Stroke {
+    /// +1 forward (increasing x), -1 reverse.
+    pub dir: i8,
+    /// Turning point the stroke starts from, counts.
+    pub x_turn_counts: i32,
+    /// Record index of the turning point.
+    pub turn_index: usize,
+    /// Records of the stroke: `start..end`.
+    pub start: usize,
+    /// End (exclusive).
+    pub end: usize,
+}
+
+/// Splits a motor-position sequence into strokes with the same rule as the drive's reversal
+/// detector: a reversal is registered once the position has moved more than `deadband_counts`
+/// back from the extreme reached in the current direction; the turning point is that extreme.
+/// The first stroke is taken as forward.
+pub fn strokes(x_counts: &[i32], deadband_counts: u32) -> Vec<Stroke> {
+    let mut out = Vec::new();
+    if x_counts.is_empty() {
+        return out;
+    }
+    let db = deadband_counts as i64;
+    let mut dir: i8 = 1;
+    let (mut ext, mut ext_i) = (x_counts[0] as i64, 0usize);
+    let mut start = 0usize;
+    let mut turn = (x_counts[0], 0usize);
+    for (i, &x) in x_counts.iter().enumerate() {
+        let x = x as i64;
+        let beyond = if dir > 0 { x > ext } else { x < ext };
+        if beyond {
+            ext = x;
+            ext_i = i;
+        } else if (ext - x) * dir as i64 > db {
+            out.push(Stroke { dir, x_turn_counts: turn.0, turn_index: turn.1, start, end: i });
+            dir = -dir;
+            turn = (ext as i32, ext_i);
+            start = i;
+            ext = x;
+            ext_i = i;
+        }
+    }
+    out.push(Stroke { dir, x_turn_counts: turn.0, turn_index: turn.1, start, end: x_counts.len() });
+    out
+}
+
+/// Solves the symmetric positive definite system `a x = b` (row-major n x n) by Cholesky.
+pub fn solve_spd(mut a: Vec<f64>, mut b: Vec<f64>) -> Option<Vec<f64>> {
+    let n = b.len();
+    if a.len() != n * n {
+        return None;
+    }
+    for j in 0..n {
+        let mut d = a[j * n + j];
+        for k in 0..j {
+            d -= a[j * n + k] * a[j * n + k];
+        }
+        if !(d > 0.0) {
+            return None;
+        }
+        let d = d.sqrt();
+        a[j * n + j] = d;
+        for i in j + 1..n {
+            let mut s = a[i * n + j];
+            for k in 0..j {
+                s -= a[i * n + k] * a[j * n + k];
+            }
+            a[i * n + j] = s / d;
+        }
+    }
+    for i in 0..n {
+        let mut s = b[i];
+        for k in 0..i {
+            s -= a[i * n + k] * b[k];
+        }
+        b[i] = s / a[i * n + i];
+    }
+    for i in (0..n).rev() {
+        let mut s = b[i];
+        for k in i + 1..n {
+            s -= a[k * n + i] * b[k];
+        }
+        b[i] = s / a[i * n + i];
+    }
+    Some(b)
+}
+
+/// Index of the cell of a strictly increasing axis containing `v` and the weight of the upper
+/// node (clamped to the axis).
+pub fn cell(axis: &[f64], v: f64) -> (usize, f64) {
+    let n = axis.len();
+    if v <= axis[0] {
+        return (0, 0.0);
+    }
+    if v >= axis[n - 1] {
+        return (n - 2, 1.0);
+    }
+    let j = axis.partition_point(|&a| a <= v).clamp(1, n - 1) - 1;
+    (j, (v - axis[j]) / (axis[j + 1] - axis[j]))
+}
+
+/// Linear interpolation on an axis (clamped).
+pub fn interp(axis: &[f64], values: &[f64], v: f64) -> f64 {
+    let (j, w) = cell(axis, v);
+    values[j] * (1.0 - w) + values[j + 1] * w
+}
+
+/// One observation of the gap after a reversal.
+#[derive(Clone, Copy, Debug)]
+pub struct GapSample {
+    /// Travel since the turning point, mm.
+    pub d_mm: f64,
+    /// Gap to the new band edge at the turning point, um.
+    pub g0_um: f64,
+    /// Gap now, um (signed: positive while still on the old side).
+    pub gap_um: f64,
+}
+
+/// Fits G on the grid `d_axis` x `g0_axis` (values row-major: `[id * g0_axis.len() + ig]`).
+/// `smooth` weighs second differences along both axes against the data.
+pub fn fit_gap_table(samples: &[GapSample], d_axis: &[f64], g0_axis: &[f64], smooth: f64) -> Option<Vec<f64>> {
+    let (nd, ng) = (d_axis.len(), g0_axis.len());
+    let n = nd * ng;
+    let mut ata = vec![0.0; n * n];
+    let mut atb = vec![0.0; n];
+    let mut add_row = |idx: &[(usize, f64)], target: f64, w: f64| {
+        for &(i, wi) in idx {
+            atb[i] += w * wi * target;
+            for &(j, wj) in idx {
+                ata[i * n + j] += w * wi * wj;
+            }
+        }
+    };
+    for s in samples {
+        let (id, wd) = cell(d_axis, s.d_mm);
+        let (ig, wg) = cell(g0_axis, s.g0_um);
+        let idx = [
+            (id * ng + ig, (1.0 - wd) * (1.0 - wg)),
+            (id * ng + ig + 1, (1.0 - wd) * wg),
+            ((id + 1) * ng + ig, wd * (1.0 - wg)),
+            ((id + 1) * ng + ig + 1, wd * wg),
+        ];
+        add_row(&idx, s.gap_um, 1.0);
+    }
+    // Continuity at the reversal: G(0, g0) = g0, weighted like many samples.
+    let anchor = 1e3 + samples.len() as f64 / ng as f64;
+    for (ig, &g0) in g0_axis.iter().enumerate() {
+        add_row(&[(ig, 1.0)], g0, anchor);
+    }
+    // Second differences in each direction, scaled to the local spacing.
+    let w = smooth * (1.0 + samples.len() as f64 / n as f64);
+    for id in 0..nd {
+        for ig in 1..ng.saturating_sub(1) {
+            add_row(&[(id * ng + ig - 1, 1.0), (id * ng + ig, -2.0), (id * ng + ig + 1, 1.0)], 0.0, w);
+        }
+    }
+    for ig in 0..ng {
+        for id in 1..nd.saturating_sub(1) {
+            let (h0, h1) = (d_axis[id] - d_axis[id - 1], d_axis[id + 1] - d_axis[id]);
+            let (c0, c2) = (h1 / (h0 + h1), h0 / (h0 + h1));
+            add_row(&[((id - 1) * ng + ig, c0), (id * ng + ig, -1.0), ((id + 1) * ng + ig, c2)], 0.0, w);
+        }
+    }
+    // A whisper of ridge keeps cells no sample and no difference reaches well posed.
+    for i in 0..n {
+        ata[i * n + i] += 1e-9 * (1.0 + samples.len() as f64);
+    }
+    solve_spd(ata, atb)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn strokes_follow_the_deadband_rule() {
+        // up to 100, jitter of 1 (inside a deadband of 2), down to 50, up to 60.
+        let mut x: Vec<i32> = (0..=100).collect();
+        x.extend([99, 100, 99]);
+        x.extend((50..99).rev());
+        x.extend(51..=60);
+        let s = strokes(&x, 2);
+        assert_eq!(s.len(), 3, "{s:?}");
+        assert_eq!((s[0].dir, s[1].dir, s[2].dir), (1, -1, 1));
+        assert_eq!(s[1].x_turn_counts, 100);
+        assert_eq!(s[2].x_turn_counts, 50);
+        assert_eq!(s.last().unwrap().end, x.len());
+    }
+
+    #[test]
+    fn cholesky_solves_small_system() {
+        let x = solve_spd(vec![4.0, 2.0, 2.0, 3.0], vec![2.0, 1.0]).unwrap();
+        assert!((x[0] - 0.5).abs() < 1e-12 && x[1].abs() < 1e-12);
+        assert!(solve_spd(vec![0.0, 0.0, 0.0, 0.0], vec![1.0, 1.0]).is_none());
+    }
+
+    #[test]
+    fn gap_fit_recovers_a_known_surface() {
+        // G(d, g0) = g0 * exp(-d / 10) is linear in g0, smooth in d.
+        let d_axis: Vec<f64> = (0..16).map(|i| (i as f64).powi(2) * 0.4).collect();
+        let g_axis: Vec<f64> = (0..8).map(|i| i as f64 * 50.0).collect();
+        let mut samples = Vec::new();
+        for k in 0..40 {
+            let g0 = 350.0 * k as f64 / 39.0;
+            for i in 0..400 {
+                let d = i as f64 * 0.25;
+                samples.push(GapSample { d_mm: d, g0_um: g0, gap_um: g0 * (-d / 10.0).exp() });
+            }
+        }
+        let t = fit_gap_table(&samples, &d_axis, &g_axis, 1e-4).unwrap();
+        for (id, d) in d_axis.iter().enumerate() {
+            for (ig, g0) in g_axis.iter().enumerate() {
+                let want = g0 * (-d / 10.0).exp();
+                assert!((t[id * g_axis.len() + ig] - want).abs() < 6.0, "d {d} g0 {g0}: {} vs {want}", t[id * 8 + ig]);
+            }
+        }
+    }
+}
