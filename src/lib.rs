@@ -29,13 +29,7 @@ pub mod stack;
 #[cfg(target_os = "none")]
 pub mod outbox;
 
-// TEMPORARY: replaced by `pub use estimator_core::drive;` once the core declares it.
-#[cfg(target_os = "none")]
-#[path = "standin.rs"]
-pub mod drive;
-#[cfg(target_os = "none")]
-#[path = "endpoint_standin.rs"]
-pub mod endpoint;
+pub use estimator_core::drive;
 
 #[cfg(target_os = "none")]
 mod runtime {

@@ -24,7 +24,7 @@ mod app {
     use core::sync::atomic::{AtomicBool, AtomicU16, Ordering};
 
     use belt_drive::drive::{Command, CommandError, Drive, DriveConfig, Telemetry};
-    use belt_drive::endpoint::{answer, Effect, Endpoint, Event};
+    use estimator_core::link::{answer, Effect, Endpoint, Event};
     use belt_drive::hardware::{self, ControlIo, LinkRx};
     use belt_drive::outbox::Outbox;
     use belt_drive::stack;
@@ -43,8 +43,6 @@ mod app {
     struct Shared {
         drive: Drive,
         outbox: Outbox,
-        /// The latest tick's telemetry, for status replies.
-        last: Telemetry,
     }
 
     #[local]
@@ -61,7 +59,8 @@ mod app {
     fn init(cx: init::Context) -> (Shared, Local) {
         stack::paint();
         let config = DriveConfig::paper_rig();
-        let rate_hz = config.control_rate_hz;
+        // The configured rate is a whole number of hertz (the paper rig: 2 kHz).
+        let rate_hz = config.rate_hz as u32;
         let board = hardware::init(cx.device, cx.core.SYST, rate_hz);
         defmt::info!(
             "belt-drive {=str} on {=str}: sysclk {=u32} Hz, control tick {=u32} Hz",
@@ -77,7 +76,7 @@ mod app {
         };
         defmt::info!("drive disabled, model None, no calibration loaded: waiting for the link");
         (
-            Shared { drive, outbox: Outbox::new(board.tx), last: Telemetry::default() },
+            Shared { drive, outbox: Outbox::new(board.tx) },
             Local {
                 io: board.control,
                 rx: board.rx,
@@ -101,10 +100,10 @@ mod app {
     /// Budget: `Drive::step` at most 400 instructions with Model 3 (exact count under QEMU,
     /// `tools/bench-target.sh`); the whole task stays under 5 % of a 2 kHz tick at 168 MHz
     /// (4200 cycles) except on the ticks that also queue a telemetry frame.
-    #[task(binds = TIM7, priority = 3, local = [io, prev, silent_ticks: u32 = 0, since_stream: u16 = 0], shared = [drive, outbox, last])]
+    #[task(binds = TIM7, priority = 3, local = [io, prev, silent_ticks: u32 = 0, since_stream: u16 = 0], shared = [drive, outbox])]
     fn control(cx: control::Context) {
         let control::LocalResources { io, silent_ticks, since_stream, prev, .. } = cx.local;
-        let control::SharedResources { mut drive, mut outbox, mut last, .. } = cx.shared;
+        let control::SharedResources { mut drive, mut outbox, .. } = cx.shared;
         let Some(tick) = io.begin_tick() else { return };
 
         let (out, instructions) = drive.lock(|d| io.measure(|| d.step(tick.sample)));
@@ -131,7 +130,6 @@ mod app {
         );
         log_transitions(prev, &t);
         *prev = t;
-        last.lock(|l| *l = t);
 
         if hardware::LINK_WATCHDOG {
             if FRAME_SEEN.swap(false, Ordering::Relaxed) {
@@ -170,10 +168,10 @@ mod app {
 
     /// The link: bytes in, frames decoded, commands applied, replies queued; also drains the
     /// transmit queue on TXE.
-    #[task(binds = USART2, priority = 2, local = [rx, receiver, endpoint], shared = [drive, outbox, last])]
+    #[task(binds = USART2, priority = 2, local = [rx, receiver, endpoint], shared = [drive, outbox])]
     fn link(cx: link::Context) {
         let link::LocalResources { rx, receiver, endpoint, .. } = cx.local;
-        let link::SharedResources { mut drive, mut outbox, mut last, .. } = cx.shared;
+        let link::SharedResources { mut drive, mut outbox, .. } = cx.shared;
         while let Some(byte) = rx.read() {
             let frame = match receiver.push::<Request>(byte) {
                 None => continue,
@@ -202,7 +200,7 @@ mod app {
                 },
                 Effect::Status => {
                     let peak = stack::peak_bytes();
-                    Reply::Status(last.lock(|l| endpoint.status(l, receiver, peak)))
+                    Reply::Status(drive.lock(|d| endpoint.status(d, receiver, peak)))
                 }
                 Effect::Stream(n) => {
                     defmt::info!("telemetry stream every {=u16} ticks (0 = off)", n);
@@ -213,7 +211,7 @@ mod app {
                     if !hardware::ALLOW_SHUTDOWN {
                         not_supported(&frame.msg)
                     } else {
-                        let t = last.lock(|l| *l);
+                        let t = drive.lock(|d| d.telemetry());
                         defmt::info!(
                             "shutdown {=u8}: {=u32} ticks, frames ok {=u32} bad {=u32}, stack peak {=u32} bytes",
                             code,
@@ -270,8 +268,8 @@ mod app {
             Event::CalibrationLoaded { len } => {
                 defmt::info!("calibration loaded ({=u32} bytes): Model 3 available", len)
             }
-            Event::CalibrationRejected(e) => {
-                defmt::error!("calibration rejected: {=str}; previous tables kept", e.as_str())
+            Event::CalibrationRejected => {
+                defmt::error!("calibration rejected by the drive; previous tables kept")
             }
         }
     }

@@ -12,7 +12,7 @@ use belt_drive as _;
 #[cfg(target_os = "none")]
 use {
     belt_drive::drive::{Drive, DriveConfig, Sample},
-    belt_drive::endpoint::Endpoint,
+    estimator_core::link::Endpoint,
     estimator_core::link::{
         cobs_encode, cobs_decode_in_place, crc32, encode, kind, Message, Receiver, Request,
         CHUNK_MAX, MAX_ENCODED, MAX_FRAME, MAX_RAW,

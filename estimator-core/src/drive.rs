@@ -12,6 +12,7 @@ use fixed::types::I16F16;
 use crate::model::{self, ModelCoeffs, ModelKind, ModelParams, ModelState};
 use crate::rig::Rig;
 use crate::trajectory::{self, Trajectory};
+use crate::blob::{self, BlobError};
 use crate::{encoder, pid, ConfigError};
 
 /// What the board samples at the start of every tick.
@@ -329,13 +330,22 @@ impl Drive {
         })
     }
 
-    /// Replaces the error-model parameters (a calibration). Refused while moving; the estimate
-    /// restarts on the band edge of the current direction.
+    /// Replaces the error-model parameters; the estimate restarts on the band edge of the
+    /// current direction. Invalid parameters change nothing.
     pub fn set_model_params(&mut self, params: &ModelParams) -> Result<(), ConfigError> {
-        let models = params.build(&self.rig)?;
-        self.models = models;
-        self.model_state.reset(self.motor_state.position_counts());
+        self.models = params.build(&self.rig)?;
+        self.model_state.settle(self.motor_state.position_counts());
         Ok(())
+    }
+
+    /// Checks and loads a calibration blob (see [`crate::blob`]). Refused while a move is in
+    /// progress; a refused blob changes nothing.
+    pub fn load_calibration(&mut self, blob: &[u8]) -> Result<(), BlobError> {
+        if !self.trajectory.is_done() {
+            return Err(BlobError::Busy);
+        }
+        let params = blob::decode(blob, &self.rig)?;
+        self.set_model_params(&params).map_err(BlobError::Invalid)
     }
 
     /// The coefficients of the error models in use.

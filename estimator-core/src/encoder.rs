@@ -346,7 +346,13 @@ mod tests {
             (0x8000_0000, 0x7fff_ffff, Ok(-1)),
             (0, 0x7fff_ffff, Ok(i32::MAX)),
             (0, 0x8000_0001, Ok(-i32::MAX)),
-            (0, 0x8000_0000, Err(Error::Jump { delta_counts: i32::MIN })),
+            (
+                0,
+                0x8000_0000,
+                Err(Error::Jump {
+                    delta_counts: i32::MIN,
+                }),
+            ),
         ];
         for &(prev, raw, expected) in table {
             let mut s = State::<u32>::new(0);

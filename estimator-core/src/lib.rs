@@ -19,6 +19,7 @@ pub mod trajectory;
 
 pub mod model;
 
+pub mod blob;
 pub mod drive;
 
 pub mod link;

@@ -103,8 +103,12 @@ impl Config {
             return Err(ConfigError::OutOfRange("pid.rate_hz"));
         }
         let counts_per_mm = rig.counts_per_mm();
-        let kp_a_per_count =
-            gain::<I8F24>(self.kp_a_per_mm, 1.0 / counts_per_mm, 1.0, "pid.kp_a_per_mm")?;
+        let kp_a_per_count = gain::<I8F24>(
+            self.kp_a_per_mm,
+            1.0 / counts_per_mm,
+            1.0,
+            "pid.kp_a_per_mm",
+        )?;
         let ki_a_per_count_tick = gain::<I1F31>(
             self.ki_a_per_mm_s,
             1.0 / (counts_per_mm * rate),
@@ -277,7 +281,7 @@ pub struct Output {
 /// path for `min > max`.
 #[inline(always)]
 fn sat(x: i32, limit: i32) -> i32 {
-    x.max(-limit).min(limit)
+    x.max(limit.wrapping_neg()).min(limit)
 }
 
 /// Saturates to a `BITS`-bit signed range, `-2^(BITS-1) ..= 2^(BITS-1) - 1`: one SSAT.
@@ -337,7 +341,7 @@ impl Coeffs {
         let setpoint_counts = (setpoint.position >> 24) as i32;
         let setpoint_frac_f8 = ((setpoint.position as u32) >> 16) as i32 & 0xff;
         let error_counts = ssat::<ERROR_BITS>(setpoint_counts.saturating_sub(measured_counts));
-        let error_f8 = (error_counts << 8) + setpoint_frac_f8;
+        let error_f8 = (error_counts << 8) | setpoint_frac_f8;
         let error_pi_f8 = ssat::<ERROR_PI_BITS>(error_f8);
 
         // Measured velocity (counts/tick, I16F16), low-passed. No history yet: no derivative.
@@ -348,9 +352,12 @@ impl Coeffs {
         };
         let step_f16 = ssat::<VELOCITY_BITS>(measured_counts.saturating_sub(last)) << 16;
         let mut velocity_f16 = state.velocity_counts_per_tick.to_bits();
-        // Both within ±2^27; alpha < 1 and rounding to nearest keep the filter between them.
-        let towards = (step_f16 - velocity_f16) as i64 * self.derivative_alpha.to_bits() as i64;
-        velocity_f16 += ((towards + (1 << 30)) >> 31) as i32;
+        // Both within ±2^27 (no wrap); alpha < 1 and rounding to nearest keep the filter between
+        // them. Plain arithmetic in this function cannot overflow; the few `wrapping_*` keep debug
+        // and release builds the same panic-free code.
+        let towards =
+            step_f16.wrapping_sub(velocity_f16) as i64 * self.derivative_alpha.to_bits() as i64;
+        velocity_f16 = velocity_f16.wrapping_add(((towards + (1 << 30)) >> 31) as i32);
 
         // Terms in I16F16 amperes, each below 2^31 by the bounds in `build` and `Setpoint`.
         let p = mul_shr(error_pi_f8, self.kp_a_per_count.to_bits(), 16);
@@ -365,7 +372,10 @@ impl Coeffs {
             self.kff_acc_a_tick2_per_count.to_bits(),
             24,
         );
-        let others = p.saturating_add(d).saturating_add(v_ff).saturating_add(a_ff);
+        let others = p
+            .saturating_add(d)
+            .saturating_add(v_ff)
+            .saturating_add(a_ff);
 
         // Integrator in I8F24 (F8 x F31 >> 15). Conditional integration: frozen while the output
         // is saturated in the direction the error would push it.
@@ -377,7 +387,7 @@ impl Coeffs {
         let winding = if increment_f24 > 0 {
             before >= limit_f16
         } else {
-            before <= -limit_f16
+            before <= limit_f16.wrapping_neg()
         };
         if !winding {
             integrator_f24 = sat(integrator_f24.saturating_add(increment_f24), limit_f24);
@@ -391,7 +401,7 @@ impl Coeffs {
         Output {
             current_a: I16F16::from_bits(sat(total, limit_f16)),
             following_error_counts: I24F8::from_bits(error_f8),
-            saturated: total > limit_f16 || total < -limit_f16,
+            saturated: total > limit_f16 || total < limit_f16.wrapping_neg(),
         }
     }
 }
@@ -402,7 +412,11 @@ mod tests {
     use fixed::types::I40F24;
 
     fn at(position_counts: f64) -> Setpoint {
-        Setpoint::new(I40F24::from_num(position_counts), I40F24::ZERO, I40F24::ZERO)
+        Setpoint::new(
+            I40F24::from_num(position_counts),
+            I40F24::ZERO,
+            I40F24::ZERO,
+        )
     }
 
     fn only(kp: f64, ki: f64, kd: f64) -> Coeffs {
@@ -429,9 +443,15 @@ mod tests {
         let cpm = Rig::PAPER.counts_per_mm();
         let close = |x: f64, y: f64| (x - y).abs() <= 1e-4 * y.abs();
         assert!(close(c.kp_a_per_count().to_num(), 10.0 / cpm));
-        assert!(close(c.ki_a_per_count_tick().to_num(), 100.0 / cpm / 2000.0));
+        assert!(close(
+            c.ki_a_per_count_tick().to_num(),
+            100.0 / cpm / 2000.0
+        ));
         assert!(close(c.kd_a_tick_per_count().to_num(), 0.12 * 2000.0 / cpm));
-        assert!(close(c.kff_acc_a_tick2_per_count().to_num(), 0.00092 * 4e6 / cpm));
+        assert!(close(
+            c.kff_acc_a_tick2_per_count().to_num(),
+            0.00092 * 4e6 / cpm
+        ));
         assert_eq!(c.max_current_a(), 8);
         let wt = 2.0 * core::f64::consts::PI * 300.0 / 2000.0;
         assert!(close(c.derivative_alpha().to_num(), wt / (1.0 + wt)));
@@ -441,24 +461,126 @@ mod tests {
     fn config_errors_name_the_field() {
         let ok = Config::PAPER_RIG;
         let field = |c: Config| c.build(&Rig::PAPER).unwrap_err().field();
-        assert_eq!(field(Config { kp_a_per_mm: f64::NAN, ..ok }), "pid.kp_a_per_mm");
-        assert_eq!(field(Config { kp_a_per_mm: -1.0, ..ok }), "pid.kp_a_per_mm");
-        assert_eq!(field(Config { kp_a_per_mm: 2000.0, ..ok }), "pid.kp_a_per_mm");
-        assert_eq!(field(Config { ki_a_per_mm_s: 1e-9, ..ok }), "pid.ki_a_per_mm_s");
-        assert_eq!(field(Config { ki_a_per_mm_s: 1e12, ..ok }), "pid.ki_a_per_mm_s");
-        assert_eq!(field(Config { kd_a_s_per_mm: f64::INFINITY, ..ok }), "pid.kd_a_s_per_mm");
-        assert_eq!(field(Config { kd_a_s_per_mm: 1e5, ..ok }), "pid.kd_a_s_per_mm");
-        assert_eq!(field(Config { kff_vel_a_s_per_mm: -0.1, ..ok }), "pid.kff_vel_a_s_per_mm");
-        assert_eq!(field(Config { kff_acc_a_s2_per_mm: 1e3, ..ok }), "pid.kff_acc_a_s2_per_mm");
-        assert_eq!(field(Config { derivative_cutoff_hz: 0.0, ..ok }), "pid.derivative_cutoff_hz");
-        assert_eq!(field(Config { derivative_cutoff_hz: 1001.0, ..ok }), "pid.derivative_cutoff_hz");
-        assert_eq!(field(Config { derivative_cutoff_hz: f64::NAN, ..ok }), "pid.derivative_cutoff_hz");
-        assert_eq!(field(Config { max_current_a: 0.0, ..ok }), "pid.max_current_a");
-        assert_eq!(field(Config { max_current_a: 128.0, ..ok }), "pid.max_current_a");
-        assert_eq!(field(Config { rate_hz: 50.0, ..ok }), "pid.rate_hz");
-        assert_eq!(field(Config { rate_hz: f64::NAN, ..ok }), "pid.rate_hz");
+        assert_eq!(
+            field(Config {
+                kp_a_per_mm: f64::NAN,
+                ..ok
+            }),
+            "pid.kp_a_per_mm"
+        );
+        assert_eq!(
+            field(Config {
+                kp_a_per_mm: -1.0,
+                ..ok
+            }),
+            "pid.kp_a_per_mm"
+        );
+        assert_eq!(
+            field(Config {
+                kp_a_per_mm: 2000.0,
+                ..ok
+            }),
+            "pid.kp_a_per_mm"
+        );
+        assert_eq!(
+            field(Config {
+                ki_a_per_mm_s: 1e-9,
+                ..ok
+            }),
+            "pid.ki_a_per_mm_s"
+        );
+        assert_eq!(
+            field(Config {
+                ki_a_per_mm_s: 1e12,
+                ..ok
+            }),
+            "pid.ki_a_per_mm_s"
+        );
+        assert_eq!(
+            field(Config {
+                kd_a_s_per_mm: f64::INFINITY,
+                ..ok
+            }),
+            "pid.kd_a_s_per_mm"
+        );
+        assert_eq!(
+            field(Config {
+                kd_a_s_per_mm: 1e5,
+                ..ok
+            }),
+            "pid.kd_a_s_per_mm"
+        );
+        assert_eq!(
+            field(Config {
+                kff_vel_a_s_per_mm: -0.1,
+                ..ok
+            }),
+            "pid.kff_vel_a_s_per_mm"
+        );
+        assert_eq!(
+            field(Config {
+                kff_acc_a_s2_per_mm: 1e3,
+                ..ok
+            }),
+            "pid.kff_acc_a_s2_per_mm"
+        );
+        assert_eq!(
+            field(Config {
+                derivative_cutoff_hz: 0.0,
+                ..ok
+            }),
+            "pid.derivative_cutoff_hz"
+        );
+        assert_eq!(
+            field(Config {
+                derivative_cutoff_hz: 1001.0,
+                ..ok
+            }),
+            "pid.derivative_cutoff_hz"
+        );
+        assert_eq!(
+            field(Config {
+                derivative_cutoff_hz: f64::NAN,
+                ..ok
+            }),
+            "pid.derivative_cutoff_hz"
+        );
+        assert_eq!(
+            field(Config {
+                max_current_a: 0.0,
+                ..ok
+            }),
+            "pid.max_current_a"
+        );
+        assert_eq!(
+            field(Config {
+                max_current_a: 128.0,
+                ..ok
+            }),
+            "pid.max_current_a"
+        );
+        assert_eq!(
+            field(Config {
+                rate_hz: 50.0,
+                ..ok
+            }),
+            "pid.rate_hz"
+        );
+        assert_eq!(
+            field(Config {
+                rate_hz: f64::NAN,
+                ..ok
+            }),
+            "pid.rate_hz"
+        );
         // Zero switches a term off.
-        assert!(Config { ki_a_per_mm_s: 0.0, kd_a_s_per_mm: 0.0, ..ok }.build(&Rig::PAPER).is_ok());
+        assert!(Config {
+            ki_a_per_mm_s: 0.0,
+            kd_a_s_per_mm: 0.0,
+            ..ok
+        }
+        .build(&Rig::PAPER)
+        .is_ok());
     }
 
     #[test]

@@ -4,14 +4,14 @@
 //! counts/tick and counts/tick² with 24 fractional bits. Sharing the grid makes
 //! `velocity += dv` and `position += velocity` exact integer additions, so the setpoint lands on the
 //! target count with no residual and no drift, however long the move. 24 bits resolve 0.013 mm/s²
-//! of acceleration at 20 kHz on [`Rig::PAPER`]; the 40 integer bits leave room for any `i32`
-//! target plus the overshoot of a reversal, so differences never overflow.
+//! of acceleration at 20 kHz on [`Rig::PAPER`]. The position never passes its target, so it stays
+//! between the start and the targets: within `i32` counts, and differences never overflow.
 //!
 //! # Algorithm
 //! Each tick picks the fastest speed `w` that (a) changes the speed by at most one tick of
-//! acceleration (speeding up) or deceleration (slowing down), (b) does not exceed the velocity
+//! acceleration (speeding up) or deceleration `d` (slowing down), (b) does not exceed the velocity
 //! limit, and (c) still lets the carriage stop exactly on the target: the distance covered by `w`
-//! and then full braking, `w + (w - d) + (w - 2d) + ... ` (the run-out `S(w)`), must fit in the
+//! and then full braking, `w + (w - d) + (w - 2d) + ...` (the run-out `S(w)`), must fit in the
 //! distance left. Writing `w = (n - 1) d + r` with `0 < r <= d`, `S(w) = n r + d n (n - 1) / 2`:
 //! one 32x32->64 and one 32x64 multiply, no division and no square root. `n` and `r` are kept up
 //! to date by additions as the speed changes, because the decomposition would otherwise need a
@@ -19,13 +19,18 @@
 //!
 //! Once `S(w) <= remaining` holds it holds forever (braking by exactly `d` from `w` leaves
 //! `S(w - d) = S(w) - w`), so the profile always arrives, and within one deceleration of rest
-//! `S(w) = w`, so the last step takes exactly what is left. When `S(w) > remaining` the speed is
-//! raised above `w - d` by `slack / 2^ceil(log2(n + 1))`, a shift standing in for `slack / n`:
-//! it never overshoots and absorbs at least half the slack each tick.
+//! `S(w) = w`, so the last step takes exactly what is left. Per tick:
+//! - far from the target (beyond the run-out from the velocity limit): accelerate or cruise, no
+//!   run-out needed;
+//! - braking: one run-out, `S(speed - d)`; the speed is set above `speed - d` by
+//!   `slack >> ceil(log2(n + 1))`, a shift standing in for `slack / n` that never overshoots and
+//!   absorbs at least half the slack each tick;
+//! - the tick(s) where a short move stops accelerating below the limit (the peak of a triangle):
+//!   a bisection over whole decelerations, at most 29 run-outs and usually one or two.
 //!
 //! If the carriage cannot stop at a new target (behind it, or too close ahead) it brakes at full
 //! deceleration to rest, then starts a fresh move back: a reversal passes through zero velocity
-//! (one tick at `v = 0` at most) and never steps the velocity.
+//! for exactly one tick and never steps the velocity.
 
 use fixed::types::I40F24;
 
@@ -40,7 +45,7 @@ const MAX_VELOCITY_BITS: u64 = 1 << (11 + FRAC_BITS);
 /// Steepest ramp: just under 64 counts/tick² (8.5 m/s² at 500 Hz); keeps `r + k < 2^31`.
 const MAX_ACCEL_BITS: u64 = (1 << 30) - 1;
 /// Longest braking distance from full speed: 2^31 counts (1150 m). Bounds every run-out, so the
-/// run-out arithmetic fits `u64` and positions stay within ±2^32 counts.
+/// run-out arithmetic fits `u64` with room to spare.
 const MAX_RUN_OUT_BITS: u128 = 1 << (31 + FRAC_BITS);
 
 /// Motion limits in SI units, converted by [`Config::build`].
@@ -57,8 +62,8 @@ pub struct Config {
 }
 
 impl Config {
-    /// Moderate moves for the paper's rig at 2 kHz: 100 mm/s (the middle of the paper's 5-250 mm/s
-    /// tests) and 2000 mm/s² both ways, which the 150 W motor through 23.7:1 delivers with about
+    /// Moderate moves for the paper's rig at 2 kHz: 100 mm/s (within the 5-250 mm/s the stage
+    /// typically runs) and 2000 mm/s² both ways, which the 150 W motor through 23.7:1 delivers with about
     /// 2 A of the 8 A limit (≈33 kg effective mass, mostly reflected rotor inertia).
     pub const PAPER_RIG: Config = Config {
         velocity_mm_s: 100.0,
@@ -113,7 +118,12 @@ impl Default for Config {
 }
 
 /// `value * scale` on the counts grid, rounded down; `1 ..= max_bits` LSBs.
-fn grid_floor(value: f64, scale: f64, max_bits: u64, field: &'static str) -> Result<u64, ConfigError> {
+fn grid_floor(
+    value: f64,
+    scale: f64,
+    max_bits: u64,
+    field: &'static str,
+) -> Result<u64, ConfigError> {
     if !value.is_finite() {
         return Err(ConfigError::NotFinite(field));
     }
@@ -179,8 +189,8 @@ impl Coeffs {
         )? as u32;
         // Divisions are fine here: once per configuration, never per tick.
         let velocity_n = velocity.div_ceil(decel as u64);
-        let run_out =
-            velocity_n as u128 * (velocity_n as u128 - 1) / 2 * decel as u128 + velocity_n as u128 * decel as u128;
+        let run_out = velocity_n as u128 * (velocity_n as u128 - 1) / 2 * decel as u128
+            + velocity_n as u128 * decel as u128;
         // Upper bound (r <= d) of the run-out; rejects before `velocity_n` can overflow a u32.
         if run_out > MAX_RUN_OUT_BITS {
             return Err(ConfigError::OutOfRange("trajectory.deceleration_mm_s2"));
@@ -248,15 +258,16 @@ fn run_out_bits(d: u32, n: u32, r: u32) -> u64 {
     let n = n as u64;
     // 32x32->64: n < 2^32.
     let triangle = (n * n.saturating_sub(1)) >> 1;
-    (d as u64)
-        .wrapping_mul(triangle)
-        .wrapping_add(n * r as u64)
+    (d as u64).wrapping_mul(triangle).wrapping_add(n * r as u64)
 }
 
 /// The fastest speed in `[lo, hi]` whose run-out fits in `ahead`, given
 /// `S(lo) = lo_run_out <= ahead < S(hi)`; each speed as `(w, n, r)`. Never overshoots; may fall
 /// short of the optimum by less than half the remaining slack, which the next tick takes up.
-#[inline]
+///
+/// Only the tick(s) where a move stops accelerating short of the velocity limit come here (the
+/// peak of a triangle), so it is kept out of line.
+#[inline(never)]
 fn fit(
     d: u32,
     (lo, lo_n, lo_r): (u64, u32, u32),
@@ -265,9 +276,8 @@ fn fit(
     ahead: u64,
 ) -> (u64, u32, u32) {
     // 1. Whole decelerations above `lo`: `lo + j d` is `(lo_n + j, lo_r)`, so its run-out needs no
-    // division. Bisect for the largest `j` that fits. `j_max` counts the whole steps below `hi`;
-    // it is 1 or 2 when acceleration <= deceleration, and the first probe (`j = 1`, i.e. holding the
-    // current speed) usually settles a braking tick. At most 29 probes (`n < 2^28`).
+    // division. Bisect for the largest `j` that fits. `j_max` counts the whole steps below `hi`:
+    // 0 or 1 when acceleration <= deceleration. At most 29 probes (`n < 2^28`).
     //
     // Arithmetic here and in `tick` cannot wrap (speeds <= the velocity limit, `n < 2^28`,
     // `r + k < 2^31`, run-outs < 2^55); it is spelled `wrapping_*` so that debug and release
@@ -487,10 +497,50 @@ impl Trajectory {
         }
     }
 
+    /// The step when the target is within the run-out from the velocity limit.
+    ///
+    /// One run-out is computed, `S(lo)` for the slowest admissible speed `lo = speed - d`; holding
+    /// the speed then needs `S(speed) = S(lo) + speed` (one more step before the same braking),
+    /// so a braking tick costs one run-out and a shift.
+    #[inline(always)]
+    fn near(&self, speed: u64, ahead: i64) -> (u64, u32, u32) {
+        let d = self.coeffs.decel;
+        let (lo, lo_n, lo_r) = if self.n >= 2 {
+            (speed.wrapping_sub(d as u64), self.n.wrapping_sub(1), self.r)
+        } else {
+            (0, 0, d)
+        };
+        let lo_run_out = run_out_bits(d, lo_n, lo_r);
+        if ahead < lo_run_out as i64 {
+            // Cannot stop at the target: brake fully, come back from rest.
+            return (lo, lo_n, lo_r);
+        }
+        let slack = (ahead as u64).wrapping_sub(lo_run_out);
+        if slack < speed {
+            // Must slow down, by less than `d`. On `[lo, speed]` the slope of `S` is at most
+            // `n(speed) = lo_n + 1` (or 1 from `lo = 0`), so `k = slack >> ceil(log2(lo_n + 1))`
+            // keeps `S(lo + k) <= ahead`; `k < speed - lo <= d`.
+            let k = (slack >> (u32::BITS - lo_n.leading_zeros())) as u32;
+            let (mut n, mut r) = (lo_n, lo_r.wrapping_add(k));
+            if r > d {
+                r -= d;
+                n = n.wrapping_add(1);
+            }
+            return (lo.wrapping_add(k as u64), n, r);
+        }
+        // Holding the speed fits; accelerating may not.
+        let hi = self.faster(speed);
+        if run_out_bits(d, hi.1, hi.2) <= ahead as u64 {
+            return hi;
+        }
+        // From rest `(n, r)` is `(0, d)`, the decomposition of zero.
+        let held = (speed, self.n, self.r);
+        fit(d, held, lo_run_out.wrapping_add(speed), hi, ahead as u64)
+    }
+
     /// Advances one tick. Bounded, division-free integer arithmetic.
     #[inline]
     pub fn tick(&mut self) -> Setpoint {
-        let d = self.coeffs.decel;
         let to_go = self.target.wrapping_sub(self.position);
         let v = self.velocity;
         if v == 0 && to_go == 0 {
@@ -505,28 +555,11 @@ impl Trajectory {
             to_go
         };
         let speed = v.unsigned_abs();
-        // Slowest admissible speed: one deceleration slower, not below rest.
-        let (lo, lo_n, lo_r) = if self.n >= 2 {
-            (speed.wrapping_sub(d as u64), self.n.wrapping_sub(1), self.r)
-        } else {
-            (0, 0, d)
-        };
         let (w, n, r) = if ahead >= self.coeffs.velocity_run_out as i64 {
             // Far away: no speed up to the limit can need braking yet.
             self.faster(speed)
         } else {
-            let lo_run_out = run_out_bits(d, lo_n, lo_r) as i64;
-            if ahead < lo_run_out {
-                // Cannot stop at the target: brake fully, come back from rest.
-                (lo, lo_n, lo_r)
-            } else {
-                let hi = self.faster(speed);
-                if run_out_bits(d, hi.1, hi.2) as i64 <= ahead {
-                    hi
-                } else {
-                    fit(d, (lo, lo_n, lo_r), lo_run_out as u64, hi, ahead as u64)
-                }
-            }
+            self.near(speed, ahead)
         };
         let velocity = if backwards {
             (w as i64).wrapping_neg()
@@ -568,7 +601,10 @@ mod tests {
         let mut ticks = 1;
         while !prev.is_done() {
             let s = t.tick();
-            let (v0, v1) = (bits(prev.velocity_counts_per_tick()), bits(s.velocity_counts_per_tick()));
+            let (v0, v1) = (
+                bits(prev.velocity_counts_per_tick()),
+                bits(s.velocity_counts_per_tick()),
+            );
             assert!(v1.abs() <= vmax);
             assert_eq!(bits(s.position_counts()) - bits(prev.position_counts()), v1);
             assert_eq!(bits(s.acceleration_counts_per_tick2()), v1 - v0);
@@ -589,7 +625,12 @@ mod tests {
     }
 
     fn coeffs(v: f64, a: f64, d: f64) -> Coeffs {
-        Coeffs::new(I40F24::from_num(v), I40F24::from_num(a), I40F24::from_num(d)).unwrap()
+        Coeffs::new(
+            I40F24::from_num(v),
+            I40F24::from_num(a),
+            I40F24::from_num(d),
+        )
+        .unwrap()
     }
 
     #[test]
@@ -601,7 +642,10 @@ mod tests {
         assert!((v - 93.39449).abs() < 1e-5, "{v}");
         let a: f64 = c.acceleration_counts_per_tick2().to_num();
         assert!((a - 0.933945).abs() < 1e-6, "{a}");
-        assert!(c.velocity_counts_per_tick() <= I40F24::from_num(100.0 * Rig::PAPER.counts_per_mm() / 2000.0));
+        assert!(
+            c.velocity_counts_per_tick()
+                <= I40F24::from_num(100.0 * Rig::PAPER.counts_per_mm() / 2000.0)
+        );
     }
 
     #[test]
@@ -609,17 +653,77 @@ mod tests {
         let rig = Rig::PAPER;
         let ok = Config::PAPER_RIG;
         let field = |c: Config| c.build(&rig).unwrap_err().field();
-        assert_eq!(field(Config { velocity_mm_s: f64::NAN, ..ok }), "trajectory.velocity_mm_s");
-        assert_eq!(field(Config { velocity_mm_s: 0.0, ..ok }), "trajectory.velocity_mm_s");
-        assert_eq!(field(Config { velocity_mm_s: -5.0, ..ok }), "trajectory.velocity_mm_s");
-        assert_eq!(field(Config { velocity_mm_s: 1e9, ..ok }), "trajectory.velocity_mm_s");
-        assert_eq!(field(Config { acceleration_mm_s2: f64::INFINITY, ..ok }), "trajectory.acceleration_mm_s2");
-        assert_eq!(field(Config { acceleration_mm_s2: 0.0, ..ok }), "trajectory.acceleration_mm_s2");
-        assert_eq!(field(Config { acceleration_mm_s2: 1e12, ..ok }), "trajectory.acceleration_mm_s2");
-        assert_eq!(field(Config { deceleration_mm_s2: -1.0, ..ok }), "trajectory.deceleration_mm_s2");
+        assert_eq!(
+            field(Config {
+                velocity_mm_s: f64::NAN,
+                ..ok
+            }),
+            "trajectory.velocity_mm_s"
+        );
+        assert_eq!(
+            field(Config {
+                velocity_mm_s: 0.0,
+                ..ok
+            }),
+            "trajectory.velocity_mm_s"
+        );
+        assert_eq!(
+            field(Config {
+                velocity_mm_s: -5.0,
+                ..ok
+            }),
+            "trajectory.velocity_mm_s"
+        );
+        assert_eq!(
+            field(Config {
+                velocity_mm_s: 1e9,
+                ..ok
+            }),
+            "trajectory.velocity_mm_s"
+        );
+        assert_eq!(
+            field(Config {
+                acceleration_mm_s2: f64::INFINITY,
+                ..ok
+            }),
+            "trajectory.acceleration_mm_s2"
+        );
+        assert_eq!(
+            field(Config {
+                acceleration_mm_s2: 0.0,
+                ..ok
+            }),
+            "trajectory.acceleration_mm_s2"
+        );
+        assert_eq!(
+            field(Config {
+                acceleration_mm_s2: 1e12,
+                ..ok
+            }),
+            "trajectory.acceleration_mm_s2"
+        );
+        assert_eq!(
+            field(Config {
+                deceleration_mm_s2: -1.0,
+                ..ok
+            }),
+            "trajectory.deceleration_mm_s2"
+        );
         // Stopping from 100 mm/s at 1e-6 mm/s² would take far more than 2^31 counts.
-        assert_eq!(field(Config { deceleration_mm_s2: 1e-6, ..ok }), "trajectory.deceleration_mm_s2");
-        assert_eq!(field(Config { rate_hz: f64::NAN, ..ok }), "trajectory.rate_hz");
+        assert_eq!(
+            field(Config {
+                deceleration_mm_s2: 1e-6,
+                ..ok
+            }),
+            "trajectory.deceleration_mm_s2"
+        );
+        assert_eq!(
+            field(Config {
+                rate_hz: f64::NAN,
+                ..ok
+            }),
+            "trajectory.rate_hz"
+        );
         assert_eq!(field(Config { rate_hz: 1.0, ..ok }), "trajectory.rate_hz");
         let mut bad_rig = rig;
         bad_rig.pulley_teeth = 0;
@@ -713,7 +817,10 @@ mod tests {
         let brake = v0 * v0 / (2.0 * d);
         let travelled: f64 = (p0 - t.position_counts()).to_num();
         // Discrete braking covers v0²/2d - v0/2.
-        assert!((travelled - (brake - v0 / 2.0)).abs() <= 0.01, "{travelled} vs {brake}");
+        assert!(
+            (travelled - (brake - v0 / 2.0)).abs() <= 0.01,
+            "{travelled} vs {brake}"
+        );
         assert!((ticks as f64 - v0 / d).abs() <= 1.0, "{ticks}");
         // Stopping at rest stays put.
         t.stop();

@@ -33,7 +33,9 @@ fn paper() -> (ModelParams, ModelCoeffs) {
 /// Runs `kind` along `path` (counts) from `path[0]`, returning the outputs in um.
 fn run(c: &ModelCoeffs, kind: ModelKind, path: &[i32]) -> Vec<f64> {
     let mut s = ModelState::new(path[0]);
-    path.iter().map(|&x| um(estimate(c, kind, &mut s, x))).collect()
+    path.iter()
+        .map(|&x| um(estimate(c, kind, &mut s, x)))
+        .collect()
 }
 
 /// `from` to `to` (mm) in steps of `step` counts, both ends included.
@@ -96,7 +98,8 @@ fn forward_start_rides_lower_edge_then_reverse_jumps_and_closes_linearly() {
         let jump = y[turn + 1] - y[turn];
         let step_mm = 97.0 / cpm();
         assert!(
-            jump > p.h_g_mm * 1000.0 - 0.01 && jump < p.h_g_mm * 1000.0 + 4.0 * step_mm * 1000.0 * 0.003,
+            jump > p.h_g_mm * 1000.0 - 0.01
+                && jump < p.h_g_mm * 1000.0 + 4.0 * step_mm * 1000.0 * 0.003,
             "{kind}: jump {jump} um"
         );
         // Far back: on the upper edge.
@@ -124,7 +127,10 @@ fn forward_start_rides_lower_edge_then_reverse_jumps_and_closes_linearly() {
     let c1 = c.closing(ModelKind::Linear);
     let f = c1.forward_mm.unwrap().to_num::<f64>();
     let r = c1.reverse_mm.unwrap().to_num::<f64>();
-    assert!((f - closing).abs() < 1e-3 && (r - closing).abs() < 1e-3, "{f} {r}");
+    assert!(
+        (f - closing).abs() < 1e-3 && (r - closing).abs() < 1e-3,
+        "{f} {r}"
+    );
 }
 
 #[test]
@@ -172,10 +178,14 @@ fn model2_shape_closing_and_continuity() {
         for k in turn + 1..path.len() {
             let d_mm = ((path[k] - x_d) as f64 / cpm()).abs();
             let (u, edge) = if dir_fwd {
-                let u = y_d - (p.h_g_mm + p.amplitude_a_mm * (1.0 - (p.rate_a_per_mm * d_mm).exp())) * 1000.0;
+                let u = y_d
+                    - (p.h_g_mm + p.amplitude_a_mm * (1.0 - (p.rate_a_per_mm * d_mm).exp()))
+                        * 1000.0;
                 (u, lower_um(path[k]))
             } else {
-                let u = y_d + (p.h_g_mm + p.amplitude_b_mm * (1.0 - (p.rate_b_per_mm * d_mm).exp())) * 1000.0;
+                let u = y_d
+                    + (p.h_g_mm + p.amplitude_b_mm * (1.0 - (p.rate_b_per_mm * d_mm).exp()))
+                        * 1000.0;
                 (u, upper_um(path[k]))
             };
             let expect = if dir_fwd { u.max(edge) } else { u.min(edge) };
@@ -193,7 +203,10 @@ fn model2_shape_closing_and_continuity() {
             }
         }
         let reached = reached.expect("meets the edge");
-        assert!((reached - closing).abs() < step_mm + 0.01, "{reached} vs {closing}");
+        assert!(
+            (reached - closing).abs() < step_mm + 0.01,
+            "{reached} vs {closing}"
+        );
     }
 }
 
@@ -220,15 +233,30 @@ fn model2_never_closing_is_flagged() {
     assert!((last - expect).abs() < 0.01, "{last} vs {expect}");
     assert!(last > -m2.h_mm * 1000.0);
     p.model2.m_mm_per_mm = -0.001;
-    assert_eq!(p.build(&rig).unwrap().closing(ModelKind::Exponential).reverse_mm, None);
+    assert_eq!(
+        p.build(&rig)
+            .unwrap()
+            .closing(ModelKind::Exponential)
+            .reverse_mm,
+        None
+    );
     // A large amplitude closes even without slope.
     p.model2.m_mm_per_mm = 0.0;
     p.model2.amplitude_a_mm = 0.3;
-    assert!(p.build(&rig).unwrap().closing(ModelKind::Exponential).forward_mm.is_some());
+    assert!(p
+        .build(&rig)
+        .unwrap()
+        .closing(ModelKind::Exponential)
+        .forward_mm
+        .is_some());
     // Model 1 whose slopes cannot close.
     let mut p = ModelParams::PAPER;
     p.model1.m_mm_per_mm = -0.002;
-    assert!(!p.build(&rig).unwrap().closing(ModelKind::Linear).always_closes());
+    assert!(!p
+        .build(&rig)
+        .unwrap()
+        .closing(ModelKind::Linear)
+        .always_closes());
 }
 
 #[test]
@@ -297,7 +325,8 @@ fn model3_from_model1_reproduces_model1() {
     // of the change across one cell: ((a + m) d_step + g0_step) / 4 (5.6 um with Table 2).
     let t = &p.model3.forward_transition;
     let m1 = &p.model1;
-    let bound = ((m1.slope_a_mm_per_mm + m1.m_mm_per_mm) * t.d_step_mm * 1000.0 + t.g0_step_um) / 4.0;
+    let bound =
+        ((m1.slope_a_mm_per_mm + m1.m_mm_per_mm) * t.d_step_mm * 1000.0 + t.g0_step_um) / 4.0;
     println!(
         "Model 3 from Model 1 vs Model 1 over {} ticks: max |dy| = {worst:.3} um (bound {bound:.2})",
         path.len()
@@ -306,7 +335,10 @@ fn model3_from_model1_reproduces_model1() {
     // The tables close where Model 1 does.
     let c3 = c.closing(ModelKind::Table);
     let c1 = p.model1.closing();
-    let (f3, f1) = (c3.forward_mm.unwrap().to_num::<f64>(), c1.forward_mm.unwrap().to_num::<f64>());
+    let (f3, f1) = (
+        c3.forward_mm.unwrap().to_num::<f64>(),
+        c1.forward_mm.unwrap().to_num::<f64>(),
+    );
     assert!(f3 >= f1 && f3 < f1 + 5.0, "{f3} {f1}");
 }
 
@@ -372,9 +404,18 @@ fn build_err(f: impl FnOnce(&mut ModelParams)) -> ConfigError {
 #[test]
 fn config_errors_name_the_field() {
     use ConfigError::*;
-    assert_eq!(build_err(|p| p.model1.h_mm = f64::NAN), NotFinite("model1.h_mm"));
-    assert_eq!(build_err(|p| p.model1.h_mm = -0.1), OutOfRange("model1.h_mm"));
-    assert_eq!(build_err(|p| p.model1.m_mm_per_mm = 5.0), OutOfRange("model1.m_mm_per_mm"));
+    assert_eq!(
+        build_err(|p| p.model1.h_mm = f64::NAN),
+        NotFinite("model1.h_mm")
+    );
+    assert_eq!(
+        build_err(|p| p.model1.h_mm = -0.1),
+        OutOfRange("model1.h_mm")
+    );
+    assert_eq!(
+        build_err(|p| p.model1.m_mm_per_mm = 5.0),
+        OutOfRange("model1.m_mm_per_mm")
+    );
     assert_eq!(
         build_err(|p| p.model1.slope_a_mm_per_mm = -0.1),
         OutOfRange("model1.slope_a_mm_per_mm")
@@ -383,14 +424,26 @@ fn config_errors_name_the_field() {
         build_err(|p| p.model1.slope_b_mm_per_mm = f64::INFINITY),
         NotFinite("model1.slope_b_mm_per_mm")
     );
-    assert_eq!(build_err(|p| p.model1.h_g_mm = 20.0), OutOfRange("model1.h_g_mm"));
-    assert_eq!(build_err(|p| p.model2.rate_a_per_mm = 0.1), OutOfRange("model2.rate_a_per_mm"));
-    assert_eq!(build_err(|p| p.model2.rate_b_per_mm = -1e9), OutOfRange("model2.rate_b_per_mm"));
+    assert_eq!(
+        build_err(|p| p.model1.h_g_mm = 20.0),
+        OutOfRange("model1.h_g_mm")
+    );
+    assert_eq!(
+        build_err(|p| p.model2.rate_a_per_mm = 0.1),
+        OutOfRange("model2.rate_a_per_mm")
+    );
+    assert_eq!(
+        build_err(|p| p.model2.rate_b_per_mm = -1e9),
+        OutOfRange("model2.rate_b_per_mm")
+    );
     assert_eq!(
         build_err(|p| p.model2.amplitude_b_mm = -0.01),
         OutOfRange("model2.amplitude_b_mm")
     );
-    assert_eq!(build_err(|p| p.model2.h_mm = f64::NAN), NotFinite("model2.h_mm"));
+    assert_eq!(
+        build_err(|p| p.model2.h_mm = f64::NAN),
+        NotFinite("model2.h_mm")
+    );
     assert_eq!(
         build_err(|p| p.model3.forward_band.x_mm[3] = p.model3.forward_band.x_mm[2]),
         NotMonotonic("model3.forward_band.x_mm")
@@ -408,7 +461,10 @@ fn config_errors_name_the_field() {
         build_err(|p| p.model3.forward_band.x_mm[0] = -2e6),
         OutOfRange("model3.forward_band.x_mm")
     );
-    assert_eq!(build_err(|p| p.model3.forward_band.len = 1), TableSize("model3.forward_band.len"));
+    assert_eq!(
+        build_err(|p| p.model3.forward_band.len = 1),
+        TableSize("model3.forward_band.len")
+    );
     assert_eq!(
         build_err(|p| p.model3.reverse_band.len = MAX_BAND_POINTS + 1),
         TableSize("model3.reverse_band.len")
@@ -457,7 +513,10 @@ fn config_errors_name_the_field() {
         gear_ratio: 0.0,
         ..Rig::PAPER
     };
-    assert_eq!(ModelParams::PAPER.build(&bad_rig), Err(OutOfRange("rig.gear_ratio")));
+    assert_eq!(
+        ModelParams::PAPER.build(&bad_rig),
+        Err(OutOfRange("rig.gear_ratio"))
+    );
 }
 
 #[test]

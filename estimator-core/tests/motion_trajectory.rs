@@ -39,9 +39,19 @@ fn check(l: Limits, prev: &Setpoint, s: &Setpoint) -> Result<(), TestCaseError> 
     prop_assert_eq!(s.acceleration_counts_per_tick2().to_bits(), v1 - v0);
     prop_assert!(v0.signum() * v1.signum() >= 0, "reversal without rest");
     if v1.abs() > v0.abs() {
-        prop_assert!(v1.abs() - v0.abs() <= l.a, "acceleration {} > {}", v1.abs() - v0.abs(), l.a);
+        prop_assert!(
+            v1.abs() - v0.abs() <= l.a,
+            "acceleration {} > {}",
+            v1.abs() - v0.abs(),
+            l.a
+        );
     } else {
-        prop_assert!(v0.abs() - v1.abs() <= l.d, "deceleration {} > {}", v0.abs() - v1.abs(), l.d);
+        prop_assert!(
+            v0.abs() - v1.abs() <= l.d,
+            "deceleration {} > {}",
+            v0.abs() - v1.abs(),
+            l.d
+        );
     }
     if s.is_done() {
         prop_assert_eq!(v1, 0);
@@ -133,20 +143,25 @@ fn optimum_ticks(l: Limits, dist: f64) -> f64 {
     }
 }
 
-fn retargets(
-    (c, start, moves): (Coeffs, i32, Vec<(i32, u32)>),
-) -> Result<(), TestCaseError> {
+fn retargets((c, start, moves): (Coeffs, i32, Vec<(i32, u32)>)) -> Result<(), TestCaseError> {
     let l = Limits::of(&c);
     let mut t = Trajectory::new(c, start);
     let mut prev = t.tick();
     prop_assert!(prev.is_done());
     let mut target = start;
+    // The profile never passes a target, so it stays between the start and the targets.
+    let (mut lowest, mut highest) = (start, start);
+    let within = |s: &Setpoint, lowest: i32, highest: i32| {
+        s.position_counts() >= lowest && s.position_counts() <= highest
+    };
     for (offset, hold) in moves {
         target = start.saturating_add(offset);
+        (lowest, highest) = (lowest.min(target), highest.max(target));
         t.set_target(target);
         for _ in 0..hold {
             let s = t.tick();
             check(l, &prev, &s)?;
+            prop_assert!(within(&s, lowest, highest), "left the targets' span");
             prev = s;
         }
     }

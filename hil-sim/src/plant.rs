@@ -254,10 +254,14 @@ impl Coeffs {
     /// Mesh position `P(theta)` and its slope `P'(theta)` (eq. 12 integrated, plus form error).
     #[inline(always)]
     fn mesh(&self, theta: f64) -> (f64, f64) {
-        let (s1, c1) = (theta + self.theta0).sin_cos();
-        let (s2, c2) = (self.teeth * theta + self.form_phase).sin_cos();
-        let p = self.r_eff * theta - self.rho * (s1 - self.sin_theta0) + self.form * (s2 - self.sin_form_phase);
-        let dp = self.r_eff - self.rho * c1 + self.form * self.teeth * c2;
+        self.mesh_from(theta, &MeshTrig::new(self, theta))
+    }
+
+    /// As [`Coeffs::mesh`], with the trigonometric terms given.
+    #[inline(always)]
+    fn mesh_from(&self, theta: f64, t: &MeshTrig) -> (f64, f64) {
+        let p = self.r_eff * theta - self.rho * (t.ecc[0] - self.sin_theta0) + self.form * (t.form[0] - self.sin_form_phase);
+        let dp = self.r_eff - self.rho * t.ecc[1] + self.form * self.teeth * t.form[1];
         (p, dp)
     }
 
@@ -273,11 +277,13 @@ impl Coeffs {
         }
     }
 
-    /// Friction coefficient of eq. 11 for slip `u`, bristle state `z` and pulley surface speed.
+    /// Friction coefficient of eq. 11 for slip `u`, bristle state `z` and pulley surface speed,
+    /// with the bristles' relaxation rate `lambda` (`z' = u - lambda z`).
     #[inline(always)]
-    fn mu(&self, u: f64, z: f64, surface_speed: f64) -> f64 {
-        let z_rate = u - self.bristle_rate(u, surface_speed) * z;
-        self.sigma0 * z + self.sigma1 * z_rate + self.sigma2 * u
+    fn mu(&self, u: f64, z: f64, surface_speed: f64) -> (f64, f64) {
+        let lambda = self.bristle_rate(u, surface_speed);
+        let z_rate = u - lambda * z;
+        (self.sigma0 * z + self.sigma1 * z_rate + self.sigma2 * u, lambda)
     }
 
     /// Relaxation rate of the bristles: `z' = u - lambda z`.
@@ -315,6 +321,43 @@ impl Coeffs {
     fn scale_position(&self, x: f64) -> f64 {
         let eps = |waves: &[[f64; 3]]| waves.iter().map(|w| w[0] * (w[1] * x + w[2]).sin()).sum::<f64>();
         x + self.abbe_z * eps(&self.eps_y) - self.abbe_y * eps(&self.eps_z)
+    }
+}
+
+/// `(sin, cos)` of the eccentricity angle `theta + theta_0` and of the tooth-mesh angle
+/// `n theta + phi`, carried from substep to substep by rotation instead of recomputed.
+#[derive(Clone, Copy, Debug, Default)]
+struct MeshTrig {
+    ecc: [f64; 2],
+    form: [f64; 2],
+}
+
+impl MeshTrig {
+    fn new(c: &Coeffs, theta: f64) -> MeshTrig {
+        let (s1, c1) = (theta + c.theta0).sin_cos();
+        let (s2, c2) = (c.teeth * theta + c.form_phase).sin_cos();
+        MeshTrig { ecc: [s1, c1], form: [s2, c2] }
+    }
+
+    /// Advances by `d_theta`; exact to rounding for steps below 0.05 rad of mesh angle, else
+    /// recomputed.
+    #[inline(always)]
+    fn rotate(&mut self, c: &Coeffs, theta: f64, d_theta: f64) {
+        let d2 = c.teeth * d_theta;
+        if d2.abs() >= 0.05 {
+            *self = MeshTrig::new(c, theta);
+            return;
+        }
+        #[inline(always)]
+        fn rot(sc: &mut [f64; 2], d: f64) {
+            // Taylor series of sin and cos to d^6: error below 2e-13 for |d| < 0.05.
+            let q = d * d;
+            let sd = d * (1.0 - q / 6.0 * (1.0 - q / 20.0));
+            let cd = 1.0 - q / 2.0 * (1.0 - q / 12.0 * (1.0 - q / 30.0));
+            *sc = [sc[0] * cd + sc[1] * sd, sc[1] * cd - sc[0] * sd];
+        }
+        rot(&mut self.ecc, d_theta);
+        rot(&mut self.form, d2);
     }
 }
 
@@ -402,27 +445,32 @@ impl Plant {
             0.0
         };
         let lag = 1.0 - (-h / self.c.tau_i).exp();
+        // Slow terms, fixed over a tick: the trigonometry is resynchronised and the guide
+        // friction (a 130 mm wave) moves by well under 1e-3 of itself.
+        let mut trig = MeshTrig::new(&self.c, self.s.theta);
+        let f_c = self.c.carriage_friction(self.s.x);
         for _ in 0..n as u64 {
-            self.substep(i_cmd, h, lag);
+            self.substep(i_cmd, h, lag, f_c, &mut trig);
         }
         self.sample_scale();
     }
 
     #[inline(always)]
-    fn substep(&mut self, i_cmd: f64, h: f64, lag: f64) {
+    fn substep(&mut self, i_cmd: f64, h: f64, lag: f64, f_c: f64, trig: &mut MeshTrig) {
         let c = &self.c;
         let s = &mut self.s;
         s.i += (i_cmd - s.i) * lag;
 
         // Forces from the present state.
         let t_g = contact(s.theta_m / c.n - s.theta, s.omega_m / c.n - s.omega, c.gear_half_backlash, c.k_g, c.c_g);
-        let (p, dp) = c.mesh(s.theta);
+        let (p, dp) = c.mesh_from(s.theta, trig);
         let surface = dp * s.omega;
         let f_t = contact(p - s.b, surface - s.v_b, c.half_gap, c.k_t, c.c_t);
-        let f_f = if c.friction {
-            c.capstan(c.mu(surface - s.v_b, s.z, surface), s.x)
+        let (f_f, lambda) = if c.friction {
+            let (mu, lambda) = c.mu(surface - s.v_b, s.z, surface);
+            (c.capstan(mu, s.x), lambda)
         } else {
-            0.0
+            (0.0, 0.0)
         };
         let (f1, f2) = c.spans(s.b - s.x, s.x);
         let f_span = f2 - f1 + c.c_s * (s.v_b - s.v);
@@ -439,17 +487,17 @@ impl Plant {
         s.omega_m = coulomb(s.omega_m + h * t_motor * c.jm_inv, h * c.t_cm * c.jm_inv);
         s.omega += h * (t_g - dp * (f_t + f_f)) * c.jp_inv;
         s.v_b += h * (f_t + f_f - f_span) * c.mb_inv;
-        s.v = coulomb(s.v + h * (f_span + f_stop) * c.m_inv, h * c.carriage_friction(s.x) * c.m_inv);
+        s.v = coulomb(s.v + h * (f_span + f_stop) * c.m_inv, h * f_c * c.m_inv);
         s.theta_m += h * s.omega_m;
         s.theta += h * s.omega;
+        trig.rotate(c, s.theta, h * s.omega);
         s.b += h * s.v_b;
         s.x += h * s.v;
 
-        // Bristles: exact solution of z' = u - lambda z for the substep's slip.
+        // Bristles: exact solution of z' = u - lambda z over the substep, with the new slip and
+        // the relaxation rate from the force evaluation (the Stribeck term varies slowly).
         if c.friction {
-            let surface = dp * s.omega;
-            let u = surface - s.v_b;
-            let lambda = c.bristle_rate(u, surface);
+            let u = dp * s.omega - s.v_b;
             let e = lambda * h;
             if e < 1e-3 {
                 // exp(-e) to O(e^4); avoids the transcendental in the common slow case.
@@ -572,7 +620,7 @@ impl Plant {
         let u = surface - s.v_b;
         let f_t = contact(p - s.b, u, c.half_gap, c.k_t, c.c_t);
         let (mu, f_f) = if c.friction {
-            let mu = c.mu(u, s.z, surface);
+            let mu = c.mu(u, s.z, surface).0;
             (mu, c.capstan(mu, s.x))
         } else {
             (0.0, 0.0)

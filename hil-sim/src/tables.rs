@@ -6,7 +6,7 @@
 //! is y = band_new(x) + s * G(d, g0), with d = |x - x_d| the travel since the turning point,
 //! g0 = |y_turn - band_new(x_d)| the gap to the new band edge at the turning point and s the side
 //! of the band the new edge lies on. G is fitted by regularised linear least squares on a bilinear
-//! grid, with G(0, g0) = g0 imposed strongly so that the estimate is continuous at a reversal.
+//! grid, with G(0, g0) imposed strongly (g0 less the linear model's fast jump h_g, as eq. 16).
 
 /// A stroke between two reversals, found with the drive's own reversal rule.
 #[derive(Clone, Debug, PartialEq)]
@@ -129,8 +129,15 @@ pub struct GapSample {
 }
 
 /// Fits G on the grid `d_axis` x `g0_axis` (values row-major: `[id * g0_axis.len() + ig]`).
-/// `smooth` weighs second differences along both axes against the data.
-pub fn fit_gap_table(samples: &[GapSample], d_axis: &[f64], g0_axis: &[f64], smooth: f64) -> Option<Vec<f64>> {
+/// `smooth` weighs second differences along both axes against the data; `anchor[ig]` is imposed
+/// (strongly) as G(0, g0_axis[ig]), the gap right after the reversal is registered.
+pub fn fit_gap_table(
+    samples: &[GapSample],
+    d_axis: &[f64],
+    g0_axis: &[f64],
+    smooth: f64,
+    anchor: &[f64],
+) -> Option<Vec<f64>> {
     let (nd, ng) = (d_axis.len(), g0_axis.len());
     let n = nd * ng;
     let mut ata = vec![0.0; n * n];
@@ -154,10 +161,10 @@ pub fn fit_gap_table(samples: &[GapSample], d_axis: &[f64], g0_axis: &[f64], smo
         ];
         add_row(&idx, s.gap_um, 1.0);
     }
-    // Continuity at the reversal: G(0, g0) = g0, weighted like many samples.
-    let anchor = 1e3 + samples.len() as f64 / ng as f64;
-    for (ig, &g0) in g0_axis.iter().enumerate() {
-        add_row(&[(ig, 1.0)], g0, anchor);
+    // The gap when the reversal is registered, weighted like many samples.
+    let weight = 1e3 + samples.len() as f64 / ng as f64;
+    for (ig, &g) in anchor.iter().enumerate().take(ng) {
+        add_row(&[(ig, 1.0)], g, weight);
     }
     // Second differences in each direction, scaled to the local spacing.
     let w = smooth * (1.0 + samples.len() as f64 / n as f64);
@@ -219,7 +226,7 @@ mod tests {
                 samples.push(GapSample { d_mm: d, g0_um: g0, gap_um: g0 * (-d / 10.0).exp() });
             }
         }
-        let t = fit_gap_table(&samples, &d_axis, &g_axis, 1e-4).unwrap();
+        let t = fit_gap_table(&samples, &d_axis, &g_axis, 1e-4, &g_axis).unwrap();
         for (id, d) in d_axis.iter().enumerate() {
             for (ig, g0) in g_axis.iter().enumerate() {
                 let want = g0 * (-d / 10.0).exp();

@@ -91,9 +91,15 @@ mod tests {
     fn conversions_name_fields() {
         assert_eq!(um_q16(f64::NAN, 0.0, "f"), Err(ConfigError::NotFinite("f")));
         assert_eq!(um_q16(-1.0, 0.0, "f"), Err(ConfigError::OutOfRange("f")));
-        assert_eq!(um_q16(16_001.0, 0.0, "f"), Err(ConfigError::OutOfRange("f")));
+        assert_eq!(
+            um_q16(16_001.0, 0.0, "f"),
+            Err(ConfigError::OutOfRange("f"))
+        );
         assert_eq!(um_q16(1.5, 0.0, "f").unwrap(), I16F16::from_num(1.5));
-        assert_eq!(slope_q31(2.0, 1867.89, "s"), Err(ConfigError::OutOfRange("s")));
+        assert_eq!(
+            slope_q31(2.0, 1867.89, "s"),
+            Err(ConfigError::OutOfRange("s"))
+        );
         assert!(slope_q31(0.0010594, 1867.89, "s").is_ok());
     }
 }

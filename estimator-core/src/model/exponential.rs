@@ -28,6 +28,8 @@ use crate::ConfigError;
 pub struct Model2Params {
     /// Slope `m` of the band along travel (mm of error per mm of travel).
     pub m_mm_per_mm: f64,
+    /// Band offset `c` (mm), as in [`super::Model1Params::offset_mm`].
+    pub offset_mm: f64,
     /// Band height `h` (mm), `>= 0`.
     pub h_mm: f64,
     /// Fast jump `h_g` (mm) at a reversal, `>= 0`.
@@ -46,6 +48,7 @@ impl Model2Params {
     /// Table 2, Model 2.
     pub const PAPER: Model2Params = Model2Params {
         m_mm_per_mm: 0.0010594,
+        offset_mm: 0.0,
         h_mm: 0.34,
         h_g_mm: 0.11,
         rate_a_per_mm: -0.05,
@@ -58,10 +61,10 @@ impl Model2Params {
     pub fn build(&self, counts_per_mm: f64) -> Result<Model2Coeffs, ConfigError> {
         let band = LinearBand::build(
             self.m_mm_per_mm,
+            self.offset_mm,
             self.h_mm,
             counts_per_mm,
-            "model2.m_mm_per_mm",
-            "model2.h_mm",
+            ["model2.m_mm_per_mm", "model2.offset_mm", "model2.h_mm"],
         )?;
         let h_g_um = um_q16(self.h_g_mm * 1000.0, 0.0, "model2.h_g_mm")?;
         let amp_a_um = um_q16(self.amplitude_a_mm * 1000.0, 0.0, "model2.amplitude_a_mm")?;

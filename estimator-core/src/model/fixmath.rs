@@ -182,7 +182,7 @@ impl Recip {
         }
         let z = len.leading_zeros(); // 0..=31
         let l = len << z; // in [2^31, 2^32)
-        // floor(2^31 * 2^32 / l); l == 2^31 would be 2^32: saturates to 2^32 - 1.
+                          // floor(2^31 * 2^32 / l); l == 2^31 would be 2^32: saturates to 2^32 - 1.
         Recip {
             r: frac_q32(1 << 31, l),
             z: z as u8,
@@ -260,7 +260,7 @@ pub fn exp2_neg_q30(t_q32: u64) -> u32 {
     let frac = t_q32 as u32;
     let i = (frac >> 26) as usize; // 0..64
     let r = (frac & 0x03ff_ffff) as u64; // Q0.32, < 2^26
-    // Horner; every product is < 2^26 * 2^32 and every difference stays positive.
+                                         // Horner; every product is < 2^26 * 2^32 and every difference stays positive.
     let w3 = (r * C3_Q32) >> 32;
     let w2 = C2_Q32 - w3;
     let w1 = C1_Q32 - ((r * w2) >> 32);
@@ -284,7 +284,10 @@ mod tests {
     fn exp_table_is_correctly_rounded() {
         for (i, &v) in EXP2_NEG_Q31.iter().enumerate() {
             let exact = (-(i as f64) / 64.0).exp2() * 2f64.powi(31);
-            assert!((v as f64 - exact).abs() <= 0.5 + 1e-6, "i={i}: {v} vs {exact}");
+            assert!(
+                (v as f64 - exact).abs() <= 0.5 + 1e-6,
+                "i={i}: {v} vs {exact}"
+            );
         }
     }
 
@@ -339,7 +342,11 @@ mod tests {
             (1, 0x8000_0000),
             (0xffff_0000, 0xffff_0001),
         ] {
-            assert_eq!(frac_q32(n, d) as u64, ((n as u64) << 32) / d as u64, "{n}/{d}");
+            assert_eq!(
+                frac_q32(n, d) as u64,
+                ((n as u64) << 32) / d as u64,
+                "{n}/{d}"
+            );
         }
     }
 
@@ -411,8 +418,14 @@ mod tests {
     #[test]
     fn scale_limits() {
         assert_eq!(Scale::from_f64(0.0, "f"), Ok(Scale::ZERO));
-        assert_eq!(Scale::from_f64(-1.0, "f"), Err(ConfigError::OutOfRange("f")));
-        assert_eq!(Scale::from_f64(f64::NAN, "f"), Err(ConfigError::NotFinite("f")));
+        assert_eq!(
+            Scale::from_f64(-1.0, "f"),
+            Err(ConfigError::OutOfRange("f"))
+        );
+        assert_eq!(
+            Scale::from_f64(f64::NAN, "f"),
+            Err(ConfigError::NotFinite("f"))
+        );
         assert_eq!(Scale::from_f64(5e9, "f"), Err(ConfigError::OutOfRange("f")));
         // Just below 2^32 rounds up to 2^32: does not fit.
         assert!(Scale::from_f64(4294967295.9, "f").is_err());

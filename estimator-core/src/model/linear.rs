@@ -14,6 +14,9 @@ use crate::ConfigError;
 pub struct Model1Params {
     /// Slope `m` of the band along travel (mm of error per mm of travel). Any sign.
     pub m_mm_per_mm: f64,
+    /// Offset `c` of the band (mm): the edges are `m x + c - h` and `m x + c`. Zero in Table 2,
+    /// whose encoder and scale zeros coincide; a calibration fits it.
+    pub offset_mm: f64,
     /// Band height `h` (mm), `>= 0`: forward motion rides the lower edge `m x - h`, reverse the
     /// upper edge `m x`.
     pub h_mm: f64,
@@ -29,6 +32,7 @@ impl Model1Params {
     /// Table 2, Model 1.
     pub const PAPER: Model1Params = Model1Params {
         m_mm_per_mm: 0.0010594,
+        offset_mm: 0.0,
         h_mm: 0.34,
         h_g_mm: 0.11,
         slope_a_mm_per_mm: 0.0012,
@@ -39,14 +43,22 @@ impl Model1Params {
     pub fn build(&self, counts_per_mm: f64) -> Result<Model1Coeffs, ConfigError> {
         let band = LinearBand::build(
             self.m_mm_per_mm,
+            self.offset_mm,
             self.h_mm,
             counts_per_mm,
-            "model1.m_mm_per_mm",
-            "model1.h_mm",
+            ["model1.m_mm_per_mm", "model1.offset_mm", "model1.h_mm"],
         )?;
         let h_g_um = um_q16(self.h_g_mm * 1000.0, 0.0, "model1.h_g_mm")?;
-        let a = nonneg_slope(self.slope_a_mm_per_mm, counts_per_mm, "model1.slope_a_mm_per_mm")?;
-        let b = nonneg_slope(self.slope_b_mm_per_mm, counts_per_mm, "model1.slope_b_mm_per_mm")?;
+        let a = nonneg_slope(
+            self.slope_a_mm_per_mm,
+            counts_per_mm,
+            "model1.slope_a_mm_per_mm",
+        )?;
+        let b = nonneg_slope(
+            self.slope_b_mm_per_mm,
+            counts_per_mm,
+            "model1.slope_b_mm_per_mm",
+        )?;
         Ok(Model1Coeffs {
             band,
             h_g_um,
@@ -70,10 +82,7 @@ impl Model1Params {
                 None
             }
         };
-        Closing::from_mm(
-            dist(self.slope_a_mm_per_mm),
-            dist(self.slope_b_mm_per_mm),
-        )
+        Closing::from_mm(dist(self.slope_a_mm_per_mm), dist(self.slope_b_mm_per_mm))
     }
 }
 
@@ -90,6 +99,8 @@ fn nonneg_slope(v: f64, counts_per_mm: f64, field: &'static str) -> Result<I1F31
 pub struct LinearBand {
     /// `m` in Q1.31 micrometres per count.
     pub m_um_per_count: I1F31,
+    /// `c` in micrometres.
+    pub offset_um: I16F16,
     /// `h` in micrometres, `>= 0`.
     pub h_um: I16F16,
 }
@@ -97,13 +108,14 @@ pub struct LinearBand {
 impl LinearBand {
     pub(crate) fn build(
         m_mm_per_mm: f64,
+        offset_mm: f64,
         h_mm: f64,
         counts_per_mm: f64,
-        m_field: &'static str,
-        h_field: &'static str,
+        [m_field, c_field, h_field]: [&'static str; 3],
     ) -> Result<LinearBand, ConfigError> {
         Ok(LinearBand {
             m_um_per_count: slope_q31(m_mm_per_mm, counts_per_mm, m_field)?,
+            offset_um: um_q16(offset_mm * 1000.0, -super::MAX_ABS_UM, c_field)?,
             h_um: um_q16(h_mm * 1000.0, 0.0, h_field)?,
         })
     }
@@ -112,7 +124,8 @@ impl LinearBand {
     /// (`h >= 0`, saturating).
     #[inline]
     pub(crate) fn edges(&self, x_counts: i32) -> (i32, i32) {
-        let upper = mul_q31_to_q16(x_counts, self.m_um_per_count.to_bits());
+        let upper = mul_q31_to_q16(x_counts, self.m_um_per_count.to_bits())
+            .saturating_add(self.offset_um.to_bits());
         (upper.saturating_sub(self.h_um.to_bits()), upper)
     }
 }

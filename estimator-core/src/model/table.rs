@@ -20,7 +20,7 @@
 //!
 //! Storage: band axes `i32` counts and values `I16F16` um (1 KiB per direction at 128 points);
 //! gaps `U11F5` um (0..2047.97 um in steps of 1/32 um, far finer than the 0.5 um linear scale),
-//! 1.5 KiB per direction at 32 x 24. The whole of [`Model3Coeffs`] is about 5 KiB.
+//! 1.5 KiB per direction at 32 x 24. The whole of [`Model3Coeffs`] is 5168 bytes.
 //!
 //! Per tick: the band segment is found from the previous tick's segment (one or two compares; a
 //! 7-step binary search after a jump), the fraction within the segment by one multiply with the
@@ -163,8 +163,8 @@ impl Model3Params {
             let x = -travel_mm + 2.0 * travel_mm * i as f64 / (FROM_MODEL1_BAND_POINTS - 1) as f64;
             forward_band.x_mm[i] = x;
             reverse_band.x_mm[i] = x;
-            forward_band.y_um[i] = (m * x - p.h_mm) * 1000.0;
-            reverse_band.y_um[i] = m * x * 1000.0;
+            forward_band.y_um[i] = (m * x + p.offset_mm - p.h_mm) * 1000.0;
+            reverse_band.y_um[i] = (m * x + p.offset_mm) * 1000.0;
             i += 1;
         }
         Model3Params {

@@ -1,0 +1,326 @@
+//! The calibration blob: every model's parameters in fixed point, versioned and checksummed, as
+//! `hil-sim calibrate` writes it and the firmware loads it over the link.
+//!
+//! Layout (little-endian), version 1:
+//! ```text
+//! 0   magic "BDCB"
+//! 4   version u16 (= 1)          6  reserved u16 (= 0)
+//! 8   payload length u32        12  CRC-32 (IEEE) of bytes 0..12 followed by the payload
+//! 16  payload:
+//!     counts_per_mm   u32 Q16.16  the rig it was calibrated on (must match the drive's)
+//!     deadband        u32 counts
+//!     model1          m, offset, h, h_g, a, b                         6 x i32
+//!     model2          m, offset, h, h_g, rate a, rate b, A, B          8 x i32
+//!     model3 bands    forward, reverse: n u16, 0 u16, n x (x um i32, y um I16F16)
+//!     model3 trans.   forward, reverse: n_d u16, n_g0 u16, d step um I16F16, g0 step um I16F16,
+//!                     n_d x n_g0 gaps U11F5 u16
+//! ```
+//! Slopes are I16F16 um per mm, errors I16F16 um, Model 2 rates I8F24 per mm. Decoding checks
+//! every length and count before reading and never panics; a blob that fails any check is
+//! refused with the reason and changes nothing.
+
+use crate::model::{
+    BandParams, Model1Params, Model2Params, Model3Params, ModelParams, TransitionParams,
+    MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
+};
+use crate::rig::Rig;
+use crate::ConfigError;
+
+/// First four bytes of every blob.
+pub const MAGIC: [u8; 4] = *b"BDCB";
+/// The version this code writes and reads.
+pub const VERSION: u16 = 1;
+const HEADER: usize = 16;
+const BAND_BYTES: usize = 4 + 8 * MAX_BAND_POINTS;
+const TRANSITION_BYTES: usize = 12 + 2 * MAX_TRANSITION_D * MAX_TRANSITION_G0;
+/// Largest blob: header, rig and dead band, Models 1 and 2, two full bands, two full tables.
+pub const MAX_BYTES: usize = HEADER + 8 + 4 * 6 + 4 * 8 + 2 * BAND_BYTES + 2 * TRANSITION_BYTES;
+
+/// Why a blob was refused.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BlobError {
+    /// Shorter than its header, or than its header says.
+    Truncated,
+    /// Longer than `MAX_BYTES` or than its header says.
+    TooLong,
+    /// Not a calibration blob.
+    BadMagic,
+    /// Written by another version of the format.
+    UnsupportedVersion(u16),
+    /// The CRC does not match: corrupted in transit or storage.
+    BadChecksum,
+    /// Calibrated on a rig with another counts-per-mm.
+    RigMismatch,
+    /// A table count is out of bounds.
+    BadCount(&'static str),
+    /// A value failed the models' own checks.
+    Invalid(ConfigError),
+    /// The drive is moving: calibrations load at rest.
+    Busy,
+    /// The output buffer is too small (encoding only).
+    BufferTooSmall,
+    /// A value does not fit the blob's fixed-point format (encoding only).
+    Unrepresentable(&'static str),
+}
+
+impl core::fmt::Display for BlobError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            BlobError::Truncated => f.write_str("calibration blob truncated"),
+            BlobError::TooLong => f.write_str("calibration blob longer than its header says"),
+            BlobError::BadMagic => f.write_str("not a calibration blob (bad magic)"),
+            BlobError::UnsupportedVersion(v) => write!(f, "calibration blob version {v} is not supported (want {VERSION})"),
+            BlobError::BadChecksum => f.write_str("calibration blob checksum mismatch"),
+            BlobError::RigMismatch => f.write_str("calibration blob is for another rig (counts per mm differ)"),
+            BlobError::BadCount(x) => write!(f, "calibration blob: {x} out of bounds"),
+            BlobError::Invalid(e) => write!(f, "calibration blob: {e}"),
+            BlobError::Busy => f.write_str("calibration refused: the drive is moving"),
+            BlobError::BufferTooSmall => f.write_str("output buffer too small for the blob"),
+            BlobError::Unrepresentable(x) => write!(f, "{x} does not fit the blob format"),
+        }
+    }
+}
+
+#[cfg(feature = "std")]
+impl std::error::Error for BlobError {}
+
+/// CRC-32 (IEEE 802.3, reflected, as zlib), nibble-table: small flash, fast enough for 5 KiB.
+pub fn crc32(chunks: &[&[u8]]) -> u32 {
+    const T: [u32; 16] = [
+        0x0000_0000, 0x1DB7_1064, 0x3B6E_20C8, 0x26D9_30AC, 0x76DC_4190, 0x6B6B_51F4, 0x4DB2_6158, 0x5005_713C,
+        0xEDB8_8320, 0xF00F_9344, 0xD6D6_A3E8, 0xCB61_B38C, 0x9B64_C2B0, 0x86D3_D2D4, 0xA00A_E278, 0xBDBD_F21C,
+    ];
+    let mut c = !0u32;
+    for chunk in chunks {
+        for &b in *chunk {
+            c = (c >> 4) ^ T[((c ^ b as u32) & 0xf) as usize];
+            c = (c >> 4) ^ T[((c ^ (b as u32 >> 4)) & 0xf) as usize];
+        }
+    }
+    !c
+}
+
+fn rig_q16(rig: &Rig) -> u32 {
+    (rig.counts_per_mm() * 65536.0 + 0.5) as u32
+}
+
+struct Writer<'a> {
+    buf: &'a mut [u8],
+    at: usize,
+}
+
+impl Writer<'_> {
+    fn bytes(&mut self, b: &[u8]) -> Result<(), BlobError> {
+        let end = self.at.checked_add(b.len()).ok_or(BlobError::BufferTooSmall)?;
+        self.buf.get_mut(self.at..end).ok_or(BlobError::BufferTooSmall)?.copy_from_slice(b);
+        self.at = end;
+        Ok(())
+    }
+    fn u16(&mut self, v: u16) -> Result<(), BlobError> {
+        self.bytes(&v.to_le_bytes())
+    }
+    fn u32(&mut self, v: u32) -> Result<(), BlobError> {
+        self.bytes(&v.to_le_bytes())
+    }
+    /// `v * 2^frac` rounded to an i32.
+    fn fixed(&mut self, v: f64, frac: u32, field: &'static str) -> Result<(), BlobError> {
+        let q = v * (1u64 << frac) as f64;
+        let q = if q >= 0.0 { q + 0.5 } else { q - 0.5 };
+        if !(q.is_finite() && q >= i32::MIN as f64 && q <= i32::MAX as f64) {
+            return Err(BlobError::Unrepresentable(field));
+        }
+        self.bytes(&(q as i32).to_le_bytes())
+    }
+}
+
+struct Reader<'a> {
+    buf: &'a [u8],
+    at: usize,
+}
+
+impl Reader<'_> {
+    fn take<const N: usize>(&mut self) -> Result<[u8; N], BlobError> {
+        let end = self.at.checked_add(N).ok_or(BlobError::Truncated)?;
+        let s = self.buf.get(self.at..end).ok_or(BlobError::Truncated)?;
+        self.at = end;
+        let mut a = [0u8; N];
+        a.copy_from_slice(s);
+        Ok(a)
+    }
+    fn u16(&mut self) -> Result<u16, BlobError> {
+        Ok(u16::from_le_bytes(self.take()?))
+    }
+    fn u32(&mut self) -> Result<u32, BlobError> {
+        Ok(u32::from_le_bytes(self.take()?))
+    }
+    fn fixed(&mut self, frac: u32) -> Result<f64, BlobError> {
+        Ok(i32::from_le_bytes(self.take()?) as f64 / (1u64 << frac) as f64)
+    }
+}
+
+const Q16: u32 = 16;
+const Q24: u32 = 24;
+
+/// Writes `params` for `rig` into `buf`; returns the blob's length. The parameters are quantised
+/// to the blob's formats: load the decoded blob on the host too, so host and firmware agree.
+pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, BlobError> {
+    params.build(rig).map_err(BlobError::Invalid)?;
+    let mut w = Writer { buf, at: HEADER };
+    w.u32(rig_q16(rig))?;
+    w.u32(params.reversal_deadband_counts)?;
+    let m1 = &params.model1;
+    w.fixed(m1.m_mm_per_mm * 1000.0, Q16, "model1.m_mm_per_mm")?;
+    w.fixed(m1.offset_mm * 1000.0, Q16, "model1.offset_mm")?;
+    w.fixed(m1.h_mm * 1000.0, Q16, "model1.h_mm")?;
+    w.fixed(m1.h_g_mm * 1000.0, Q16, "model1.h_g_mm")?;
+    w.fixed(m1.slope_a_mm_per_mm * 1000.0, Q16, "model1.slope_a_mm_per_mm")?;
+    w.fixed(m1.slope_b_mm_per_mm * 1000.0, Q16, "model1.slope_b_mm_per_mm")?;
+    let m2 = &params.model2;
+    w.fixed(m2.m_mm_per_mm * 1000.0, Q16, "model2.m_mm_per_mm")?;
+    w.fixed(m2.offset_mm * 1000.0, Q16, "model2.offset_mm")?;
+    w.fixed(m2.h_mm * 1000.0, Q16, "model2.h_mm")?;
+    w.fixed(m2.h_g_mm * 1000.0, Q16, "model2.h_g_mm")?;
+    w.fixed(m2.rate_a_per_mm, Q24, "model2.rate_a_per_mm")?;
+    w.fixed(m2.rate_b_per_mm, Q24, "model2.rate_b_per_mm")?;
+    w.fixed(m2.amplitude_a_mm * 1000.0, Q16, "model2.amplitude_a_mm")?;
+    w.fixed(m2.amplitude_b_mm * 1000.0, Q16, "model2.amplitude_b_mm")?;
+    let m3 = &params.model3;
+    for (band, name) in [(&m3.forward_band, "model3.forward_band"), (&m3.reverse_band, "model3.reverse_band")] {
+        let n = band.len.min(MAX_BAND_POINTS);
+        w.u16(n as u16)?;
+        w.u16(0)?;
+        for i in 0..n {
+            w.fixed(band.x_mm[i] * 1000.0, 0, name)?;
+            w.fixed(band.y_um[i], Q16, name)?;
+        }
+    }
+    for (t, name) in [
+        (&m3.forward_transition, "model3.forward_transition"),
+        (&m3.reverse_transition, "model3.reverse_transition"),
+    ] {
+        let (nd, ng) = (t.n_d.min(MAX_TRANSITION_D), t.n_g0.min(MAX_TRANSITION_G0));
+        w.u16(nd as u16)?;
+        w.u16(ng as u16)?;
+        w.fixed(t.d_step_mm * 1000.0, Q16, name)?;
+        w.fixed(t.g0_step_um, Q16, name)?;
+        for row in t.gap_um.iter().take(nd) {
+            for &g in row.iter().take(ng) {
+                let q = g * 32.0 + 0.5;
+                if !(q >= 0.0 && q <= u16::MAX as f64) {
+                    return Err(BlobError::Unrepresentable(name));
+                }
+                w.u16(q as u16)?;
+            }
+        }
+    }
+    let len = w.at;
+    let payload_len = (len - HEADER) as u32;
+    let mut head = [0u8; 12];
+    head[..4].copy_from_slice(&MAGIC);
+    head[4..6].copy_from_slice(&VERSION.to_le_bytes());
+    head[8..12].copy_from_slice(&payload_len.to_le_bytes());
+    let crc = crc32(&[&head, &w.buf[HEADER..len]]);
+    let buf = w.buf;
+    buf[..12].copy_from_slice(&head);
+    buf[12..16].copy_from_slice(&crc.to_le_bytes());
+    Ok(len)
+}
+
+/// Checks and decodes a blob for a drive on `rig`.
+pub fn decode(blob: &[u8], rig: &Rig) -> Result<ModelParams, BlobError> {
+    if blob.len() < HEADER {
+        return Err(BlobError::Truncated);
+    }
+    if blob.len() > MAX_BYTES {
+        return Err(BlobError::TooLong);
+    }
+    if blob[..4] != MAGIC {
+        return Err(BlobError::BadMagic);
+    }
+    let version = u16::from_le_bytes([blob[4], blob[5]]);
+    if version != VERSION {
+        return Err(BlobError::UnsupportedVersion(version));
+    }
+    let payload_len = u32::from_le_bytes([blob[8], blob[9], blob[10], blob[11]]) as usize;
+    let total = HEADER.saturating_add(payload_len);
+    if blob.len() < total {
+        return Err(BlobError::Truncated);
+    }
+    if blob.len() > total {
+        return Err(BlobError::TooLong);
+    }
+    let crc = u32::from_le_bytes([blob[12], blob[13], blob[14], blob[15]]);
+    if crc32(&[&blob[..12], &blob[HEADER..]]) != crc {
+        return Err(BlobError::BadChecksum);
+    }
+    let mut r = Reader { buf: &blob[HEADER..], at: 0 };
+    if r.u32()? != rig_q16(rig) {
+        return Err(BlobError::RigMismatch);
+    }
+    let reversal_deadband_counts = r.u32()?;
+    let um = |v: f64| v / 1000.0;
+    let model1 = Model1Params {
+        m_mm_per_mm: um(r.fixed(Q16)?),
+        offset_mm: um(r.fixed(Q16)?),
+        h_mm: um(r.fixed(Q16)?),
+        h_g_mm: um(r.fixed(Q16)?),
+        slope_a_mm_per_mm: um(r.fixed(Q16)?),
+        slope_b_mm_per_mm: um(r.fixed(Q16)?),
+    };
+    let model2 = Model2Params {
+        m_mm_per_mm: um(r.fixed(Q16)?),
+        offset_mm: um(r.fixed(Q16)?),
+        h_mm: um(r.fixed(Q16)?),
+        h_g_mm: um(r.fixed(Q16)?),
+        rate_a_per_mm: r.fixed(Q24)?,
+        rate_b_per_mm: r.fixed(Q24)?,
+        amplitude_a_mm: um(r.fixed(Q16)?),
+        amplitude_b_mm: um(r.fixed(Q16)?),
+    };
+    let mut read_band = |r: &mut Reader, name: &'static str| -> Result<BandParams, BlobError> {
+        let n = r.u16()? as usize;
+        r.u16()?;
+        if n > MAX_BAND_POINTS {
+            return Err(BlobError::BadCount(name));
+        }
+        let mut b = BandParams::EMPTY;
+        b.len = n;
+        for i in 0..n {
+            b.x_mm[i] = r.fixed(0)? / 1000.0;
+            b.y_um[i] = r.fixed(Q16)?;
+        }
+        Ok(b)
+    };
+    let forward_band = read_band(&mut r, "model3.forward_band")?;
+    let reverse_band = read_band(&mut r, "model3.reverse_band")?;
+    let read_transition = |r: &mut Reader, name: &'static str| -> Result<TransitionParams, BlobError> {
+        let (nd, ng) = (r.u16()? as usize, r.u16()? as usize);
+        if nd > MAX_TRANSITION_D || ng > MAX_TRANSITION_G0 {
+            return Err(BlobError::BadCount(name));
+        }
+        let mut t = TransitionParams::EMPTY;
+        t.n_d = nd;
+        t.n_g0 = ng;
+        t.d_step_mm = r.fixed(Q16)? / 1000.0;
+        t.g0_step_um = r.fixed(Q16)?;
+        for i in 0..nd {
+            for j in 0..ng {
+                t.gap_um[i][j] = r.u16()? as f64 / 32.0;
+            }
+        }
+        Ok(t)
+    };
+    let forward_transition = read_transition(&mut r, "model3.forward_transition")?;
+    let reverse_transition = read_transition(&mut r, "model3.reverse_transition")?;
+    if r.at != r.buf.len() {
+        return Err(BlobError::TooLong);
+    }
+    let params = ModelParams {
+        model1,
+        model2,
+        model3: Model3Params { forward_band, reverse_band, forward_transition, reverse_transition },
+        reversal_deadband_counts,
+    };
+    params.build(rig).map_err(BlobError::Invalid)?;
+    Ok(params)
+}

@@ -1,0 +1,316 @@
+//! Calibration from recorded (x_PE, x_LS) samples only, never from the plant's parameters, the way
+//! the paper does it (section 6):
+//! 1. Delta x = x_LS - x_PE, low-pass filtered (a centred moving average that removes the scale's
+//!    quantisation and noise but keeps the fast transition after a reversal);
+//! 2. a straight-line start for the band (slope m, offset c, height h) from approached samples;
+//! 3. least-squares fits of Model 1 (m, c, h, h_g, a, b) and Model 2 (m, c, h, h_g, a, b, A, B),
+//!    each simulated along the recorded motor positions with the drive's own reversal rule
+//!    (f64 reference models, Nelder-Mead on the sum of squares);
+//! 4. Model 3: band tables = Model 1's edges plus the mean residual of settled samples per bin of
+//!    one belt pitch (which averages the tooth ripple out, as the paper's filter did), and 2-D
+//!    transition tables fitted by regularised least squares (see [`crate::tables`]), with the jump
+//!    h_g of the linear model at the reversal (the paper: Model 3's parameters "are inherited
+//!    from those of the linear model");
+//! 5. the two baselines of today's controllers from the same data.
+
+use estimator_core::model::{
+    BandParams, Model1Params, Model2Params, Model3Params, ModelKind, ModelParams, TransitionParams,
+    MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
+};
+use estimator_core::reference::Reference;
+use estimator_core::rig::Rig;
+
+use crate::baseline::{Backlash, BidirTable};
+use crate::fit::nelder_mead;
+use crate::run::Trace;
+use crate::tables::{fit_gap_table, strokes, GapSample};
+
+/// Half-width of the centred moving average applied to Delta x, in ticks (5 ms at 2 kHz).
+pub const FILTER_HALF_WIDTH: usize = 5;
+
+/// What calibration produced, with the fit quality on its own data.
+#[derive(Clone, Debug)]
+pub struct Calibration {
+    /// All three models' parameters (what the firmware loads).
+    pub params: ModelParams,
+    /// Constant-backlash baseline.
+    pub backlash: Backlash,
+    /// Bidirectional-table baseline.
+    pub bidir: BidirTable,
+    /// RMS residual of each model on the calibration data, um.
+    pub fit_rms_um: [(ModelKind, f64); 3],
+    /// Samples used.
+    pub samples: usize,
+}
+
+/// One calibration run prepared for fitting.
+struct Prepared {
+    x_counts: Vec<i32>,
+    x_mm: Vec<f64>,
+    dx_um: Vec<f64>,
+}
+
+fn prepare(trace: &Trace) -> Prepared {
+    let n = trace.records.len();
+    let raw: Vec<f64> = (0..n).map(|i| trace.dx_um(i)).collect();
+    let mut prefix = vec![0.0; n + 1];
+    for i in 0..n {
+        prefix[i + 1] = prefix[i] + raw[i];
+    }
+    let dx_um = (0..n)
+        .map(|i| {
+            let (a, b) = (i.saturating_sub(FILTER_HALF_WIDTH), (i + FILTER_HALF_WIDTH + 1).min(n));
+            (prefix[b] - prefix[a]) / (b - a) as f64
+        })
+        .collect();
+    Prepared {
+        x_counts: trace.records.iter().map(|r| r.motor_counts).collect(),
+        x_mm: (0..n).map(|i| trace.x_pe_mm(i)).collect(),
+        dx_um,
+    }
+}
+
+/// Sum of squared residuals of `kind` with `params` over all runs, and the sample count.
+fn sse(params: &ModelParams, rig: &Rig, kind: ModelKind, runs: &[Prepared]) -> (f64, usize) {
+    let mut s = 0.0;
+    let mut n = 0;
+    for r in runs {
+        let Some(&x0) = r.x_counts.first() else { continue };
+        let Ok(mut m) = Reference::new(params, rig, x0) else { return (f64::INFINITY, 1) };
+        for (x, dx) in r.x_counts.iter().zip(&r.dx_um) {
+            let e = dx - m.estimate_um(kind, *x);
+            s += e * e;
+            n += 1;
+        }
+    }
+    (s, n)
+}
+
+fn model1(v: &[f64]) -> Model1Params {
+    Model1Params {
+        m_mm_per_mm: v[0],
+        offset_mm: v[1],
+        h_mm: v[2].max(0.0),
+        h_g_mm: v[3].max(0.0),
+        slope_a_mm_per_mm: v[4].max(0.0),
+        slope_b_mm_per_mm: v[5].max(0.0),
+    }
+}
+
+fn model2(v: &[f64]) -> Model2Params {
+    Model2Params {
+        m_mm_per_mm: v[0],
+        offset_mm: v[1],
+        h_mm: v[2].max(0.0),
+        h_g_mm: v[3].max(0.0),
+        rate_a_per_mm: v[4].min(0.0),
+        rate_b_per_mm: v[5].min(0.0),
+        amplitude_a_mm: v[6].max(0.0),
+        amplitude_b_mm: v[7].max(0.0),
+    }
+}
+
+/// Least-squares line through the approached samples of each direction with a shared slope:
+/// forward dx = m x + c - h, reverse dx = m x + c (all mm). Returns (m, c, h).
+fn band_line(runs: &[Prepared], deadband: u32) -> (f64, f64, f64) {
+    // Normal equations for unknowns (m, c, h) with rows [x, 1, -f] where f = 1 forward.
+    let mut ata = [[0.0f64; 3]; 3];
+    let mut atb = [0.0f64; 3];
+    for r in runs {
+        for s in strokes(&r.x_counts, deadband) {
+            let x_turn = r.x_mm[s.turn_index];
+            for i in s.start..s.end {
+                if (r.x_mm[i] - x_turn).abs() < 20.0 {
+                    continue;
+                }
+                let row = [r.x_mm[i], 1.0, if s.dir > 0 { -1.0 } else { 0.0 }];
+                for a in 0..3 {
+                    atb[a] += row[a] * r.dx_um[i] / 1000.0;
+                    for b in 0..3 {
+                        ata[a][b] += row[a] * row[b];
+                    }
+                }
+            }
+        }
+    }
+    let flat: Vec<f64> = ata.iter().flatten().copied().collect();
+    match crate::tables::solve_spd(flat, atb.to_vec()) {
+        Some(v) => (v[0], v[1], v[2]),
+        None => (0.0, 0.0, 0.3),
+    }
+}
+
+/// Model 3's tables built on the fitted Model 1.
+fn model3(m1: &Model1Params, runs: &[Prepared], rig: &Rig, deadband: u32) -> Result<Model3Params, String> {
+    let edge = |x_mm: f64, dir: i8| {
+        1000.0 * (m1.m_mm_per_mm * x_mm + m1.offset_mm - if dir > 0 { m1.h_mm } else { 0.0 })
+    };
+    let closing = m1.closing();
+    let settle_mm = |dir: i8| {
+        let c = if dir > 0 { closing.forward_mm } else { closing.reverse_mm };
+        c.map_or(150.0, |v| v.to_num::<f64>()).clamp(5.0, 150.0)
+    };
+
+    // Band tables: bins of one belt pitch over the travel seen.
+    let (lo, hi) = runs.iter().flat_map(|r| r.x_mm.iter()).fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &x| (l.min(x), h.max(x)));
+    if !(hi - lo > 2.0 * rig.belt_pitch_mm) {
+        return Err("calibration data covers less than two belt pitches of travel".into());
+    }
+    let n_bins = (((hi - lo) / rig.belt_pitch_mm).ceil() as usize).clamp(2, MAX_BAND_POINTS);
+    let bin_w = (hi - lo) / n_bins as f64;
+    let mut band = |dir: i8| -> Result<BandParams, String> {
+        let (mut sum, mut cnt) = (vec![0.0; n_bins], vec![0usize; n_bins]);
+        for r in runs {
+            for s in strokes(&r.x_counts, deadband).into_iter().filter(|s| s.dir == dir) {
+                let x_turn = r.x_mm[s.turn_index];
+                for i in s.start..s.end {
+                    if (r.x_mm[i] - x_turn).abs() >= settle_mm(dir) {
+                        let b = (((r.x_mm[i] - lo) / bin_w) as usize).min(n_bins - 1);
+                        sum[b] += r.dx_um[i] - edge(r.x_mm[i], dir);
+                        cnt[b] += 1;
+                    }
+                }
+            }
+        }
+        let pts: Vec<(f64, f64)> = (0..n_bins)
+            .map(|b| {
+                let x = lo + (b as f64 + 0.5) * bin_w;
+                let corr = if cnt[b] >= 20 { sum[b] / cnt[b] as f64 } else { 0.0 };
+                (x, edge(x, dir) + corr)
+            })
+            .collect();
+        BandParams::from_points(&pts).ok_or_else(|| "band table rejected".to_string())
+    };
+    let forward_band = band(1)?;
+    let reverse_band = band(-1)?;
+
+    // Transition tables: gap to the new band edge after each reversal.
+    let band_at = |b: &BandParams, x: f64| crate::tables::interp(&b.x_mm[..b.len], &b.y_um[..b.len], x);
+    let mut samples: [Vec<GapSample>; 2] = [Vec::new(), Vec::new()];
+    let mut d_max = [0.0f64; 2];
+    for r in runs {
+        let ss = strokes(&r.x_counts, deadband);
+        for s in ss.iter().skip(1) {
+            let k = if s.dir > 0 { 0 } else { 1 };
+            let b = if s.dir > 0 { &forward_band } else { &reverse_band };
+            let x_d = r.x_mm[s.turn_index];
+            // Error at the turning point: the filtered Delta x there.
+            let g0 = (r.dx_um[s.turn_index] - band_at(b, x_d)) * s.dir as f64;
+            if !(g0.is_finite()) || g0 < 0.0 {
+                continue;
+            }
+            for i in s.start..s.end {
+                let d = (r.x_mm[i] - x_d).abs();
+                let gap = (r.dx_um[i] - band_at(b, r.x_mm[i])) * s.dir as f64;
+                samples[k].push(GapSample { d_mm: d, g0_um: g0, gap_um: gap });
+                d_max[k] = d_max[k].max(d);
+            }
+        }
+    }
+    let mut transition = |k: usize, hg_um: f64| -> Result<TransitionParams, String> {
+        let s = &samples[k];
+        if s.len() < 100 {
+            return Err("calibration data has too few reversals for Model 3's transition tables".into());
+        }
+        let g_max = s.iter().map(|g| g.g0_um).fold(0.0, f64::max).max(1.0);
+        let d_len = settle_mm(if k == 0 { 1 } else { -1 }).min(d_max[k]).max(1.0);
+        let (nd, ng) = (MAX_TRANSITION_D, MAX_TRANSITION_G0);
+        let d_axis: Vec<f64> = (0..nd).map(|i| d_len * i as f64 / (nd - 1) as f64).collect();
+        let g_axis: Vec<f64> = (0..ng).map(|j| g_max * j as f64 / (ng - 1) as f64).collect();
+        let used: Vec<GapSample> = s.iter().copied().filter(|g| g.d_mm <= d_len).collect();
+        let anchor: Vec<f64> = g_axis.iter().map(|g| (g - hg_um).max(0.0)).collect();
+        let vals = fit_gap_table(&used, &d_axis, &g_axis, 1e-3, &anchor)
+            .ok_or("transition table fit is singular")?;
+        let mut t = TransitionParams::EMPTY;
+        t.n_d = nd;
+        t.n_g0 = ng;
+        t.d_step_mm = d_axis[1];
+        t.g0_step_um = g_axis[1];
+        for i in 0..nd {
+            for j in 0..ng {
+                t.gap_um[i][j] = vals[i * ng + j].clamp(0.0, 2000.0);
+            }
+        }
+        Ok(t)
+    };
+    let hg_um = m1.h_g_mm * 1000.0;
+    Ok(Model3Params {
+        forward_band,
+        reverse_band,
+        forward_transition: transition(0, hg_um)?,
+        reverse_transition: transition(1, hg_um)?,
+    })
+}
+
+/// Calibrates every model and both baselines from `traces`. `progress(stage, fraction)` reports.
+pub fn calibrate(traces: &[Trace], rig: &Rig, progress: &mut dyn FnMut(&str, f64)) -> Result<Calibration, String> {
+    let deadband = ModelParams::DEFAULT_DEADBAND_COUNTS;
+    let runs: Vec<Prepared> = traces.iter().filter(|t| !t.records.is_empty()).map(prepare).collect();
+    if runs.is_empty() {
+        return Err("no calibration samples".into());
+    }
+    let mut params = ModelParams { reversal_deadband_counts: deadband, ..ModelParams::PAPER };
+
+    // Start: the band line, Table 2 for the transition shapes.
+    let (m, c, h) = band_line(&runs, deadband);
+    let p = Model1Params::PAPER;
+    let x1 = [m, c, h, p.h_g_mm, p.slope_a_mm_per_mm, p.slope_b_mm_per_mm];
+    let step1 = [2e-4, 0.02, 0.03, 0.02, 5e-4, 5e-4];
+    let max_evals = 600;
+    let mut evals = 0usize;
+    let fit1 = nelder_mead(
+        |v| {
+            evals += 1;
+            progress("fit Model 1", evals as f64 / max_evals as f64);
+            params.model1 = model1(v);
+            sse(&params, rig, ModelKind::Linear, &runs).0
+        },
+        &x1,
+        &step1,
+        1e-9,
+        max_evals,
+    );
+    params.model1 = model1(&fit1.x);
+
+    let p2 = Model2Params::PAPER;
+    let f = &fit1.x;
+    let x2 = [f[0], f[1], f[2], f[3], p2.rate_a_per_mm, p2.rate_b_per_mm, p2.amplitude_a_mm, p2.amplitude_b_mm];
+    let step2 = [2e-4, 0.02, 0.03, 0.02, 0.02, 0.02, 0.03, 0.03];
+    let mut evals = 0usize;
+    let fit2 = nelder_mead(
+        |v| {
+            evals += 1;
+            progress("fit Model 2", evals as f64 / max_evals as f64);
+            params.model2 = model2(v);
+            sse(&params, rig, ModelKind::Exponential, &runs).0
+        },
+        &x2,
+        &step2,
+        1e-9,
+        max_evals,
+    );
+    params.model2 = model2(&fit2.x);
+
+    progress("Model 3 tables", 0.0);
+    params.model3 = model3(&params.model1, &runs, rig, deadband)?;
+    params.build(rig).map_err(|e| format!("calibrated parameters rejected: {e}"))?;
+    progress("Model 3 tables", 1.0);
+
+    let rms = |kind| {
+        let (s, n) = sse(&params, rig, kind, &runs);
+        (s / n.max(1) as f64).sqrt()
+    };
+    let fit_rms_um = [
+        (ModelKind::Linear, rms(ModelKind::Linear)),
+        (ModelKind::Exponential, rms(ModelKind::Exponential)),
+        (ModelKind::Table, rms(ModelKind::Table)),
+    ];
+    Ok(Calibration {
+        backlash: Backlash::calibrate(traces).ok_or("no approached samples in both directions")?,
+        bidir: BidirTable::calibrate(traces, crate::baseline::MAX_ROWS)
+            .ok_or("no approached samples for the table")?,
+        params,
+        fit_rms_um,
+        samples: runs.iter().map(|r| r.x_counts.len()).sum(),
+    })
+}

@@ -1,0 +1,121 @@
+//! Table 3: calibrate on the calibration scenarios (their own noise seeds), run a scenario, and
+//! report max, min and RMS of e = x_LS - x_PE - y (eq. 19) for every model and both baselines.
+
+use estimator_core::drive::{Drive, DriveConfig};
+use estimator_core::model::{self, ModelCoeffs, ModelKind, ModelParams, ModelState};
+use estimator_core::rig::Rig;
+
+use crate::calibrate::{calibrate, Calibration};
+use crate::controller::{Controller, InProcess};
+use crate::plant::PlantParams;
+use crate::run::{run, RunConfig, RunError, Trace};
+use crate::scenario::Scenario;
+use crate::stats::ErrorStats;
+
+/// Scenarios the calibration records (Figs. 9-15 experiments); never the test scenarios.
+pub const CALIBRATION_SCENARIOS: &[&str] = &["repeatability", "reversals", "velocities"];
+/// Noise seeds of calibration runs start here; evaluation runs use their own seed.
+pub const CALIBRATION_SEED_BASE: u64 = 1_000;
+
+/// Names of the estimators in report order.
+pub const ESTIMATORS: &[&str] = &["none", "model1", "model2", "model3", "backlash", "bidir_table"];
+
+/// The drive configuration used by simulations: the paper rig with `params` loaded.
+pub fn drive_config(params: &ModelParams, model: ModelKind) -> DriveConfig {
+    DriveConfig { model: params.clone(), initial_model: model, ..DriveConfig::paper_rig() }
+}
+
+/// Runs `scenario` with the core in-process.
+pub fn run_in_process(
+    scenario: &Scenario,
+    plant: &PlantParams,
+    params: &ModelParams,
+    model: ModelKind,
+    seed: u64,
+    progress: &mut dyn FnMut(f64),
+) -> Result<Trace, RunError> {
+    let cfg = drive_config(params, model);
+    let drive = Drive::new(&cfg).map_err(|e| {
+        RunError::Control(crate::controller::ControlError::Link(format!("drive configuration: {e}")))
+    })?;
+    let mut c = InProcess(drive);
+    run_with(scenario, plant, &cfg.rig, &mut c, seed, progress)
+}
+
+/// Runs `scenario` through any controller (in-process or PIL).
+pub fn run_with(
+    scenario: &Scenario,
+    plant: &PlantParams,
+    rig: &Rig,
+    controller: &mut dyn Controller,
+    seed: u64,
+    progress: &mut dyn FnMut(f64),
+) -> Result<Trace, RunError> {
+    let rc = RunConfig { seed, ..RunConfig::default() };
+    run(scenario, plant, rig, controller, &rc, progress)
+}
+
+/// Records the calibration scenarios with the Table 2 presets loaded (the models do not
+/// influence the motion: the loop closes on the motor encoder).
+pub fn record_calibration(
+    plant: &PlantParams,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Vec<Trace>, String> {
+    let mut traces = Vec::new();
+    for (k, name) in CALIBRATION_SCENARIOS.iter().enumerate() {
+        let s = Scenario::load(name)?;
+        let label = format!("record {name}");
+        let t = run_in_process(&s, plant, &ModelParams::PAPER, ModelKind::None, CALIBRATION_SEED_BASE + k as u64, &mut |f| {
+            progress(&label, f)
+        })
+        .map_err(|e| format!("{name}: {e}"))?;
+        traces.push(t);
+    }
+    Ok(traces)
+}
+
+/// Records the calibration scenarios and calibrates.
+pub fn calibrate_plant(plant: &PlantParams, progress: &mut dyn FnMut(&str, f64)) -> Result<Calibration, String> {
+    let traces = record_calibration(plant, progress)?;
+    calibrate(&traces, &Rig::PAPER, progress)
+}
+
+/// Every estimator's y along `trace`, um, in `ESTIMATORS` order. The paper's models are replayed
+/// through the fixed-point code the firmware runs, from the recorded motor counts.
+pub fn estimates(trace: &Trace, coeffs: &ModelCoeffs, cal: &Calibration) -> Vec<(&'static str, Vec<f64>)> {
+    let x0 = trace.records.first().map_or(0, |r| r.motor_counts);
+    let mut out: Vec<(&'static str, Vec<f64>)> = ModelKind::ALL
+        .iter()
+        .map(|&kind| {
+            let mut st = ModelState::new(x0);
+            let y = trace
+                .records
+                .iter()
+                .map(|r| model::estimate(coeffs, kind, &mut st, r.motor_counts).to_num::<f64>())
+                .collect();
+            (kind.as_str(), y)
+        })
+        .collect();
+    out.push(("backlash", cal.backlash.estimate(trace)));
+    out.push(("bidir_table", cal.bidir.estimate(trace)));
+    out
+}
+
+/// Table 3 for one trace.
+pub fn table3(trace: &Trace, estimates: &[(&'static str, Vec<f64>)]) -> Vec<(&'static str, ErrorStats)> {
+    estimates
+        .iter()
+        .filter_map(|(name, y)| {
+            ErrorStats::of((0..trace.records.len()).map(|i| trace.dx_um(i) - y[i])).map(|s| (*name, s))
+        })
+        .collect()
+}
+
+/// The JSON object of `hil-sim evaluate --json`.
+pub fn to_json(scenario: &str, samples: usize, table: &[(&'static str, ErrorStats)]) -> String {
+    let models: serde_json::Map<String, serde_json::Value> = table
+        .iter()
+        .map(|(n, s)| (n.to_string(), serde_json::to_value(s).unwrap_or(serde_json::Value::Null)))
+        .collect();
+    serde_json::json!({ "scenario": scenario, "samples": samples, "models": models }).to_string()
+}
