@@ -36,7 +36,10 @@ impl Outbox {
             self.ring[(self.head + self.len) % CAPACITY] = b;
             self.len += 1;
         }
+        // Start at once: the hardware takes a byte now and asks for the rest with TXE
+        // interrupts; QEMU (whose USART is synchronous and raises no TXE interrupt) takes all.
         self.tx.set_tx_interrupt(true);
+        self.pump();
         true
     }
 

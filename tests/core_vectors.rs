@@ -14,12 +14,69 @@ mod vectors {
     include!(concat!(env!("OUT_DIR"), "/core_vectors.rs"));
 }
 
+/// A paper-rig drive in a static (`Drive::new` and its configuration take a lot of stack).
+#[cfg(target_os = "none")]
+#[inline(never)]
+fn static_drive() -> &'static mut estimator_core::drive::Drive {
+    use estimator_core::drive::{Drive, DriveConfig};
+    let Some(slot) = cortex_m::singleton!(: Option<Drive> = None) else { defmt::panic!("twice") };
+    let Ok(d) = Drive::new(&DriveConfig::paper_rig()) else { defmt::panic!("paper rig refused") };
+    slot.insert(d)
+}
+
+/// `Drive::load_calibration`, kept out of the caller's frame (it needs tens of KiB of stack).
+#[cfg(target_os = "none")]
+#[inline(never)]
+fn load(
+    drive: &mut estimator_core::drive::Drive,
+    blob: &[u8],
+) -> Result<(), estimator_core::blob::BlobError> {
+    drive.load_calibration(blob)
+}
+
+/// Sends `blob` through a link endpoint (begin, chunks, commit); true if every step was acked.
+#[cfg(target_os = "none")]
+#[inline(never)]
+fn endpoint_transfer(drive: &mut estimator_core::drive::Drive, blob: &[u8]) -> bool {
+    use estimator_core::link::{crc32, Effect, Endpoint, Reply, Request, CHUNK_MAX};
+    let Some(endpoint) = cortex_m::singleton!(: Endpoint = Endpoint::new()) else { defmt::panic!("twice") };
+    let ack = |e: Effect| matches!(e, Effect::Reply(Reply::Ack { .. }));
+    let begin = Request::CalBegin { total_len: blob.len() as u32, crc32: crc32(blob) };
+    let mut ok = ack(endpoint.handle(&begin, drive).0);
+    for (i, piece) in blob.chunks(CHUNK_MAX).enumerate() {
+        let mut data = [0u8; CHUNK_MAX];
+        data[..piece.len()].copy_from_slice(piece);
+        let chunk = Request::CalChunk { offset: (i * CHUNK_MAX) as u32, len: piece.len() as u8, data };
+        ok &= ack(endpoint.handle(&chunk, drive).0);
+    }
+    ok && ack(endpoint.handle(&Request::CalCommit, drive).0)
+}
+
+/// Decodes the host's blob and encodes it again: the bytes must not change.
+#[cfg(target_os = "none")]
+#[inline(never)]
+fn blob_round_trips(good: &[u8]) {
+    use estimator_core::{blob, drive::DriveConfig};
+    let rig = DriveConfig::paper_rig().rig;
+    let Ok(params) = blob::decode(good, &rig) else { defmt::panic!("host blob refused on target") };
+    let Some(again) = cortex_m::singleton!(: [u8; blob::MAX_BYTES] = [0; blob::MAX_BYTES]) else {
+        defmt::panic!("twice")
+    };
+    let Ok(n) = blob::encode(&params, &rig, again) else { defmt::panic!("re-encoding failed") };
+    defmt::assert_eq!(&again[..n], good, "blob re-encoded on target differs");
+}
+
 #[cfg(target_os = "none")]
 #[defmt_test::tests]
 mod tests {
     use super::vectors;
     use estimator_core::encoder;
     use estimator_core::model::ModelKind;
+
+    #[init]
+    fn init() {
+        belt_drive::stack::paint();
+    }
 
     #[test]
     fn encoder_unwrapping_edge_cases() {
@@ -59,5 +116,41 @@ mod tests {
                 got.final_counts
             );
         }
+    }
+
+    /// The host's blob decodes on the target, re-encodes to the same bytes, loads into a drive,
+    /// and travels through the link endpoint in chunks; damaged blobs are refused.
+    #[test]
+    fn calibration_blob_checks() {
+        use estimator_core::blob::{self, BlobError};
+        let good = &vectors::PAPER_BLOB[..];
+        belt_drive::stack::paint();
+        super::blob_round_trips(good);
+
+        // The large objects live in statics: decoding a blob already takes tens of KiB of stack.
+        let drive = super::static_drive();
+        defmt::assert!(super::load(drive, good).is_ok());
+
+        // Damaged copies: every check must refuse them (and change nothing).
+        let Some(bad) = cortex_m::singleton!(: [u8; blob::MAX_BYTES] = [0; blob::MAX_BYTES]) else {
+            defmt::panic!("twice")
+        };
+        let bad = &mut bad[..good.len()];
+        bad.copy_from_slice(good);
+        bad[good.len() / 2] ^= 0x40;
+        defmt::assert!(super::load(drive, bad) == Err(BlobError::BadChecksum));
+        defmt::assert!(super::load(drive, &good[..good.len() - 1]).is_err());
+        defmt::assert!(super::load(drive, &good[..8]) == Err(BlobError::Truncated));
+        bad.copy_from_slice(good);
+        bad[0] = b'X';
+        defmt::assert!(super::load(drive, bad) == Err(BlobError::BadMagic));
+
+        // Through the endpoint: begin, chunks, commit.
+        defmt::assert!(super::endpoint_transfer(drive, good));
+        defmt::info!(
+            "calibration blob: {=usize} bytes, checks pass on target; stack peak so far {=u32} bytes",
+            good.len(),
+            belt_drive::stack::peak_bytes()
+        );
     }
 }

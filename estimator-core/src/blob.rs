@@ -277,7 +277,7 @@ pub fn decode(blob: &[u8], rig: &Rig) -> Result<ModelParams, BlobError> {
         amplitude_a_mm: um(r.fixed(Q16)?),
         amplitude_b_mm: um(r.fixed(Q16)?),
     };
-    let mut read_band = |r: &mut Reader, name: &'static str| -> Result<BandParams, BlobError> {
+    let read_band = |r: &mut Reader, name: &'static str| -> Result<BandParams, BlobError> {
         let n = r.u16()? as usize;
         r.u16()?;
         if n > MAX_BAND_POINTS {

@@ -13,8 +13,8 @@
 //! it is reported as [`Error::Overflow`] instead of wrapping, because a silent 2^32-count jump in
 //! the position would be far worse than a fault.
 //!
-//! The 32-bit variant (TIM2/TIM5 on the STM32F405) unwraps the same way; its position is the counter
-//! itself, re-based and checked for plausibility.
+//! The 32-bit variant (TIM2/TIM5 on the STM32F405) unwraps the same way; its position is the
+//! counter itself, re-based and checked for plausibility.
 //!
 //! Follows idsp's unwrapper: the step is the counter difference taken modulo the counter's range
 //! (`wrapping_sub`, then reinterpreted as signed), so wraps in either direction cost nothing.

@@ -863,13 +863,10 @@ impl Receiver {
 
 // ---- the drive's side of the link -------------------------------------------------------------
 
+use crate::blob::{self, BlobError};
 use crate::drive::{Command, CommandError, Drive, Faults, Output, Sample, Telemetry};
 use crate::model::ModelKind;
 use fixed::types::I16F16;
-
-/// Largest calibration blob the endpoint assembles.
-// TEMPORARY until `blob::MAX_BYTES` exists.
-pub const CAL_MAX_BYTES: usize = 2048;
 
 /// Wire code (`detail` of [`LinkError::Refused`]) of a drive refusal.
 pub fn command_error_code(e: CommandError) -> u8 {
@@ -908,8 +905,25 @@ pub mod cal_error {
     pub const INCOMPLETE: u8 = 4;
     /// The received bytes do not match the announced CRC.
     pub const CRC: u8 = 5;
-    /// The drive rejected the blob's contents.
-    pub const REJECTED: u8 = 6;
+    /// The drive rejected the blob's contents: this bit plus [`super::blob_error_code`].
+    pub const REJECTED: u8 = 0x10;
+}
+
+/// Wire code of a blob refusal (low bits of a [`cal_error::REJECTED`] detail).
+pub fn blob_error_code(e: BlobError) -> u8 {
+    match e {
+        BlobError::Truncated => 1,
+        BlobError::TooLong => 2,
+        BlobError::BadMagic => 3,
+        BlobError::UnsupportedVersion(_) => 4,
+        BlobError::BadChecksum => 5,
+        BlobError::RigMismatch => 6,
+        BlobError::BadCount(_) => 7,
+        BlobError::Invalid(_) => 8,
+        BlobError::Busy => 9,
+        BlobError::BufferTooSmall => 10,
+        BlobError::Unrepresentable(_) => 11,
+    }
 }
 
 /// The request for a drive command, if `req` is one.
@@ -1039,13 +1053,13 @@ pub enum Event {
         len: u32,
     },
     /// The drive rejected a blob.
-    CalibrationRejected,
+    CalibrationRejected(BlobError),
 }
 
 /// The drive's end of the link: turns requests into drive commands, assembles calibration
 /// blobs, and says what to answer. Frame decoding stays in [`Receiver`].
 pub struct Endpoint {
-    blob: [u8; CAL_MAX_BYTES],
+    blob: [u8; blob::MAX_BYTES],
     /// Transfer in progress: announced length and CRC, bytes received, running CRC.
     transfer: Option<(usize, u32, usize, Crc32)>,
     calibrated: bool,
@@ -1062,7 +1076,7 @@ impl Endpoint {
     /// A fresh endpoint (drive disabled, nothing loaded).
     pub const fn new() -> Self {
         Endpoint {
-            blob: [0; CAL_MAX_BYTES],
+            blob: [0; blob::MAX_BYTES],
             transfer: None,
             calibrated: false,
             streaming: false,
@@ -1093,7 +1107,7 @@ impl Endpoint {
             }
             Request::Shutdown { code } => (Effect::Shutdown(code), Event::None),
             Request::CalBegin { total_len, crc32 } => {
-                if total_len as usize > CAL_MAX_BYTES {
+                if total_len as usize > blob::MAX_BYTES {
                     self.transfer = None;
                     let d = cal_error::TOO_LONG;
                     return (refuse(LinkError::Calibration, d), Event::CalibrationRefused(d));
@@ -1123,12 +1137,16 @@ impl Endpoint {
                     Some((_, want, _, crc)) if crc.finish() != want => cal_error::CRC,
                     Some((total, ..)) => {
                         self.transfer = None;
-                        // TEMPORARY until `Drive::load_calibration` exists.
-                        let _ = drive;
-                        return (
-                            refuse(LinkError::Calibration, cal_error::REJECTED),
-                            Event::CalibrationRejected,
-                        );
+                        return match drive.load_calibration(&self.blob[..total]) {
+                            Ok(()) => {
+                                self.calibrated = true;
+                                (ack, Event::CalibrationLoaded { len: total as u32 })
+                            }
+                            Err(e) => (
+                                refuse(LinkError::Calibration, cal_error::REJECTED | blob_error_code(e)),
+                                Event::CalibrationRejected(e),
+                            ),
+                        };
                     }
                 };
                 if d == cal_error::CRC {
@@ -1440,6 +1458,151 @@ mod tests {
         assert_eq!(got[3], got[1]);
         assert_eq!((rx.frames_ok, rx.frames_bad), (2, 2));
         assert_eq!(rx.last_error, Some(LinkError::Oversize));
+    }
+
+    // ---- the endpoint, against the real drive ----
+
+    use crate::drive::{DriveConfig, Output as DriveOutput};
+
+    fn drive() -> Drive {
+        Drive::new(&DriveConfig::paper_rig()).unwrap()
+    }
+
+    fn refused(e: Effect) -> Option<(LinkError, u8)> {
+        match e {
+            Effect::Reply(Reply::Error { reason, detail, .. }) => Some((reason, detail)),
+            _ => None,
+        }
+    }
+
+    const ACK_ENABLE: Effect = Effect::Reply(Reply::Ack { of: kind::ENABLE });
+
+    #[test]
+    fn commands_map_both_ways() {
+        let cmds = [
+            Command::MoveTo { target_um: 1, velocity_um_s: 2, accel_um_s2: 3 },
+            Command::Stop,
+            Command::Enable,
+            Command::Disable,
+            Command::ClearFaults,
+            Command::SelectModel(ModelKind::Exponential),
+            Command::Home { position_um: -4, scale_um: 5 },
+        ];
+        for c in cmds {
+            assert_eq!(to_command(&from_command(&c)), Some(c));
+        }
+        assert_eq!(to_command(&Request::Status), None);
+        for code in 0..=255u8 {
+            if let Some(e) = command_error_from_code(code) {
+                assert_eq!(command_error_code(e), code);
+            }
+        }
+        assert_eq!(command_error_from_code(0), None);
+    }
+
+    #[test]
+    fn telemetry_and_answers_convert_exactly() {
+        let mut d = drive();
+        let out = d.step(Sample { motor_counter: 7, scale_counter: 9 });
+        let reply = answer(&out, 42);
+        assert_eq!(output_of(&reply), Some((out, 42)));
+        let mut w = WireTelemetry::from(&out.telemetry);
+        w.model = MODEL_MAX + 1;
+        assert_eq!(Telemetry::try_from(w), Err(LinkError::OutOfRange));
+        assert_eq!(output_of(&Reply::Ack { of: 1 }), None::<(DriveOutput, u32)>);
+    }
+
+    #[test]
+    fn endpoint_applies_commands_and_reports_refusals() {
+        let mut d = drive();
+        let mut ep = Endpoint::new();
+        let mv = Request::Move { target_um: 10_000, velocity_um_s: 50_000, accel_um_s2: 500_000 };
+        let (e, ev) = ep.handle(&mv, &mut d);
+        assert_eq!(refused(e), Some((LinkError::Refused, command_error_code(CommandError::NotEnabled))));
+        assert!(matches!(ev, Event::Refused(_, CommandError::NotEnabled)));
+        assert_eq!(ep.handle(&Request::Enable, &mut d).0, ACK_ENABLE);
+        assert!(d.is_enabled());
+        let (e, ev) = ep.handle(&mv, &mut d);
+        assert_eq!(e, Effect::Reply(Reply::Ack { of: kind::MOVE }));
+        assert!(matches!(ev, Event::Applied(Command::MoveTo { .. })));
+        let far = Request::Move { target_um: 10_000_000, velocity_um_s: 1, accel_um_s2: 1 };
+        let code = command_error_code(CommandError::TargetOutOfTravel);
+        assert_eq!(refused(ep.handle(&far, &mut d).0), Some((LinkError::Refused, code)));
+
+        let s = Request::Sample { motor_counter: 3, scale_counter: 4 };
+        let tick = Effect::Tick(Sample { motor_counter: 3, scale_counter: 4 });
+        assert_eq!(ep.handle(&s, &mut d).0, tick);
+        assert_eq!(ep.handle(&Request::Status, &mut d).0, Effect::Status);
+        assert_eq!(ep.handle(&Request::Telemetry { every_n_ticks: 20 }, &mut d).0, Effect::Stream(20));
+        assert_eq!(ep.handle(&Request::Shutdown { code: 3 }, &mut d).0, Effect::Shutdown(3));
+
+        let _ = d.step(Sample::default());
+        let mut rx = Receiver::new();
+        rx.reject(LinkError::Crc);
+        let st = ep.status(&d, &rx, 1234);
+        assert_eq!(st.flags & status_flags::ENABLED, status_flags::ENABLED);
+        assert_eq!(st.flags & status_flags::STREAMING, status_flags::STREAMING);
+        assert_eq!(st.flags & status_flags::CALIBRATED, 0);
+        assert_eq!((st.frames_bad, st.last_error, st.stack_peak_bytes), (1, LinkError::Crc as u8, 1234));
+        assert_eq!(st.tick, d.telemetry().tick);
+    }
+
+    fn paper_blob() -> Vec<u8> {
+        let mut buf = vec![0u8; blob::MAX_BYTES];
+        let n = blob::encode(&crate::model::ModelParams::PAPER, &DriveConfig::paper_rig().rig, &mut buf).unwrap();
+        buf.truncate(n);
+        buf
+    }
+
+    fn chunk(offset: usize, piece: &[u8]) -> Request {
+        let mut data = [0u8; CHUNK_MAX];
+        data[..piece.len()].copy_from_slice(piece);
+        Request::CalChunk { offset: offset as u32, len: piece.len() as u8, data }
+    }
+
+    #[test]
+    fn calibration_transfer_checks_every_step() {
+        let blob = paper_blob();
+        let mut d = drive();
+        let mut ep = Endpoint::new();
+        let cal = |d: u8| Some((LinkError::Calibration, d));
+        // Nothing started.
+        assert_eq!(refused(ep.handle(&chunk(0, &blob[..8]), &mut d).0), cal(cal_error::NOT_STARTED));
+        assert_eq!(refused(ep.handle(&Request::CalCommit, &mut d).0), cal(cal_error::NOT_STARTED));
+        // Too long for the drive.
+        let huge = Request::CalBegin { total_len: blob::MAX_BYTES as u32 + 1, crc32: 0 };
+        assert_eq!(refused(ep.handle(&huge, &mut d).0), cal(cal_error::TOO_LONG));
+        // A good transfer with one out-of-order chunk refused on the way (and then resent).
+        let begin = Request::CalBegin { total_len: blob.len() as u32, crc32: crc32(&blob) };
+        assert!(matches!(ep.handle(&begin, &mut d).0, Effect::Reply(Reply::Ack { .. })));
+        assert_eq!(refused(ep.handle(&chunk(64, &blob[64..128]), &mut d).0), cal(cal_error::OFFSET));
+        for (i, piece) in blob.chunks(CHUNK_MAX).enumerate() {
+            if i == 2 {
+                // Commit before the end.
+                assert_eq!(refused(ep.handle(&Request::CalCommit, &mut d).0), cal(cal_error::INCOMPLETE));
+            }
+            assert!(matches!(ep.handle(&chunk(i * CHUNK_MAX, piece), &mut d).0, Effect::Reply(Reply::Ack { .. })));
+        }
+        // Past the announced end.
+        assert_eq!(refused(ep.handle(&chunk(blob.len(), &[1]), &mut d).0), cal(cal_error::TOO_LONG));
+        let (e, ev) = ep.handle(&Request::CalCommit, &mut d);
+        assert!(matches!(e, Effect::Reply(Reply::Ack { .. })), "{e:?}");
+        assert_eq!(ev, Event::CalibrationLoaded { len: blob.len() as u32 });
+        assert_ne!(ep.status(&d, &Receiver::new(), 0).flags & status_flags::CALIBRATED, 0);
+
+        // Bytes that do not match the announced CRC.
+        let begin = Request::CalBegin { total_len: 8, crc32: crc32(&blob[..8]) ^ 1 };
+        assert!(matches!(ep.handle(&begin, &mut d).0, Effect::Reply(Reply::Ack { .. })));
+        assert!(matches!(ep.handle(&chunk(0, &blob[..8]), &mut d).0, Effect::Reply(Reply::Ack { .. })));
+        assert_eq!(refused(ep.handle(&Request::CalCommit, &mut d).0), cal(cal_error::CRC));
+        // A transfer that arrives intact but holds no valid blob: the drive refuses it.
+        let begin = Request::CalBegin { total_len: 8, crc32: crc32(&blob[..8]) };
+        assert!(matches!(ep.handle(&begin, &mut d).0, Effect::Reply(Reply::Ack { .. })));
+        assert!(matches!(ep.handle(&chunk(0, &blob[..8]), &mut d).0, Effect::Reply(Reply::Ack { .. })));
+        let (e, ev) = ep.handle(&Request::CalCommit, &mut d);
+        let code = cal_error::REJECTED | blob_error_code(BlobError::Truncated);
+        assert_eq!(refused(e), cal(code));
+        assert_eq!(ev, Event::CalibrationRejected(BlobError::Truncated));
     }
 
     fn arb_request() -> impl Strategy<Value = Request> {

@@ -178,8 +178,8 @@ const ERROR_PI_BITS: u32 = 24;
 /// Measured velocity: a 12-bit signed number of counts/tick (-2048 ..= 2047).
 const VELOCITY_BITS: u32 = 12;
 
-/// `value * scale` in format `F`, `0 <= value * scale < max`; a non-zero value must not round to
-/// zero (that would silently switch the term off).
+/// `value * scale` in format `F`, `0 <= value * scale < max` (also after rounding); a non-zero
+/// value must not round to zero (that would silently switch the term off).
 fn gain<F: fixed::traits::Fixed>(
     value: f64,
     scale: f64,
@@ -194,7 +194,8 @@ fn gain<F: fixed::traits::Fixed>(
         return Err(ConfigError::OutOfRange(field));
     }
     match F::checked_from_num(x) {
-        Some(g) if g != F::ZERO || value == 0.0 => Ok(g),
+        // Rounding to nearest may reach `max` itself; the bounds are strict.
+        Some(g) if g.to_num::<f64>() < max && (g != F::ZERO || value == 0.0) => Ok(g),
         _ => Err(ConfigError::OutOfRange(field)),
     }
 }
@@ -215,7 +216,7 @@ impl Default for Coeffs {
     fn default() -> Self {
         match Config::PAPER_RIG.build(&Rig::PAPER) {
             Ok(c) => c,
-            // Unreachable (the defaults are tested); a loop that outputs nothing rather than a panic.
+            // Unreachable (the defaults are tested); a loop that outputs nothing, not a panic.
             Err(_) => Self {
                 kp_a_per_count: I8F24::ZERO,
                 ki_a_per_count_tick: I1F31::ZERO,
@@ -290,10 +291,11 @@ fn ssat<const BITS: u32>(x: i32) -> i32 {
     x.max(-(1 << (BITS - 1))).min((1 << (BITS - 1)) - 1)
 }
 
-/// `(a * b) >> shift`, a 32x32->64 multiply; the caller guarantees the result fits.
+/// `(a * b) >> shift`, a 32x32->64 multiply (it cannot wrap); the caller guarantees the result
+/// fits.
 #[inline(always)]
 fn mul_shr(a: i32, b: i32, shift: u32) -> i32 {
-    ((a as i64 * b as i64) >> shift) as i32
+    ((a as i64).wrapping_mul(b as i64) >> shift) as i32
 }
 
 impl Coeffs {
@@ -355,9 +357,9 @@ impl Coeffs {
         // Both within ±2^27 (no wrap); alpha < 1 and rounding to nearest keep the filter between
         // them. Plain arithmetic in this function cannot overflow; the few `wrapping_*` keep debug
         // and release builds the same panic-free code.
-        let towards =
-            step_f16.wrapping_sub(velocity_f16) as i64 * self.derivative_alpha.to_bits() as i64;
-        velocity_f16 = velocity_f16.wrapping_add(((towards + (1 << 30)) >> 31) as i32);
+        let towards = (step_f16.wrapping_sub(velocity_f16) as i64)
+            .wrapping_mul(self.derivative_alpha.to_bits() as i64);
+        velocity_f16 = velocity_f16.wrapping_add((towards.wrapping_add(1 << 30) >> 31) as i32);
 
         // Terms in I16F16 amperes, each below 2^31 by the bounds in `build` and `Setpoint`.
         let p = mul_shr(error_pi_f8, self.kp_a_per_count.to_bits(), 16);
@@ -702,6 +704,102 @@ mod tests {
         let expected = 0.12 * 50.0 + 0.00092 * 1000.0;
         let got = amps(c.update(&mut s, &sp, 0));
         assert!((got - expected).abs() < 1e-3, "{got} vs {expected}");
+    }
+
+    #[test]
+    fn gains_at_their_bounds_keep_the_sign() {
+        let cpm = Rig::PAPER.counts_per_mm();
+        let rate = 2000.0;
+        let zero = Config {
+            kp_a_per_mm: 0.0,
+            ki_a_per_mm_s: 0.0,
+            kd_a_s_per_mm: 0.0,
+            kff_vel_a_s_per_mm: 0.0,
+            kff_acc_a_s2_per_mm: 0.0,
+            max_current_a: 127.0,
+            derivative_cutoff_hz: 1000.0,
+            rate_hz: rate,
+        };
+        // A few LSBs below each bound.
+        let top = |x: f64| x * (1.0 - 1e-5);
+        let build = |c: Config| c.build(&Rig::PAPER).unwrap();
+        let big = I40F24::from_num(2_000_000_000);
+        let v_max = I40F24::from_num(2048);
+        let a_max = I40F24::from_num(63.999);
+
+        let p = build(Config {
+            kp_a_per_mm: top(cpm),
+            ..zero
+        });
+        let o = p.update(
+            &mut State::new(),
+            &Setpoint::new(big, I40F24::ZERO, I40F24::ZERO),
+            -5,
+        );
+        assert_eq!(o.current_a, 127);
+        let o = p.update(
+            &mut State::new(),
+            &Setpoint::new(-big, I40F24::ZERO, I40F24::ZERO),
+            5,
+        );
+        assert_eq!(o.current_a, -127);
+
+        let d = build(Config {
+            kd_a_s_per_mm: top(16.0 * cpm / rate),
+            ..zero
+        });
+        let mut s = State::new();
+        let at0 = Setpoint::at_rest(0);
+        let mut o = d.update(&mut s, &at0, 0);
+        for k in 1..20 {
+            o = d.update(&mut s, &at0, -5000 * k);
+        }
+        // Measured falling at the velocity limit: the damping pushes up, at full scale.
+        assert_eq!(o.current_a, 127);
+
+        let v = build(Config {
+            kff_vel_a_s_per_mm: top(16.0 * cpm / rate),
+            ..zero
+        });
+        let o = v.update(
+            &mut State::new(),
+            &Setpoint::new(I40F24::ZERO, v_max, I40F24::ZERO),
+            0,
+        );
+        assert_eq!(o.current_a, 127);
+        let o = v.update(
+            &mut State::new(),
+            &Setpoint::new(I40F24::ZERO, -v_max, I40F24::ZERO),
+            0,
+        );
+        assert_eq!(o.current_a, -127);
+
+        let a = build(Config {
+            kff_acc_a_s2_per_mm: top(512.0 * cpm / (rate * rate)),
+            ..zero
+        });
+        let o = a.update(
+            &mut State::new(),
+            &Setpoint::new(I40F24::ZERO, I40F24::ZERO, a_max),
+            0,
+        );
+        assert_eq!(o.current_a, 127);
+        let o = a.update(
+            &mut State::new(),
+            &Setpoint::new(I40F24::ZERO, I40F24::ZERO, -a_max),
+            0,
+        );
+        assert_eq!(o.current_a, -127);
+
+        // Exactly at a bound (after rounding) is refused.
+        let at_bound = Config {
+            kd_a_s_per_mm: 16.0 * cpm / rate,
+            ..zero
+        };
+        assert_eq!(
+            at_bound.build(&Rig::PAPER).unwrap_err().field(),
+            "pid.kd_a_s_per_mm"
+        );
     }
 
     #[test]

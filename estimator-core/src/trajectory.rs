@@ -1,9 +1,9 @@
 //! Trapezoidal velocity profile in motor encoder counts, one step per control tick.
 //!
 //! Position, velocity and acceleration share one fixed-point grid, [`I40F24`]: counts,
-//! counts/tick and counts/tick² with 24 fractional bits. Sharing the grid makes
-//! `velocity += dv` and `position += velocity` exact integer additions, so the setpoint lands on the
-//! target count with no residual and no drift, however long the move. 24 bits resolve 0.013 mm/s²
+//! counts/tick and counts/tick² with 24 fractional bits. Sharing the grid makes `velocity += dv`
+//! and `position += velocity` exact integer additions, so the setpoint lands on the target count
+//! with no residual and no drift, however long the move. 24 bits resolve 0.013 mm/s²
 //! of acceleration at 20 kHz on [`Rig::PAPER`]. The position never passes its target, so it stays
 //! between the start and the targets: within `i32` counts, and differences never overflow.
 //!
@@ -63,8 +63,8 @@ pub struct Config {
 
 impl Config {
     /// Moderate moves for the paper's rig at 2 kHz: 100 mm/s (within the 5-250 mm/s the stage
-    /// typically runs) and 2000 mm/s² both ways, which the 150 W motor through 23.7:1 delivers with about
-    /// 2 A of the 8 A limit (≈33 kg effective mass, mostly reflected rotor inertia).
+    /// typically runs) and 2000 mm/s² both ways, which the 150 W motor through 23.7:1 delivers
+    /// with about 2 A of the 8 A limit (≈33 kg effective mass, mostly reflected rotor inertia).
     pub const PAPER_RIG: Config = Config {
         velocity_mm_s: 100.0,
         acceleration_mm_s2: 2000.0,
@@ -257,8 +257,10 @@ impl Default for Coeffs {
 fn run_out_bits(d: u32, n: u32, r: u32) -> u64 {
     let n = n as u64;
     // 32x32->64: n < 2^32.
-    let triangle = (n * n.saturating_sub(1)) >> 1;
-    (d as u64).wrapping_mul(triangle).wrapping_add(n * r as u64)
+    let triangle = n.wrapping_mul(n.saturating_sub(1)) >> 1;
+    (d as u64)
+        .wrapping_mul(triangle)
+        .wrapping_add(n.wrapping_mul(r as u64))
 }
 
 /// The fastest speed in `[lo, hi]` whose run-out fits in `ahead`, given
@@ -294,23 +296,29 @@ fn fit(
             j_over = j;
         }
     }
-    let base = lo.wrapping_add(j_fit as u64 * d as u64);
+    let base = lo.wrapping_add((j_fit as u64).wrapping_mul(d as u64));
     let n = lo_n.wrapping_add(j_fit);
     // 2. Within one deceleration above `base` the slope of `S` is at most `n + 1`, so
     // `k = slack >> ceil(log2(n + 1)) <= slack / (n + 1)` keeps `S(base + k) <= ahead`, and takes
     // at least half the slack.
     let slack = ahead.wrapping_sub(run_fit);
-    let k = core::cmp::min(slack >> (u32::BITS - n.leading_zeros()), d as u64) as u32;
+    let k = core::cmp::min(slack.wrapping_shr(ceil_log2_plus1(n)), d as u64) as u32;
     let w = base.wrapping_add(k as u64);
     if w >= hi.0 {
         return hi;
     }
     let (mut n, mut r) = (n, lo_r.wrapping_add(k));
     if r > d {
-        r -= d;
+        r = r.wrapping_sub(d);
         n = n.wrapping_add(1);
     }
     (w, n, r)
+}
+
+/// `ceil(log2(n + 1))`: the shift that divides by at least `n + 1` (0 for `n = 0`).
+#[inline(always)]
+fn ceil_log2_plus1(n: u32) -> u32 {
+    u32::BITS.wrapping_sub(n.leading_zeros())
 }
 
 /// One tick of the profile: where the carriage should be at the end of the tick.
@@ -468,7 +476,7 @@ impl Trajectory {
         I40F24::from_bits(self.velocity)
     }
 
-    /// Where the profile is going (a whole count).
+    /// Where the profile is going: a whole count, or the stopping point after [`stop`](Self::stop).
     pub fn target_counts(&self) -> I40F24 {
         I40F24::from_bits(self.target)
     }
@@ -490,7 +498,7 @@ impl Trajectory {
             let mut n = self.n.wrapping_add(c.accel_decels);
             let mut r = self.r.wrapping_add(c.accel_rem);
             if r > c.decel {
-                r -= c.decel;
+                r = r.wrapping_sub(c.decel);
                 n = n.wrapping_add(1);
             }
             (up, n, r)
@@ -520,10 +528,10 @@ impl Trajectory {
             // Must slow down, by less than `d`. On `[lo, speed]` the slope of `S` is at most
             // `n(speed) = lo_n + 1` (or 1 from `lo = 0`), so `k = slack >> ceil(log2(lo_n + 1))`
             // keeps `S(lo + k) <= ahead`; `k < speed - lo <= d`.
-            let k = (slack >> (u32::BITS - lo_n.leading_zeros())) as u32;
+            let k = slack.wrapping_shr(ceil_log2_plus1(lo_n)) as u32;
             let (mut n, mut r) = (lo_n, lo_r.wrapping_add(k));
             if r > d {
-                r -= d;
+                r = r.wrapping_sub(d);
                 n = n.wrapping_add(1);
             }
             return (lo.wrapping_add(k as u64), n, r);

@@ -259,7 +259,8 @@ proptest! {
         t.stop();
         let ticks = run_to_rest(&mut t, l, &mut prev)?;
         // Full deceleration all the way: ceil(speed / d) ticks, plus the tick reporting rest.
-        prop_assert!(ticks as i64 <= (speed + l.d - 1) / l.d + 1, "{} ticks from speed {}", ticks, speed);
+        let full_braking_ticks = (speed + l.d - 1) / l.d;
+        prop_assert!(ticks as i64 <= full_braking_ticks + 1, "{} ticks from speed {}", ticks, speed);
     }
 }
 

@@ -37,7 +37,7 @@ fn run_up(trace: &Trace) -> Vec<(i8, f64)> {
 }
 
 /// Constant backlash compensation.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Backlash {
     /// Mean of the two directions' errors, um.
     pub offset_um: f64,
@@ -81,7 +81,7 @@ impl Backlash {
 }
 
 /// Bidirectional position-error table.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct BidirTable {
     /// Position of the first row, mm.
     pub x0_mm: f64,

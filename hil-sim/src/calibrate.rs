@@ -25,6 +25,12 @@ use crate::fit::nelder_mead;
 use crate::run::Trace;
 use crate::tables::{fit_gap_table, strokes, GapSample};
 
+/// Reversal dead bands tried by the calibration (counts; 1 count = 0.535 um on the paper's rig).
+pub const DEADBAND_CANDIDATES_COUNTS: [u32; 7] = [2, 8, 24, 48, 96, 160, 240];
+
+/// Smoothing weights tried for Model 3's transition tables.
+pub const SMOOTHING_CANDIDATES: [f64; 6] = [0.1, 1.0, 10.0, 100.0, 1e3, 1e4];
+
 /// Half-width of the centred moving average applied to Delta x, in ticks (5 ms at 2 kHz).
 pub const FILTER_HALF_WIDTH: usize = 5;
 
@@ -140,8 +146,15 @@ fn band_line(runs: &[Prepared], deadband: u32) -> (f64, f64, f64) {
     }
 }
 
-/// Model 3's tables built on the fitted Model 1.
-fn model3(m1: &Model1Params, runs: &[Prepared], rig: &Rig, deadband: u32) -> Result<Model3Params, String> {
+/// Model 3's tables built on the fitted Model 1, with smoothing weight `smooth` (see
+/// [`fit_gap_table`]).
+fn model3(
+    m1: &Model1Params,
+    runs: &[Prepared],
+    rig: &Rig,
+    deadband: u32,
+    smooth: f64,
+) -> Result<Model3Params, String> {
     let edge = |x_mm: f64, dir: i8| {
         1000.0 * (m1.m_mm_per_mm * x_mm + m1.offset_mm - if dir > 0 { m1.h_mm } else { 0.0 })
     };
@@ -158,7 +171,7 @@ fn model3(m1: &Model1Params, runs: &[Prepared], rig: &Rig, deadband: u32) -> Res
     }
     let n_bins = (((hi - lo) / rig.belt_pitch_mm).ceil() as usize).clamp(2, MAX_BAND_POINTS);
     let bin_w = (hi - lo) / n_bins as f64;
-    let mut band = |dir: i8| -> Result<BandParams, String> {
+    let band = |dir: i8| -> Result<BandParams, String> {
         let (mut sum, mut cnt) = (vec![0.0; n_bins], vec![0usize; n_bins]);
         for r in runs {
             for s in strokes(&r.x_counts, deadband).into_iter().filter(|s| s.dir == dir) {
@@ -207,7 +220,7 @@ fn model3(m1: &Model1Params, runs: &[Prepared], rig: &Rig, deadband: u32) -> Res
             }
         }
     }
-    let mut transition = |k: usize, hg_um: f64| -> Result<TransitionParams, String> {
+    let transition = |k: usize, hg_um: f64| -> Result<TransitionParams, String> {
         let s = &samples[k];
         if s.len() < 100 {
             return Err("calibration data has too few reversals for Model 3's transition tables".into());
@@ -219,7 +232,7 @@ fn model3(m1: &Model1Params, runs: &[Prepared], rig: &Rig, deadband: u32) -> Res
         let g_axis: Vec<f64> = (0..ng).map(|j| g_max * j as f64 / (ng - 1) as f64).collect();
         let used: Vec<GapSample> = s.iter().copied().filter(|g| g.d_mm <= d_len).collect();
         let anchor: Vec<f64> = g_axis.iter().map(|g| (g - hg_um).max(0.0)).collect();
-        let vals = fit_gap_table(&used, &d_axis, &g_axis, 1e-3, &anchor)
+        let vals = fit_gap_table(&used, &d_axis, &g_axis, smooth, &anchor)
             .ok_or("transition table fit is singular")?;
         let mut t = TransitionParams::EMPTY;
         t.n_d = nd;
@@ -244,18 +257,41 @@ fn model3(m1: &Model1Params, runs: &[Prepared], rig: &Rig, deadband: u32) -> Res
 
 /// Calibrates every model and both baselines from `traces`. `progress(stage, fraction)` reports.
 pub fn calibrate(traces: &[Trace], rig: &Rig, progress: &mut dyn FnMut(&str, f64)) -> Result<Calibration, String> {
-    let deadband = ModelParams::DEFAULT_DEADBAND_COUNTS;
     let runs: Vec<Prepared> = traces.iter().filter(|t| !t.records.is_empty()).map(prepare).collect();
     if runs.is_empty() {
         return Err("no calibration samples".into());
     }
-    let mut params = ModelParams { reversal_deadband_counts: deadband, ..ModelParams::PAPER };
+    let mut params = ModelParams::PAPER;
 
     // Start: the band line, Table 2 for the transition shapes.
-    let (m, c, h) = band_line(&runs, deadband);
+    let (m, c, h) = band_line(&runs, ModelParams::DEFAULT_DEADBAND_COUNTS);
     let p = Model1Params::PAPER;
     let x1 = [m, c, h, p.h_g_mm, p.slope_a_mm_per_mm, p.slope_b_mm_per_mm];
     let step1 = [2e-4, 0.02, 0.03, 0.02, 5e-4, 5e-4];
+
+    // The reversal dead band, by measurement: a dead band of a count or two takes the creep of a
+    // settling motor (a few um back) for a reversal and applies the whole fast jump h_g although
+    // the carriage has not moved; too wide a band registers real reversals late.
+    let mut best = (f64::INFINITY, ModelParams::DEFAULT_DEADBAND_COUNTS);
+    for (k, &db) in DEADBAND_CANDIDATES_COUNTS.iter().enumerate() {
+        progress("choose dead band", k as f64 / DEADBAND_CANDIDATES_COUNTS.len() as f64);
+        params.reversal_deadband_counts = db;
+        let trial = nelder_mead(
+            |v| {
+                params.model1 = model1(v);
+                sse(&params, rig, ModelKind::Linear, &runs).0
+            },
+            &x1,
+            &step1,
+            1e-6,
+            150,
+        );
+        if trial.value < best.0 {
+            best = (trial.value, db);
+        }
+    }
+    let deadband = best.1;
+    params.reversal_deadband_counts = deadband;
     let max_evals = 600;
     let mut evals = 0usize;
     let fit1 = nelder_mead(
@@ -291,9 +327,20 @@ pub fn calibrate(traces: &[Trace], rig: &Rig, progress: &mut dyn FnMut(&str, f64
     );
     params.model2 = model2(&fit2.x);
 
-    progress("Model 3 tables", 0.0);
-    params.model3 = model3(&params.model1, &runs, rig, deadband)?;
-    params.build(rig).map_err(|e| format!("calibrated parameters rejected: {e}"))?;
+    // Model 3's smoothing, by measurement on the calibration data: sparse (d, g0) cells and the
+    // tooth ripple make a lightly smoothed table oscillate between cells.
+    let mut best = (f64::INFINITY, SMOOTHING_CANDIDATES[0]);
+    for (k, &smooth) in SMOOTHING_CANDIDATES.iter().enumerate() {
+        progress("Model 3 tables", k as f64 / SMOOTHING_CANDIDATES.len() as f64);
+        params.model3 = model3(&params.model1, &runs, rig, deadband, smooth)?;
+        let v = sse(&params, rig, ModelKind::Table, &runs).0;
+        if v < best.0 {
+            best = (v, smooth);
+        }
+    }
+    params.model3 = model3(&params.model1, &runs, rig, deadband, best.1)?;
+    // From here on, exactly what the firmware will hold: the blob's fixed-point formats.
+    let params = crate::calfile::quantised(&params, rig).map_err(|e| format!("calibrated parameters rejected: {e}"))?;
     progress("Model 3 tables", 1.0);
 
     let rms = |kind| {

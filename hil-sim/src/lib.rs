@@ -5,8 +5,21 @@
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
+pub mod baseline;
+pub mod calfile;
+pub mod calibrate;
+pub mod controller;
+pub mod eval;
+pub mod fit;
 pub mod params;
 pub mod plant;
+pub mod plot;
+pub mod progress;
+pub mod report;
+pub mod run;
+pub mod scenario;
+pub mod stats;
+pub mod tables;
 pub mod pil;
 
 pub use params::PlantParams;

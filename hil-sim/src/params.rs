@@ -229,6 +229,8 @@ pub struct Variation {
     pub carriage_friction_rel_sd: f64,
     /// F-bar.
     pub preload_rel_sd: f64,
+    /// Belt pitch (effective radius): temperature from run to run.
+    pub belt_pitch_rel_sd: f64,
 }
 
 /// Numerical integration.
@@ -275,7 +277,8 @@ impl PlantParams {
     /// Effective radius: the belt is conveyed one belt pitch per pulley tooth, and the belt pitch
     /// under preload is the nominal one times `(1 + pitch_error + F-bar / AE)`.
     pub fn effective_radius_m(&self) -> f64 {
-        self.nominal_radius_m() * (1.0 + self.belt.pitch_error + self.belt.preload_n / self.belt.axial_rigidity_n)
+        self.nominal_radius_m()
+            * (1.0 + self.belt.pitch_error + self.belt.preload_n / self.belt.axial_rigidity_n)
     }
 
     /// Span stiffness (both spans in parallel, eq. 6) at carriage position `x_m`.
@@ -303,10 +306,19 @@ impl PlantParams {
         c.nonneg("gearbox.damping_nm_s_per_rad", g.damping_nm_s_per_rad);
         c.pos("gearbox.output_inertia_kg_m2", g.output_inertia_kg_m2);
         let p = &self.pulley;
-        c.test("pulley.teeth", (3..=1000).contains(&p.teeth), "must be in 3..=1000");
+        c.test(
+            "pulley.teeth",
+            (3..=1000).contains(&p.teeth),
+            "must be in 3..=1000",
+        );
         c.nonneg("pulley.eccentricity_m", p.eccentricity_m);
         c.finite("pulley.eccentricity_angle_rad", p.eccentricity_angle_rad);
-        c.range("pulley.wrap_angle_rad", p.wrap_angle_rad, 0.1, 2.0 * core::f64::consts::TAU);
+        c.range(
+            "pulley.wrap_angle_rad",
+            p.wrap_angle_rad,
+            0.1,
+            2.0 * core::f64::consts::TAU,
+        );
         let b = &self.belt;
         c.range("belt.pitch_m", b.pitch_m, 1e-4, 0.1);
         c.range("belt.pitch_error", b.pitch_error, -0.05, 0.05);
@@ -316,7 +328,12 @@ impl PlantParams {
         c.pos("belt.span_offset_m", b.span_offset_m);
         c.pos("belt.lumped_mass_kg", b.lumped_mass_kg);
         c.nonneg("belt.span_damping_n_s_per_m", b.span_damping_n_s_per_m);
-        c.range("belt.tooth_half_gap_m", b.tooth_half_gap_m, 0.0, b.pitch_m / 2.0);
+        c.range(
+            "belt.tooth_half_gap_m",
+            b.tooth_half_gap_m,
+            0.0,
+            b.pitch_m / 2.0,
+        );
         c.pos("belt.tooth_stiffness_n_per_m", b.tooth_stiffness_n_per_m);
         c.nonneg("belt.tooth_damping_n_s_per_m", b.tooth_damping_n_s_per_m);
         c.range("belt.form_error_m", b.form_error_m, 0.0, b.pitch_m / 10.0);
@@ -327,18 +344,31 @@ impl PlantParams {
         c.nonneg("friction.sigma2_s_per_m", f.sigma2_s_per_m);
         c.range("friction.mu_kinetic", f.mu_kinetic, 1e-6, 5.0);
         c.range("friction.mu_static", f.mu_static, f.mu_kinetic, 5.0);
-        c.pos("friction.stribeck_velocity_m_per_s", f.stribeck_velocity_m_per_s);
+        c.pos(
+            "friction.stribeck_velocity_m_per_s",
+            f.stribeck_velocity_m_per_s,
+        );
         c.range("friction.stribeck_exponent", f.stribeck_exponent, 0.1, 10.0);
         c.range("friction.renewal_factor", f.renewal_factor, 0.0, 10.0);
         let k = &self.carriage;
         c.pos("carriage.mass_kg", k.mass_kg);
         c.nonneg("carriage.coulomb_n", k.coulomb_n);
         c.range("carriage.coulomb_ripple", k.coulomb_ripple, 0.0, 0.9);
-        c.pos("carriage.coulomb_ripple_wavelength_m", k.coulomb_ripple_wavelength_m);
-        c.finite("carriage.coulomb_ripple_phase_rad", k.coulomb_ripple_phase_rad);
+        c.pos(
+            "carriage.coulomb_ripple_wavelength_m",
+            k.coulomb_ripple_wavelength_m,
+        );
+        c.finite(
+            "carriage.coulomb_ripple_phase_rad",
+            k.coulomb_ripple_phase_rad,
+        );
         c.finite("carriage.travel_min_m", k.travel_min_m);
         c.finite("carriage.travel_max_m", k.travel_max_m);
-        c.test("carriage.travel_max_m", k.travel_max_m > k.travel_min_m, "must exceed travel_min_m");
+        c.test(
+            "carriage.travel_max_m",
+            k.travel_max_m > k.travel_min_m,
+            "must exceed travel_min_m",
+        );
         // Both spans must stay longer than a tenth of L0 anywhere between the end stops.
         c.test(
             "belt.span_offset_m",
@@ -355,8 +385,16 @@ impl PlantParams {
             f.mu_static / f.sigma0_per_m < b.pitch_m,
             "bristle pre-sliding (mu_s / sigma0) must be shorter than a pitch",
         );
-        c.test("encoder.lines", (1..=1 << 20).contains(&self.encoder.lines), "must be in 1..=2^20");
-        c.test("scale.lines_per_mm", (1..=100_000).contains(&self.scale.lines_per_mm), "must be in 1..=100000");
+        c.test(
+            "encoder.lines",
+            (1..=1 << 20).contains(&self.encoder.lines),
+            "must be in 1..=2^20",
+        );
+        c.test(
+            "scale.lines_per_mm",
+            (1..=100_000).contains(&self.scale.lines_per_mm),
+            "must be in 1..=100000",
+        );
         c.nonneg("scale.noise_sd_m", self.scale.noise_sd_m);
         let ab = &self.abbe;
         c.finite("abbe.offset_y_m", ab.offset_y_m);
@@ -369,10 +407,31 @@ impl PlantParams {
             }
         }
         let v = &self.variation;
-        c.range("variation.belt_friction_rel_sd", v.belt_friction_rel_sd, 0.0, 0.2);
-        c.range("variation.bristle_stiffness_rel_sd", v.bristle_stiffness_rel_sd, 0.0, 0.2);
-        c.range("variation.carriage_friction_rel_sd", v.carriage_friction_rel_sd, 0.0, 0.2);
+        c.range(
+            "variation.belt_friction_rel_sd",
+            v.belt_friction_rel_sd,
+            0.0,
+            0.2,
+        );
+        c.range(
+            "variation.bristle_stiffness_rel_sd",
+            v.bristle_stiffness_rel_sd,
+            0.0,
+            0.2,
+        );
+        c.range(
+            "variation.carriage_friction_rel_sd",
+            v.carriage_friction_rel_sd,
+            0.0,
+            0.2,
+        );
         c.range("variation.preload_rel_sd", v.preload_rel_sd, 0.0, 0.2);
+        c.range(
+            "variation.belt_pitch_rel_sd",
+            v.belt_pitch_rel_sd,
+            0.0,
+            1e-3,
+        );
         let h = self.integration.max_substep_s;
         c.range("integration.max_substep_s", h, 1e-7, 1e-3);
         if c.err.is_none() {
@@ -382,6 +441,12 @@ impl PlantParams {
                 "integration.max_substep_s",
                 w * h < 0.5,
                 &format!("too long for the stiffest mode ({w:.0} rad/s): need omega * h < 0.5"),
+            );
+            let d = self.fastest_damping_rate_per_s();
+            c.test(
+                "integration.max_substep_s",
+                d * h < 1.0,
+                &format!("too long for the contact damping ({d:.0} /s): need c h / m < 1"),
             );
         }
         c.err.map_or(Ok(()), Err)
@@ -401,6 +466,24 @@ impl PlantParams {
         let gear = self.gearbox.stiffness_nm_per_rad / self.gearbox.output_inertia_kg_m2
             + self.belt.tooth_stiffness_n_per_m / m_pulley;
         tooth.max(belt).max(gear).sqrt()
+    }
+
+    /// Largest `c / m` of the explicit dampers on the lumped belt and the pulley; the friction's
+    /// is `dF_f / du ~ F-bar alpha (sigma_1 + sigma_2)` near sticking (eq. 10 for small mu).
+    pub fn fastest_damping_rate_per_s(&self) -> f64 {
+        let r = self.nominal_radius_m();
+        let m_pulley = self.gearbox.output_inertia_kg_m2 / (r * r);
+        let f = &self.friction;
+        let c_friction = if f.enabled {
+            self.belt.preload_n * self.pulley.wrap_angle_rad * (f.sigma1_s_per_m + f.sigma2_s_per_m)
+        } else {
+            0.0
+        };
+        let c_contact = self.belt.tooth_damping_n_s_per_m + c_friction;
+        let belt = (c_contact + self.belt.span_damping_n_s_per_m) / self.belt.lumped_mass_kg;
+        let pulley = c_contact / m_pulley
+            + self.gearbox.damping_nm_s_per_rad / self.gearbox.output_inertia_kg_m2;
+        belt.max(pulley)
     }
 }
 
@@ -429,7 +512,11 @@ impl Check {
     }
     fn range(&mut self, field: &str, v: f64, lo: f64, hi: f64) {
         self.finite(field, v);
-        self.test(field, (lo..=hi).contains(&v), &format!("{v} must be in [{lo}, {hi}]"));
+        self.test(
+            field,
+            (lo..=hi).contains(&v),
+            &format!("{v} must be in [{lo}, {hi}]"),
+        );
     }
 }
 
@@ -442,6 +529,20 @@ mod tests {
         let p = PlantParams::paper_rig();
         assert_eq!(p.rig(), Rig::PAPER);
         assert!((p.nominal_radius_m() * 1e3 - Rig::PAPER.pulley_radius_mm()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn paper_rig_integration_margins() {
+        let p = PlantParams::paper_rig();
+        let h = p.integration.max_substep_s;
+        let (w, d) = (p.stiffest_mode_rad_s(), p.fastest_damping_rate_per_s());
+        assert!((10_000.0..20_000.0).contains(&w), "{w}");
+        assert!(
+            w * h < 0.4 && d * h < 0.7,
+            "omega h {}, c h / m {}",
+            w * h,
+            d * h
+        );
     }
 
     #[test]
@@ -460,6 +561,13 @@ mod tests {
         let bad = PAPER_RIG_TOML.replace("max_substep_s = 2.0e-5", "max_substep_s = 5.0e-4");
         let e = PlantParams::from_toml_str(&bad).unwrap_err();
         assert!(e.starts_with("integration.max_substep_s:"), "{e}");
+
+        let bad = PAPER_RIG_TOML.replace("sigma1_s_per_m = 5.0", "sigma1_s_per_m = 50.0");
+        let e = PlantParams::from_toml_str(&bad).unwrap_err();
+        assert!(
+            e.starts_with("integration.max_substep_s:") && e.contains("damping"),
+            "{e}"
+        );
 
         let bad = PAPER_RIG_TOML.replace("[carriage]", "[carriage]\ncolour = 3");
         let e = PlantParams::from_toml_str(&bad).unwrap_err();

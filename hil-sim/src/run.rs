@@ -70,8 +70,13 @@ impl Default for RunConfig {
 pub enum RunError {
     /// The controller failed or refused a command.
     Control(ControlError),
-    /// The drive latched a fault (bits) at time `t_s`.
-    Fault { bits: u8, t_s: f64 },
+    /// The drive latched a fault.
+    Fault {
+        /// Fault bits (see `estimator_core::drive::Faults`).
+        bits: u8,
+        /// Simulated time of the fault, seconds.
+        t_s: f64,
+    },
     /// The scenario did not finish within its time budget.
     Timeout(f64),
 }
@@ -118,8 +123,10 @@ pub fn run(
 ) -> Result<Trace, RunError> {
     let dt = 1.0 / cfg.rate_hz;
     let mut plant = Plant::new(plant_params, scenario.start_mm, cfg.seed);
-    let start_um = (scenario.start_mm * 1000.0).round() as i32;
-    let scale_um = (plant.scale_counts() as f64 * 0.5).round() as i32;
+    // Homing as on a machine: both encoders get positions tied to the stage, not to where this
+    // run happens to start, so calibrations carry over between runs.
+    let start_um = (plant.motor_counts() as f64 / rig.counts_per_mm() * 1000.0).round() as i32;
+    let scale_um = (plant.scale_counts() as f64 / plant.scale_counts_per_mm() * 1000.0).round() as i32;
     let sample = |p: &Plant| Sample { motor_counter: p.motor_counter(), scale_counter: p.scale_counter() };
 
     // One tick at rest so the drive has seen the counters before homing.
@@ -169,7 +176,7 @@ pub fn run(
         records.push(Record {
             t_s: t,
             motor_counts: tel.motor_counts,
-            x_ls_mm: plant.scale_counts() as f64 * 0.5e-3,
+            x_ls_mm: plant.scale_counts() as f64 / plant.scale_counts_per_mm(),
             setpoint_counts: tel.setpoint_counts,
             cmd_dir,
             out,

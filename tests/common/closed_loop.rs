@@ -21,6 +21,8 @@ pub struct RunDigest {
 }
 
 /// Runs the paper rig through three moves (out, back, and a short reversal) with `model`.
+/// Never inlined: its frame (drive and configuration) must not stay on the caller's stack.
+#[inline(never)]
 pub fn closed_loop(model: estimator_core::model::ModelKind) -> RunDigest {
     use estimator_core::drive::{Command, Drive, DriveConfig, Sample};
     use estimator_core::link::{answer, Crc32, Message, MAX_PAYLOAD};

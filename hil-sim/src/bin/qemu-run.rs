@@ -4,14 +4,26 @@
 //!
 //! ```text
 //! qemu-run [--timeout SECS] [--icount SHIFT] [--log-level LEVEL] [--log-file PATH] ELF [ignored...]
+//! qemu-run --bench [--log-level LEVEL] [ELF]      PIL runs per model: instructions per tick,
+//!                                                 host/firmware equality, stack, flash, RAM
+//! qemu-run --pil-fuzz N [--log-level LEVEL] [ELF] N bad frames through USART2 in PIL mode
 //! ```
-//! `.cargo/qemu-runner.sh` calls it for `cargo test-target` / `cargo run-qemu`.
+//! `.cargo/qemu-runner.sh` calls it for `cargo test-target` / `cargo run-qemu`; ELF defaults to
+//! the `cargo fw-qemu` output for `--bench` and `--pil-fuzz`.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
 
 use hil_sim::pil::qemu::{LogSink, Qemu, QemuError, QemuOptions, LEVELS};
+use hil_sim::pil::{bench, PilOptions};
+
+/// What the command line asks for.
+enum Mode {
+    Run,
+    Bench,
+    Fuzz(u32),
+}
 
 fn usage() -> ExitCode {
     eprintln!(
@@ -28,8 +40,15 @@ fn main() -> ExitCode {
     let mut level: &'static str = "trace";
     let mut log = LogSink::Stdout;
     let mut elf: Option<PathBuf> = None;
+    let mut mode = Mode::Run;
+    let mut level_set = false;
     while let Some(a) = args.next() {
         match a.as_str() {
+            "--bench" => mode = Mode::Bench,
+            "--pil-fuzz" => match args.next().and_then(|v| v.parse().ok()) {
+                Some(n) => mode = Mode::Fuzz(n),
+                None => return usage(),
+            },
             "--timeout" => match args.next().and_then(|v| v.parse::<f64>().ok()) {
                 Some(s) if s > 0.0 => timeout = Duration::from_secs_f64(s),
                 _ => return usage(),
@@ -43,7 +62,10 @@ fn main() -> ExitCode {
                 None => return usage(),
             },
             "--log-level" => match args.next().and_then(|v| LEVELS.iter().find(|l| **l == v)) {
-                Some(l) => level = l,
+                Some(l) => {
+                    level = l;
+                    level_set = true;
+                }
                 None => return usage(),
             },
             "--log-file" => match args.next() {
@@ -58,6 +80,20 @@ fn main() -> ExitCode {
             // Cargo appends the test binary's own arguments (filters, --nocapture): defmt-test
             // runs every test, so they are ignored.
             _ => {}
+        }
+    }
+    match mode {
+        Mode::Run => {}
+        Mode::Bench | Mode::Fuzz(_) => {
+            let elf = elf.unwrap_or_else(|| PilOptions::default_elf(None));
+            let mut opts = PilOptions::new(elf);
+            opts.min_level = if level_set { level } else { "warn" };
+            opts.log = log;
+            return match mode {
+                Mode::Bench => run_bench(&opts),
+                Mode::Fuzz(n) => run_fuzz(&opts, n),
+                Mode::Run => unreachable!(),
+            };
         }
     }
     let Some(elf) = elf else { return usage() };
@@ -83,6 +119,97 @@ fn main() -> ExitCode {
         Err(e) => {
             eprintln!("qemu-run: {e}");
             ExitCode::from(2)
+        }
+    }
+}
+
+fn run_bench(opts: &PilOptions) -> ExitCode {
+    println!(
+        "belt-drive PIL bench: {} under QEMU netduinoplus2, -icount shift={}",
+        opts.elf.display(),
+        opts.icount_shift
+    );
+    println!("Drive::step instructions per control tick (TIM2 instruction counter), each tick");
+    println!("compared with the same core run in-process on the host:\n");
+    println!(
+        "{:<12} {:>7} {:>6} {:>8} {:>6}  {:<12} {:>11}",
+        "model", "ticks", "min", "mean", "max", "host = fw", "stack peak"
+    );
+    let mut ok = true;
+    let mut peak = 0;
+    for model in estimator_core::model::ModelKind::ALL {
+        match bench::run_model(opts, model) {
+            Ok(r) => {
+                let same = match r.first_mismatch {
+                    None => "identical".to_string(),
+                    Some(t) => {
+                        ok = false;
+                        format!("DIFF @ {t}")
+                    }
+                };
+                if r.exit_status != 0 {
+                    ok = false;
+                }
+                peak = peak.max(r.stack_peak_bytes);
+                println!(
+                    "{:<12} {:>7} {:>6} {:>8.1} {:>6}  {:<12} {:>7} B",
+                    format!("{} ({})", model.as_str(), model as u8),
+                    r.ticks,
+                    r.counts.min,
+                    r.counts.mean(),
+                    r.counts.max,
+                    same,
+                    r.stack_peak_bytes
+                );
+            }
+            Err(e) => {
+                ok = false;
+                println!("{:<12} failed: {e}", model.as_str());
+            }
+        }
+    }
+    match bench::footprint(&opts.elf) {
+        Ok(f) => println!(
+            "\nflash {} B ({:.1} KiB), static RAM {} B ({:.1} KiB), peak stack {} B",
+            f.flash_bytes,
+            f.flash_bytes as f64 / 1024.0,
+            f.static_ram_bytes,
+            f.static_ram_bytes as f64 / 1024.0,
+            peak
+        ),
+        Err(e) => {
+            ok = false;
+            println!("footprint: {e}");
+        }
+    }
+    println!("budget: <= 400 instructions per tick (Model 3), < 48 KiB flash, < 8 KiB static RAM");
+    if ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    }
+}
+
+fn run_fuzz(opts: &PilOptions, n: u32) -> ExitCode {
+    match hil_sim::pil::fuzz::run(opts, n) {
+        Ok(r) => {
+            println!(
+                "PIL fuzz: {} bad frames sent over USART2, {} counted by the firmware, {} accepted; \
+                 {} ticks, drive unmoved: {}; QEMU exit {}",
+                n, r.frames_bad, r.frames_ok_extra, r.ticks, r.unmoved, r.exit_status
+            );
+            if r.frames_bad == n && r.frames_ok_extra == 0 && r.unmoved && r.exit_status == 0 {
+                println!("1 passed, 0 failed");
+                ExitCode::SUCCESS
+            } else {
+                println!("0 passed, 1 failed");
+                ExitCode::FAILURE
+            }
+        }
+        Err(e) => {
+            eprintln!("qemu-run: PIL fuzz: {e}");
+            println!("0 passed, 1 failed");
+            ExitCode::FAILURE
         }
     }
 }

@@ -1,5 +1,343 @@
 //! Processor-in-the-loop: the real firmware under QEMU, paced by the simulated plant.
 //!
+//! [`PilController`] implements [`Controller`]: each `step` sends the plant's raw counters as a
+//! [`Request::Sample`] over USART2 (a Unix socket), the firmware's `control` task runs
+//! `Drive::step` and answers with the current and telemetry, and only then does the simulator
+//! integrate the plant for one tick. The firmware has no other notion of time in this mode, so
+//! a run gives the same numbers on a fast or a slow host; `-icount shift=0` makes QEMU itself
+//! deterministic and turns TIM2 into the instruction counter reported with every answer.
+//!
 //! [`qemu`] starts and supervises QEMU and decodes the firmware's defmt log.
 
+pub mod bench;
+pub mod fuzz;
 pub mod qemu;
+
+use std::io::{self, Read, Write};
+use std::os::unix::net::UnixStream;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::time::{Duration, Instant};
+
+use estimator_core::drive::{Command, Output, Sample};
+use estimator_core::link::{
+    command_error_from_code, encode, from_command, kind, output_of, LinkError, Message, Receiver,
+    Reply, Request, WireStatus, CHUNK_MAX, MAX_FRAME,
+};
+
+use crate::controller::{ControlError, Controller};
+use estimator_core::drive::CommandError;
+use qemu::{LogSink, Qemu, QemuOptions};
+
+/// Why a PIL call failed.
+#[derive(Debug)]
+pub enum PilError {
+    /// The drive refused the command; nothing changed.
+    Refused(CommandError),
+    /// The link or QEMU failed (exited, timed out, garbage, unexpected reply).
+    Link(String),
+}
+
+impl std::fmt::Display for PilError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PilError::Refused(e) => write!(f, "command refused: {e:?}"),
+            PilError::Link(e) => write!(f, "PIL link: {e}"),
+        }
+    }
+}
+
+impl std::error::Error for PilError {}
+
+/// How to start a PIL session.
+#[derive(Clone, Debug)]
+pub struct PilOptions {
+    /// The QEMU firmware ELF (`cargo fw-qemu`).
+    pub elf: PathBuf,
+    /// QEMU icount shift (0: one instruction per ns, exact instruction counts).
+    pub icount_shift: u8,
+    /// Wall-clock limit of the whole session.
+    pub timeout: Duration,
+    /// Wall-clock limit for one reply.
+    pub reply_timeout: Duration,
+    /// Where the firmware's defmt log goes.
+    pub log: LogSink,
+    /// Lowest defmt level shown.
+    pub min_level: &'static str,
+}
+
+impl PilOptions {
+    /// Defaults: icount shift 0, 10 minutes overall, 10 s per reply, log to stderr from `info`.
+    pub fn new(elf: impl Into<PathBuf>) -> Self {
+        PilOptions {
+            elf: elf.into(),
+            icount_shift: 0,
+            timeout: Duration::from_secs(600),
+            reply_timeout: Duration::from_secs(10),
+            log: LogSink::Stderr,
+            min_level: "info",
+        }
+    }
+
+    /// The firmware ELF `cargo fw-qemu` builds, under `target_dir` (default `target`).
+    pub fn default_elf(target_dir: Option<&str>) -> PathBuf {
+        let dir = target_dir
+            .map(PathBuf::from)
+            .or_else(|| std::env::var_os("CARGO_TARGET_DIR").map(PathBuf::from))
+            .unwrap_or_else(|| PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../target")));
+        dir.join("thumbv7em-none-eabihf/release/belt-drive")
+    }
+}
+
+/// Instruction counts of `Drive::step` over a session (QEMU's TIM2 counter).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct StepCounts {
+    /// Ticks measured.
+    pub ticks: u64,
+    /// Fewest instructions in one step.
+    pub min: u32,
+    /// Most instructions in one step.
+    pub max: u32,
+    /// Sum over all steps.
+    pub total: u64,
+}
+
+impl StepCounts {
+    fn add(&mut self, n: u32) {
+        if self.ticks == 0 {
+            self.min = n;
+            self.max = n;
+        }
+        self.min = self.min.min(n);
+        self.max = self.max.max(n);
+        self.total += n as u64;
+        self.ticks += 1;
+    }
+    /// Mean instructions per step.
+    pub fn mean(&self) -> f64 {
+        if self.ticks == 0 {
+            0.0
+        } else {
+            self.total as f64 / self.ticks as f64
+        }
+    }
+}
+
+/// The firmware under QEMU as a [`Controller`].
+pub struct PilController {
+    qemu: Qemu,
+    link: UnixStream,
+    rx: Receiver,
+    seq: u8,
+    reply_timeout: Duration,
+    /// `Drive::step` instruction counts, all ticks so far.
+    pub counts: StepCounts,
+    /// Frames the firmware sent that this side could not decode.
+    pub bad_replies: u32,
+}
+
+static SOCKET_SERIAL: AtomicU32 = AtomicU32::new(0);
+
+fn link_err(e: impl std::fmt::Display) -> PilError {
+    PilError::Link(e.to_string())
+}
+
+impl PilController {
+    /// Starts QEMU on the firmware and connects to its USART2.
+    pub fn start(opts: &PilOptions) -> Result<PilController, PilError> {
+        let socket = std::env::temp_dir().join(format!(
+            "belt-drive-pil-{}-{}.sock",
+            std::process::id(),
+            SOCKET_SERIAL.fetch_add(1, Ordering::Relaxed)
+        ));
+        let _ = std::fs::remove_file(&socket);
+        let mut q = QemuOptions::new(&opts.elf);
+        q.icount_shift = Some(opts.icount_shift);
+        q.usart2_socket = Some(socket.clone());
+        q.timeout = opts.timeout;
+        q.log = opts.log.clone();
+        q.min_level = opts.min_level;
+        let mut qemu = Qemu::spawn(&q).map_err(link_err)?;
+
+        // QEMU creates the socket and waits (wait=on) for us before the CPU starts.
+        let deadline = Instant::now() + Duration::from_secs(20).min(opts.timeout);
+        let link = loop {
+            match UnixStream::connect(&socket) {
+                Ok(s) => break s,
+                Err(e) if Instant::now() >= deadline || !qemu.is_running() => {
+                    return Err(link_err(format!("connecting to QEMU's USART2 socket: {e}")));
+                }
+                Err(_) => std::thread::sleep(Duration::from_millis(10)),
+            }
+        };
+        let _ = std::fs::remove_file(&socket);
+        link.set_read_timeout(Some(Duration::from_millis(50))).map_err(link_err)?;
+        let mut pil = PilController {
+            qemu,
+            link,
+            rx: Receiver::new(),
+            seq: 0,
+            reply_timeout: opts.reply_timeout,
+            counts: StepCounts::default(),
+            bad_replies: 0,
+        };
+        // QEMU drops bytes that arrive before the firmware enables its USART: wait for the
+        // firmware's boot announcement (an unsolicited status, sequence 0) before sending.
+        pil.wait_for(|r| matches!(r, Reply::Status(_)), 0, Duration::from_secs(20))?;
+        Ok(pil)
+    }
+
+    /// Reads replies until one with sequence `seq` satisfies `want`, or the time is up.
+    fn wait_for(&mut self, want: impl Fn(&Reply) -> bool, seq: u8, limit: Duration) -> Result<Reply, PilError> {
+        let deadline = Instant::now() + limit;
+        let mut buf = [0u8; 256];
+        loop {
+            let n = match self.link.read(&mut buf) {
+                Ok(0) => return Err(link_err("QEMU closed the link")),
+                Ok(n) => n,
+                Err(e) if matches!(e.kind(), io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut) => {
+                    if Instant::now() >= deadline {
+                        return Err(link_err(format!("no reply within {:.1} s", limit.as_secs_f64())));
+                    }
+                    if !self.qemu.is_running() {
+                        return Err(link_err("QEMU exited"));
+                    }
+                    continue;
+                }
+                Err(e) => return Err(link_err(e)),
+            };
+            let mut found = None;
+            for &b in &buf[..n] {
+                match self.rx.push::<Reply>(b) {
+                    Some(Ok(f)) if f.seq == seq && want(&f.msg) => found = Some(f.msg),
+                    Some(Ok(_)) | None => {}
+                    Some(Err(_)) => self.bad_replies += 1,
+                }
+            }
+            if let Some(r) = found {
+                return Ok(r);
+            }
+        }
+    }
+
+    fn send(&mut self, seq: u8, req: &Request) -> Result<(), PilError> {
+        let mut buf = [0u8; MAX_FRAME];
+        let n = encode(seq, req, &mut buf);
+        self.link.write_all(&buf[..n]).map_err(link_err)
+    }
+
+    /// Writes raw bytes to the firmware's link (fuzzing).
+    pub fn send_raw(&mut self, bytes: &[u8]) -> Result<(), PilError> {
+        self.link.write_all(bytes).map_err(link_err)
+    }
+
+    /// Sends `req` and waits for its reply (same sequence number and request kind); streamed
+    /// telemetry and replies to other frames are skipped.
+    pub fn call(&mut self, req: &Request) -> Result<Reply, PilError> {
+        // Sequence 0 is never used here: the fuzzer sends its frames with 0, so error replies
+        // to them cannot be mistaken for replies to our requests.
+        self.seq = self.seq.checked_add(1).unwrap_or(1);
+        let seq = self.seq;
+        self.send(seq, req)?;
+        let k = req.kind();
+        self.wait_for(|r| answers(r, k), seq, self.reply_timeout)
+            .map_err(|e| link_err(format!("request kind {k:#04x}: {e}")))
+    }
+
+    /// The firmware's status (tick, faults, link counters, stack high-water mark).
+    pub fn status(&mut self) -> Result<WireStatus, PilError> {
+        match self.call(&Request::Status)? {
+            Reply::Status(s) => Ok(s),
+            other => Err(link_err(format!("unexpected reply to status: {other:?}"))),
+        }
+    }
+
+    /// Sends a calibration blob (begin, chunks, commit).
+    pub fn load_calibration(&mut self, blob: &[u8]) -> Result<(), PilError> {
+        let crc32 = estimator_core::link::crc32(blob);
+        self.expect_ack(&Request::CalBegin { total_len: blob.len() as u32, crc32 })?;
+        for (i, piece) in blob.chunks(CHUNK_MAX).enumerate() {
+            let mut data = [0u8; CHUNK_MAX];
+            data[..piece.len()].copy_from_slice(piece);
+            let offset = (i * CHUNK_MAX) as u32;
+            self.expect_ack(&Request::CalChunk { offset, len: piece.len() as u8, data })?;
+        }
+        self.expect_ack(&Request::CalCommit)
+    }
+
+    fn expect_ack(&mut self, req: &Request) -> Result<(), PilError> {
+        match self.call(req)? {
+            Reply::Ack { .. } => Ok(()),
+            Reply::Error { reason: LinkError::Refused, detail, .. } => {
+                match command_error_from_code(detail) {
+                    Some(e) => Err(PilError::Refused(e)),
+                    None => Err(link_err(format!("refused with unknown code {detail}"))),
+                }
+            }
+            Reply::Error { reason, detail, .. } => {
+                Err(link_err(format!("{:?} refused: {reason:?} (detail {detail})", req.kind())))
+            }
+            other => Err(link_err(format!("unexpected reply: {other:?}"))),
+        }
+    }
+
+    /// Ends the firmware (semihosting exit with `code`) and returns QEMU's exit status.
+    pub fn shutdown(mut self, code: u8) -> Result<i32, PilError> {
+        // The firmware exits right after queueing the ack; it may or may not get out.
+        self.send(0, &Request::Shutdown { code })?;
+        self.qemu.wait().map_err(link_err)
+    }
+
+    /// Sends a drive command; `Ok` once the firmware acknowledged it.
+    pub fn send_command(&mut self, cmd: Command) -> Result<(), PilError> {
+        self.expect_ack(&from_command(&cmd))
+    }
+
+    /// Runs one control tick in the firmware on `sample`.
+    pub fn step_sample(&mut self, sample: Sample) -> Result<Output, PilError> {
+        let req = Request::Sample {
+            motor_counter: sample.motor_counter,
+            scale_counter: sample.scale_counter,
+        };
+        let reply = self.call(&req)?;
+        let (out, instructions) = output_of(&reply)
+            .ok_or_else(|| link_err(format!("unexpected reply to a sample: {reply:?}")))?;
+        self.counts.add(instructions);
+        Ok(out)
+    }
+
+    /// The decoded defmt lines kept so far.
+    pub fn log_lines(&self) -> Vec<String> {
+        self.qemu.log_lines()
+    }
+}
+
+/// True when `reply` is an answer to a request of kind `k`.
+fn answers(reply: &Reply, k: u8) -> bool {
+    match reply {
+        Reply::Ack { of } | Reply::Error { of, .. } => *of == k,
+        Reply::Status(_) => k == kind::STATUS,
+        Reply::Answer { .. } => k == kind::SAMPLE,
+        Reply::Telemetry(_) => false,
+    }
+}
+
+
+impl From<PilError> for ControlError {
+    fn from(e: PilError) -> Self {
+        match e {
+            PilError::Refused(r) => ControlError::Refused(r),
+            PilError::Link(l) => ControlError::Link(l),
+        }
+    }
+}
+
+impl Controller for PilController {
+    fn command(&mut self, cmd: Command) -> Result<(), ControlError> {
+        Ok(self.send_command(cmd)?)
+    }
+
+    fn step(&mut self, sample: Sample) -> Result<Output, ControlError> {
+        Ok(self.step_sample(sample)?)
+    }
+}

@@ -152,8 +152,19 @@ impl Qemu {
             .args(command_line(opts))
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
+            .stderr(Stdio::piped())
             .spawn()?;
+        // QEMU's own messages pass through, except its note that it waits for the socket.
+        if let Some(err) = child.stderr.take() {
+            std::thread::Builder::new().name("qemu-stderr".into()).spawn(move || {
+                use std::io::BufRead;
+                for line in io::BufReader::new(err).lines().map_while(Result::ok) {
+                    if !line.contains("QEMU waiting for connection") {
+                        eprintln!("{line}");
+                    }
+                }
+            })?;
+        }
         let stdout = child.stdout.take().ok_or_else(|| io::Error::other("no stdout"))?;
 
         let sink: Box<dyn Write + Send> = match &opts.log {

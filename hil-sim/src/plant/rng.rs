@@ -10,7 +10,9 @@ pub(crate) struct Rng {
 impl Rng {
     /// A stream for `seed`; `stream` separates independent uses of one seed.
     pub(crate) fn new(seed: u64, stream: u64) -> Self {
-        let mut r = Rng { state: seed ^ stream.wrapping_mul(0xD1B5_4A32_D192_ED03) };
+        let mut r = Rng {
+            state: seed ^ stream.wrapping_mul(0xD1B5_4A32_D192_ED03),
+        };
         r.next_u64();
         r
     }

@@ -1,0 +1,115 @@
+//! Calibration on disk: `calibration.bin` (the blob the firmware loads) and `calibration.toml`
+//! (the same parameters for people, plus the baselines and the fit quality).
+
+use std::path::Path;
+
+use estimator_core::blob;
+use estimator_core::model::ModelParams;
+use estimator_core::rig::Rig;
+use serde::{Deserialize, Serialize};
+
+use crate::baseline::{Backlash, BidirTable};
+use crate::calibrate::Calibration;
+
+/// The human-readable file.
+#[derive(Serialize, Deserialize)]
+struct CalFile {
+    note: String,
+    reversal_deadband_counts: u32,
+    fit_rms_um: toml::Table,
+    model1: toml::Table,
+    model2: toml::Table,
+    model3: toml::Table,
+    backlash: Backlash,
+    bidir_table: BidirTable,
+}
+
+fn table(pairs: &[(&str, f64)]) -> toml::Table {
+    pairs.iter().map(|(k, v)| (k.to_string(), toml::Value::Float(*v))).collect()
+}
+
+fn floats(v: &[f64]) -> toml::Value {
+    toml::Value::Array(v.iter().map(|x| toml::Value::Float((x * 1e4).round() / 1e4)).collect())
+}
+
+/// Writes both files into `dir`; the parameters are those of the blob (quantised).
+pub fn save(dir: &Path, cal: &Calibration, rig: &Rig) -> Result<(), String> {
+    std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    let mut buf = vec![0u8; blob::MAX_BYTES];
+    let n = blob::encode(&cal.params, rig, &mut buf).map_err(|e| e.to_string())?;
+    let bin = dir.join("calibration.bin");
+    std::fs::write(&bin, &buf[..n]).map_err(|e| format!("{}: {e}", bin.display()))?;
+    let p = blob::decode(&buf[..n], rig).map_err(|e| e.to_string())?;
+    let (m1, m2, m3) = (&p.model1, &p.model2, &p.model3);
+    let mut model3 = toml::Table::new();
+    for (name, b) in [("forward_band", &m3.forward_band), ("reverse_band", &m3.reverse_band)] {
+        let mut t = toml::Table::new();
+        t.insert("x_mm".into(), floats(&b.x_mm[..b.len]));
+        t.insert("y_um".into(), floats(&b.y_um[..b.len]));
+        model3.insert(name.into(), toml::Value::Table(t));
+    }
+    for (name, tr) in [("forward_transition", &m3.forward_transition), ("reverse_transition", &m3.reverse_transition)] {
+        let mut t = table(&[("d_step_mm", tr.d_step_mm), ("g0_step_um", tr.g0_step_um)]);
+        let rows = tr.gap_um.iter().take(tr.n_d).map(|r| floats(&r[..tr.n_g0])).collect();
+        t.insert("gap_um".into(), toml::Value::Array(rows));
+        model3.insert(name.into(), toml::Value::Table(t));
+    }
+    let file = CalFile {
+        note: format!(
+            "belt-drive calibration from {} samples; units in the names; the firmware loads calibration.bin ({n} bytes)",
+            cal.samples
+        ),
+        reversal_deadband_counts: p.reversal_deadband_counts,
+        fit_rms_um: cal.fit_rms_um.iter().map(|(k, v)| (k.as_str().to_string(), toml::Value::Float(*v))).collect(),
+        model1: table(&[
+            ("m_mm_per_mm", m1.m_mm_per_mm),
+            ("offset_mm", m1.offset_mm),
+            ("h_mm", m1.h_mm),
+            ("h_g_mm", m1.h_g_mm),
+            ("slope_a_mm_per_mm", m1.slope_a_mm_per_mm),
+            ("slope_b_mm_per_mm", m1.slope_b_mm_per_mm),
+        ]),
+        model2: table(&[
+            ("m_mm_per_mm", m2.m_mm_per_mm),
+            ("offset_mm", m2.offset_mm),
+            ("h_mm", m2.h_mm),
+            ("h_g_mm", m2.h_g_mm),
+            ("rate_a_per_mm", m2.rate_a_per_mm),
+            ("rate_b_per_mm", m2.rate_b_per_mm),
+            ("amplitude_a_mm", m2.amplitude_a_mm),
+            ("amplitude_b_mm", m2.amplitude_b_mm),
+        ]),
+        model3,
+        backlash: cal.backlash.clone(),
+        bidir_table: cal.bidir.clone(),
+    };
+    let text = toml::to_string(&file).map_err(|e| e.to_string())?;
+    let path = dir.join("calibration.toml");
+    std::fs::write(&path, text).map_err(|e| format!("{}: {e}", path.display()))
+}
+
+/// Reads a calibration directory: the blob (checked as the firmware checks it) and the baselines.
+pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, String> {
+    let bin = dir.join("calibration.bin");
+    let bytes = std::fs::read(&bin).map_err(|e| format!("{}: {e}", bin.display()))?;
+    let params: ModelParams = blob::decode(&bytes, rig).map_err(|e| format!("{}: {e}", bin.display()))?;
+    let path = dir.join("calibration.toml");
+    let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let file: CalFile = toml::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+    let rms = |k: &str| file.fit_rms_um.get(k).and_then(|v| v.as_float()).unwrap_or(f64::NAN);
+    use estimator_core::model::ModelKind as K;
+    Ok(Calibration {
+        params,
+        backlash: file.backlash,
+        bidir: file.bidir_table,
+        fit_rms_um: [(K::Linear, rms("model1")), (K::Exponential, rms("model2")), (K::Table, rms("model3"))],
+        samples: 0,
+    })
+}
+
+/// The parameters exactly as the firmware will hold them (through the blob's formats).
+pub fn quantised(params: &ModelParams, rig: &Rig) -> Result<ModelParams, String> {
+    let mut buf = vec![0u8; blob::MAX_BYTES];
+    let n = blob::encode(params, rig, &mut buf).map_err(|e| e.to_string())?;
+    blob::decode(&buf[..n], rig).map_err(|e| e.to_string())
+}

@@ -1,0 +1,183 @@
+//! `hil-sim`: the belt-drive simulator's command line.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+use estimator_core::model::ModelKind;
+use estimator_core::rig::Rig;
+use hil_sim::calibrate::Calibration;
+use hil_sim::plant::PlantParams;
+use hil_sim::progress::Progress;
+use hil_sim::scenario::{preset_names, Scenario};
+use hil_sim::{calfile, eval, report};
+
+#[derive(Parser)]
+#[command(name = "hil-sim", version, about = "Simulated timing-belt drive: run, calibrate and evaluate the belt-drive controller")]
+struct Cli {
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(clap::Args, Clone)]
+struct Common {
+    /// Plant parameters (TOML); default: the built-in `paper-rig` preset.
+    #[arg(long)]
+    plant: Option<PathBuf>,
+    /// Noise seed of the evaluated run (calibration runs use their own seeds).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// A calibration directory written by `hil-sim calibrate`; default: calibrate now.
+    #[arg(long)]
+    calibration: Option<PathBuf>,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Run a scenario and print Table 3 (max, min, RMS of e = x_LS - x_PE - y) for every model.
+    Evaluate {
+        /// Scenario file, or a preset name.
+        #[arg(long)]
+        scenario: String,
+        #[command(flatten)]
+        common: Common,
+        /// Print one JSON object instead of the table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Record the calibration scenarios and fit Models 1-3 and the baselines.
+    Calibrate {
+        /// Plant parameters (TOML); default: `paper-rig`.
+        #[arg(long)]
+        plant: Option<PathBuf>,
+        /// Output directory for calibration.bin and calibration.toml.
+        #[arg(long, default_value = "out/calibration")]
+        out: PathBuf,
+    },
+    /// Run a scenario and write every tick as CSV.
+    Run {
+        /// Scenario file, or a preset name.
+        #[arg(long)]
+        scenario: String,
+        #[command(flatten)]
+        common: Common,
+        /// Model the drive uses for its estimate: none, model1, model2, model3.
+        #[arg(long, default_value = "model3")]
+        model: String,
+        /// CSV output file ("-" for standard output).
+        #[arg(long, default_value = "-")]
+        out: String,
+    },
+    /// Calibrate, run the scenario, and write report.md with PNG figures (Figs. 11, 18-24).
+    Report {
+        /// Scenario file, or a preset name.
+        #[arg(long, default_value = "fig18")]
+        scenario: String,
+        #[command(flatten)]
+        common: Common,
+        /// Output directory.
+        #[arg(long, default_value = "out/report")]
+        out: PathBuf,
+    },
+}
+
+fn plant_params(path: &Option<PathBuf>) -> Result<PlantParams, String> {
+    match path {
+        None => Ok(PlantParams::paper_rig()),
+        Some(p) => {
+            let text = std::fs::read_to_string(p).map_err(|e| format!("{}: {e}", p.display()))?;
+            PlantParams::from_toml_str(&text).map_err(|e| format!("{}: {e}", p.display()))
+        }
+    }
+}
+
+fn calibration(common: &Common, plant: &PlantParams, progress: &mut Progress) -> Result<Calibration, String> {
+    match &common.calibration {
+        Some(dir) => calfile::load(dir, &Rig::PAPER),
+        None => eval::calibrate_plant(plant, &mut |stage, f| progress.stage(stage, f)),
+    }
+}
+
+fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), String> {
+    let scenario = Scenario::load(scenario)?;
+    let plant = plant_params(&common.plant)?;
+    let mut progress = Progress::new();
+    let cal = calibration(common, &plant, &mut progress)?;
+    let label = format!("run {}", scenario.name);
+    let trace = eval::run_in_process(&scenario, &plant, &cal.params, ModelKind::Table, common.seed, &mut |f| {
+        progress.stage(&label, f)
+    })
+    .map_err(|e| format!("{}: {e}", scenario.name))?;
+    progress.finish();
+    let coeffs = cal.params.build(&Rig::PAPER).map_err(|e| e.to_string())?;
+    let est = eval::estimates(&trace, &coeffs, &cal);
+    let table = eval::table3(&trace, &est);
+    if json {
+        println!("{}", eval::to_json(&scenario.name, trace.records.len(), &table));
+    } else {
+        print!("{}", report::table_markdown(&scenario.name, trace.records.len(), &table));
+    }
+    Ok(())
+}
+
+fn run_csv(scenario: &str, common: &Common, model: &str, out: &str) -> Result<(), String> {
+    let kind = ModelKind::parse(model).ok_or_else(|| format!("--model {model}: use none, model1, model2 or model3"))?;
+    let scenario = Scenario::load(scenario)?;
+    let plant = plant_params(&common.plant)?;
+    let mut progress = Progress::new();
+    let params = match &common.calibration {
+        Some(dir) => calfile::load(dir, &Rig::PAPER)?.params,
+        None => estimator_core::model::ModelParams::PAPER,
+    };
+    let label = format!("run {}", scenario.name);
+    let trace = eval::run_in_process(&scenario, &plant, &params, kind, common.seed, &mut |f| progress.stage(&label, f))
+        .map_err(|e| format!("{}: {e}", scenario.name))?;
+    progress.finish();
+    let mut w: Box<dyn std::io::Write> = if out == "-" {
+        Box::new(std::io::stdout().lock())
+    } else {
+        Box::new(std::io::BufWriter::new(std::fs::File::create(out).map_err(|e| format!("{out}: {e}"))?))
+    };
+    report::write_csv(&mut w, &trace).map_err(|e| format!("{out}: {e}"))
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.cmd {
+        Cmd::Evaluate { scenario, common, json } => evaluate(&scenario, &common, json),
+        Cmd::Calibrate { plant, out } => (|| {
+            let plant = plant_params(&plant)?;
+            let mut progress = Progress::new();
+            let cal = eval::calibrate_plant(&plant, &mut |s, f| progress.stage(s, f))?;
+            progress.finish();
+            calfile::save(&out, &cal, &Rig::PAPER)?;
+            eprintln!("reversal dead band: {} counts", cal.params.reversal_deadband_counts);
+            for (k, rms) in cal.fit_rms_um {
+                eprintln!("fit {:<7} RMS {:6.2} um on {} calibration samples", k.as_str(), rms, cal.samples);
+            }
+            eprintln!("wrote {} and {}", out.join("calibration.bin").display(), out.join("calibration.toml").display());
+            Ok(())
+        })(),
+        Cmd::Run { scenario, common, model, out } => run_csv(&scenario, &common, &model, &out),
+        Cmd::Report { scenario, common, out } => (|| {
+            let plant = plant_params(&common.plant)?;
+            let mut progress = Progress::new();
+            let cal = calibration(&common, &plant, &mut progress)?;
+            let scenario = Scenario::load(&scenario)?;
+            report::write(Path::new(&out), &scenario, &plant, &cal, common.seed, &mut progress)?;
+            progress.finish();
+            eprintln!("wrote {}", out.join("report.md").display());
+            Ok(())
+        })(),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("hil-sim: {e}");
+            if e.contains("scenario") && !e.contains(&preset_names()) {
+                eprintln!("presets: {}", preset_names());
+            }
+            ExitCode::FAILURE
+        }
+    }
+}

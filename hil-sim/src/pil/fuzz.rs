@@ -1,0 +1,69 @@
+//! Bad frames through the firmware's real link path under QEMU (USART2 RX interrupt, receiver,
+//! endpoint), interleaved with PIL ticks: every frame must be rejected and counted, and the
+//! drive, enabled and at rest, must answer every tick exactly like an in-process core that never
+//! saw the garbage.
+
+use estimator_core::drive::{Command, Drive, DriveConfig, Sample};
+use estimator_core::link::MAX_FRAME;
+
+use super::{PilController, PilError, PilOptions};
+
+#[allow(dead_code)]
+mod gen {
+    include!("../../../tests/common/bad_frames.rs");
+}
+
+/// Bad frames between two ticks (keeps the error replies flowing back in small batches).
+const FRAMES_PER_TICK: u32 = 10;
+
+/// Outcome of [`run`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct FuzzReport {
+    /// Rejected frames the firmware counted during the run.
+    pub frames_bad: u32,
+    /// Frames the firmware accepted beyond our own requests (must be 0).
+    pub frames_ok_extra: u32,
+    /// Ticks run.
+    pub ticks: u32,
+    /// Every tick's output equalled the undisturbed core's, at rest.
+    pub unmoved: bool,
+    /// QEMU's exit status.
+    pub exit_status: i32,
+}
+
+/// Sends `n` bad frames to the firmware.
+pub fn run(opts: &PilOptions, n: u32) -> Result<FuzzReport, PilError> {
+    let mut host = Drive::new(&DriveConfig::paper_rig()).map_err(|e| PilError::Link(e.to_string()))?;
+    let mut fw = PilController::start(opts)?;
+    let rest = Sample { motor_counter: 1234, scale_counter: 4321 };
+    let mut unmoved = host.step(rest) == fw.step_sample(rest)?;
+    for c in [Command::Home { position_um: 100_000, scale_um: 100_000 }, Command::Enable] {
+        host.command(c).map_err(PilError::Refused)?;
+        fw.send_command(c)?;
+    }
+    let before = fw.status()?;
+    let mut rng = gen::Rng(0x5eed_f00d);
+    let mut buf = [0u8; MAX_FRAME + 16];
+    let mut ticks = 0u32;
+    for i in 0..n {
+        let len = gen::bad_frame(&mut rng, &mut buf);
+        fw.send_raw(&buf[..len])?;
+        if (i + 1) % FRAMES_PER_TICK == 0 || i + 1 == n {
+            let a = host.step(rest);
+            let b = fw.step_sample(rest)?;
+            unmoved &= a == b && !b.telemetry.moving;
+            ticks += 1;
+        }
+    }
+    let after = fw.status()?;
+    // Our own accepted frames since `before`: one sample per tick and this status request.
+    let ours = ticks + 1;
+    let exit_status = fw.shutdown(0)?;
+    Ok(FuzzReport {
+        frames_bad: after.frames_bad - before.frames_bad,
+        frames_ok_extra: (after.frames_ok - before.frames_ok).saturating_sub(ours),
+        ticks,
+        unmoved,
+        exit_status,
+    })
+}

@@ -1,0 +1,195 @@
+//! `hil-sim report`: Table 3 in Markdown, the per-tick CSV, and the paper's figures as PNG.
+
+use std::io::Write;
+use std::path::Path;
+
+use estimator_core::model::{ModelKind, ModelParams};
+use estimator_core::rig::Rig;
+
+use crate::calibrate::Calibration;
+use crate::eval;
+use crate::plant::PlantParams;
+use crate::plot;
+use crate::progress::Progress;
+use crate::run::Trace;
+use crate::scenario::Scenario;
+use crate::stats::ErrorStats;
+
+/// The paper's Table 3 (um): (name, max, min, rms).
+pub const PAPER_TABLE3: &[(&str, f64, f64, f64)] = &[
+    ("model1", 131.0, -148.0, 38.0),
+    ("model2", 120.0, -130.0, 34.0),
+    ("model3", 99.0, -79.0, 26.0),
+    ("none", 365.0, -93.0, 195.0),
+];
+
+/// Table 3 as Markdown, with the paper's figures beside ours.
+pub fn table_markdown(scenario: &str, samples: usize, table: &[(&'static str, ErrorStats)]) -> String {
+    let mut s = format!(
+        "Scenario `{scenario}`, {samples} samples; e = x_LS - x_PE - y in um (eq. 19)\n\n\
+         | estimator | max | min | RMS | paper max | paper min | paper RMS |\n|---|---:|---:|---:|---:|---:|---:|\n"
+    );
+    for (name, st) in table {
+        let paper = PAPER_TABLE3.iter().find(|p| p.0 == *name);
+        let p = |f: fn(&(&str, f64, f64, f64)) -> f64| paper.map_or("-".to_string(), |q| format!("{:.0}", f(q)));
+        s += &format!(
+            "| {name} | {:.1} | {:.1} | {:.1} | {} | {} | {} |\n",
+            st.max_um,
+            st.min_um,
+            st.rms_um,
+            p(|q| q.1),
+            p(|q| q.2),
+            p(|q| q.3)
+        );
+    }
+    s
+}
+
+/// Every tick of `trace` as CSV.
+pub fn write_csv(w: &mut dyn Write, trace: &Trace) -> std::io::Result<()> {
+    writeln!(
+        w,
+        "t_s,motor_counts,x_pe_mm,x_ls_mm,dx_um,setpoint_counts,following_error_counts,current_a,est_error_um,model,faults"
+    )?;
+    for (i, r) in trace.records.iter().enumerate() {
+        let t = &r.out.telemetry;
+        writeln!(
+            w,
+            "{:.4},{},{:.6},{:.6},{:.3},{},{},{:.5},{:.4},{},{}",
+            r.t_s,
+            r.motor_counts,
+            trace.x_pe_mm(i),
+            r.x_ls_mm,
+            trace.dx_um(i),
+            t.setpoint_counts,
+            t.following_error_counts,
+            r.out.current_a.to_num::<f64>(),
+            t.est_error_um.to_num::<f64>(),
+            t.model.as_str(),
+            t.faults.0
+        )?;
+    }
+    Ok(())
+}
+
+/// Repetitions of the repeatability scenario overlaid in Fig. 11.
+pub const FIG11_RUNS: u64 = 12;
+
+/// Runs the scenario, writes report.md, the figures and the CSV into `dir`.
+pub fn write(
+    dir: &Path,
+    scenario: &Scenario,
+    plant: &PlantParams,
+    cal: &Calibration,
+    seed: u64,
+    progress: &mut Progress,
+) -> Result<(), String> {
+    std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    let label = format!("run {}", scenario.name);
+    let trace = eval::run_in_process(scenario, plant, &cal.params, ModelKind::Table, seed, &mut |f| {
+        progress.stage(&label, f)
+    })
+    .map_err(|e| format!("{}: {e}", scenario.name))?;
+    let coeffs = cal.params.build(&Rig::PAPER).map_err(|e| e.to_string())?;
+    let est = eval::estimates(&trace, &coeffs, cal);
+    let table = eval::table3(&trace, &est);
+
+    let rep = Scenario::load("repeatability")?;
+    let mut overlay = Vec::new();
+    for k in 0..FIG11_RUNS {
+        let label = format!("Fig. 11 run {}/{}", k + 1, FIG11_RUNS);
+        overlay.push(
+            eval::run_in_process(&rep, plant, &ModelParams::PAPER, ModelKind::None, 2_000 + k, &mut |f| {
+                progress.stage(&label, f)
+            })
+            .map_err(|e| format!("repeatability: {e}"))?,
+        );
+    }
+
+    progress.stage("figures", 0.0);
+    let mut figures = Vec::new();
+    let mut failures = Vec::new();
+    let mut fig = |file: &str, caption: String, r: Result<(), Box<dyn std::error::Error>>| match r {
+        Ok(()) => figures.push((file.to_string(), caption)),
+        Err(e) => failures.push(format!("{file}: {e}")),
+    };
+    fig(
+        "fig11_hysteresis.png",
+        format!("Fig. 11: x_LS - x_PE against x_PE, {FIG11_RUNS} runs of `repeatability` overlaid"),
+        plot::hysteresis(&dir.join("fig11_hysteresis.png"), "Position error, repeated runs (Fig. 11)", &overlay),
+    );
+    fig(
+        "fig18_scenario.png",
+        format!("Fig. 18: the `{}` scenario", scenario.name),
+        plot::scenario(&dir.join("fig18_scenario.png"), &format!("Scenario {} (Fig. 18)", scenario.name), &trace),
+    );
+    for (name, y) in &est {
+        let file = format!("estimate_{name}.png");
+        fig(
+            &file,
+            format!("Figs. 19-24: `{name}` estimate and its error along `{}`", scenario.name),
+            plot::estimate(&dir.join(&file), &format!("{name}: estimate and error"), &trace, y),
+        );
+    }
+    progress.stage("figures", 1.0);
+
+    let spread = repeatability_spread_um(&overlay);
+    let mut md = String::from("# belt-drive: estimation of the carriage position (paper's Table 3)\n\n");
+    md += &table_markdown(&scenario.name, trace.records.len(), &table);
+    md += "\nCalibration fit on its own data (RMS, um): ";
+    md += &cal
+        .fit_rms_um
+        .iter()
+        .map(|(k, v)| format!("{} {:.1}", k.as_str(), v))
+        .collect::<Vec<_>>()
+        .join(", ");
+    md += &format!(
+        ".\n\nRun-to-run repeatability of Delta x over {FIG11_RUNS} runs (RMS of the deviation from the mean, binned by \
+         position and direction): {spread:.1} um. This is the floor under every model's error.\n\n"
+    );
+    for (file, caption) in &figures {
+        md += &format!("![{caption}]({file})\n\n*{caption}*\n\n");
+    }
+    if !failures.is_empty() {
+        md += "Figures not drawn:\n\n";
+        for f in &failures {
+            md += &format!("- {f}\n");
+        }
+    }
+    let csv = dir.join(format!("{}.csv", scenario.name));
+    let mut w = std::io::BufWriter::new(std::fs::File::create(&csv).map_err(|e| format!("{}: {e}", csv.display()))?);
+    write_csv(&mut w, &trace).map_err(|e| format!("{}: {e}", csv.display()))?;
+    std::fs::write(dir.join("report.md"), md).map_err(|e| format!("{}: {e}", dir.display()))?;
+    for f in &failures {
+        eprintln!("hil-sim: figure not drawn: {f}");
+    }
+    Ok(())
+}
+
+/// RMS deviation of Delta x from the mean over runs, in 1 mm bins per direction.
+pub fn repeatability_spread_um(runs: &[Trace]) -> f64 {
+    use std::collections::HashMap;
+    let mut bins: HashMap<(i64, i8, usize), (f64, usize)> = HashMap::new();
+    for (k, t) in runs.iter().enumerate() {
+        for (i, r) in t.records.iter().enumerate() {
+            let e = bins.entry(((t.x_pe_mm(i)).floor() as i64, r.cmd_dir, k)).or_insert((0.0, 0));
+            e.0 += t.dx_um(i);
+            e.1 += 1;
+        }
+    }
+    let mut per_bin: HashMap<(i64, i8), Vec<f64>> = HashMap::new();
+    for ((x, d, _), (s, n)) in bins {
+        per_bin.entry((x, d)).or_default().push(s / n as f64);
+    }
+    let (mut ss, mut n) = (0.0, 0usize);
+    for v in per_bin.values().filter(|v| v.len() == runs.len()) {
+        let mean = v.iter().sum::<f64>() / v.len() as f64;
+        ss += v.iter().map(|x| (x - mean).powi(2)).sum::<f64>();
+        n += v.len();
+    }
+    if n == 0 {
+        f64::NAN
+    } else {
+        (ss / n as f64).sqrt()
+    }
+}
