@@ -42,7 +42,11 @@ fn encoder_vectors(out: &mut String) {
         // Across 0x7fff / 0x8000 both ways.
         (0, 934, &[0x7ff0, 0x7fff, 0x8000, 0x8010, 0x7ffe, 0x7fff]),
         // Across 0xffff / 0x0000 both ways.
-        (100, 934, &[0xfffe, 0xffff, 0x0000, 0x0001, 0x0000, 0xffff, 0xfc00]),
+        (
+            100,
+            934,
+            &[0xfffe, 0xffff, 0x0000, 0x0001, 0x0000, 0xffff, 0xfc00],
+        ),
         // The step limit: exactly 934 accepted, 935 refused, the next read measured from the
         // last accepted one.
         (0, 934, &[0, 934, 1869, 1868, 1868 + 934, 0x0000]),
@@ -52,8 +56,16 @@ fn encoder_vectors(out: &mut String) {
         (i32::MAX - 5, 934, &[10, 14, 15, 16, 15]),
         (i32::MIN + 5, 934, &[10, 6, 5, 4, 5]),
     ];
-    writeln!(out, "/// (start position, step limit, [(raw, outcome kind, value)])").unwrap();
-    writeln!(out, "pub const ENCODER_CASES: &[(i32, u32, &[(u16, u8, i32)])] = &[").unwrap();
+    writeln!(
+        out,
+        "/// (start position, step limit, [(raw, outcome kind, value)])"
+    )
+    .unwrap();
+    writeln!(
+        out,
+        "pub const ENCODER_CASES: &[(i32, u32, &[(u16, u8, i32)])] = &["
+    )
+    .unwrap();
     for &(start, limit, reads) in cases {
         let coeffs = encoder::Coeffs::<u16>::from_max_delta_counts(limit).unwrap();
         let mut state = encoder::State::<u16>::new(start);
@@ -89,6 +101,10 @@ fn blob_vectors(out: &mut String) {
     let rig = DriveConfig::paper_rig().rig;
     let mut buf = vec![0u8; blob::MAX_BYTES];
     let n = blob::encode(&ModelParams::PAPER, &rig, &mut buf).unwrap();
-    writeln!(out, "/// `blob::encode(&ModelParams::PAPER, &Rig::PAPER)` on the host.").unwrap();
+    writeln!(
+        out,
+        "/// `blob::encode(&ModelParams::PAPER, &Rig::PAPER)` on the host."
+    )
+    .unwrap();
     writeln!(out, "pub const PAPER_BLOB: [u8; {n}] = {:?};", &buf[..n]).unwrap();
 }

@@ -25,9 +25,9 @@ pub const EXIT_HARDFAULT: i32 = 102;
 #[cfg(target_os = "none")]
 pub mod hardware;
 #[cfg(target_os = "none")]
-pub mod stack;
-#[cfg(target_os = "none")]
 pub mod outbox;
+#[cfg(target_os = "none")]
+pub mod stack;
 
 pub use estimator_core::drive;
 
@@ -62,7 +62,11 @@ mod runtime {
     #[cortex_m_rt::exception]
     unsafe fn HardFault(frame: &cortex_m_rt::ExceptionFrame) -> ! {
         crate::hardware::emergency_stop();
-        defmt::error!("HardFault at pc={=u32:#010x} lr={=u32:#010x}", frame.pc(), frame.lr());
+        defmt::error!(
+            "HardFault at pc={=u32:#010x} lr={=u32:#010x}",
+            frame.pc(),
+            frame.lr()
+        );
         crate::hardware::halt(crate::EXIT_HARDFAULT)
     }
 

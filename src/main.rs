@@ -24,11 +24,11 @@ mod app {
     use core::sync::atomic::{AtomicBool, AtomicU16, Ordering};
 
     use belt_drive::drive::{Command, CommandError, Drive, DriveConfig, Telemetry};
-    use estimator_core::blob::BlobError;
-    use estimator_core::link::{answer, Effect, Endpoint, Event};
     use belt_drive::hardware::{self, ControlIo, LinkRx};
     use belt_drive::outbox::Outbox;
     use belt_drive::stack;
+    use estimator_core::blob::BlobError;
+    use estimator_core::link::{answer, Effect, Endpoint, Event};
     use estimator_core::link::{LinkError, Message, Receiver, Reply, Request, WireTelemetry};
 
     /// Board only: ticks without a valid frame before the drive faults (0.5 s at 2 kHz). The host
@@ -114,8 +114,18 @@ mod app {
     /// 168 MHz).
     #[task(binds = TIM7, priority = 3, local = [io, prev, silent_ticks: u32 = 0, since_stream: u16 = 0], shared = [drive, outbox])]
     fn control(cx: control::Context) {
-        let control::LocalResources { io, silent_ticks, since_stream, prev, .. } = cx.local;
-        let control::SharedResources { mut drive, mut outbox, .. } = cx.shared;
+        let control::LocalResources {
+            io,
+            silent_ticks,
+            since_stream,
+            prev,
+            ..
+        } = cx.local;
+        let control::SharedResources {
+            mut drive,
+            mut outbox,
+            ..
+        } = cx.shared;
         let Some(tick) = io.begin_tick() else { return };
 
         let (out, instructions) = drive.lock(|d| io.measure(|| d.step(tick.sample)));
@@ -162,7 +172,11 @@ mod app {
     /// Logs a move's start and end and every change of the fault bits.
     fn log_transitions(prev: &Telemetry, t: &Telemetry) {
         if t.moving && !prev.moving {
-            defmt::info!("move start at {=i32} counts (tick {=u32})", t.motor_counts, t.tick);
+            defmt::info!(
+                "move start at {=i32} counts (tick {=u32})",
+                t.motor_counts,
+                t.tick
+            );
         }
         if !t.moving && prev.moving {
             defmt::info!(
@@ -185,8 +199,17 @@ mod app {
     /// transmit queue on TXE.
     #[task(binds = USART2, priority = 2, local = [rx, receiver, endpoint], shared = [drive, outbox])]
     fn link(cx: link::Context) {
-        let link::LocalResources { rx, receiver, endpoint, .. } = cx.local;
-        let link::SharedResources { mut drive, mut outbox, .. } = cx.shared;
+        let link::LocalResources {
+            rx,
+            receiver,
+            endpoint,
+            ..
+        } = cx.local;
+        let link::SharedResources {
+            mut drive,
+            mut outbox,
+            ..
+        } = cx.shared;
         while let Some(byte) = rx.read() {
             let frame = match receiver.push::<Request>(byte) {
                 None => continue,
@@ -204,7 +227,11 @@ mod app {
                     } else {
                         defmt::debug!("link: frame rejected: {=str}", error_name(r.error));
                     }
-                    let reply = Reply::Error { of: r.kind, reason: r.error, detail: 0 };
+                    let reply = Reply::Error {
+                        of: r.kind,
+                        reason: r.error,
+                        detail: 0,
+                    };
                     outbox.lock(|o| o.send(r.seq, &reply));
                     continue;
                 }
@@ -227,7 +254,9 @@ mod app {
                 Effect::Stream(n) => {
                     defmt::info!("telemetry stream every {=u16} ticks (0 = off)", n);
                     STREAM_EVERY.store(n, Ordering::Relaxed);
-                    Reply::Ack { of: frame.msg.kind() }
+                    Reply::Ack {
+                        of: frame.msg.kind(),
+                    }
                 }
                 Effect::Shutdown(code) => {
                     if !hardware::ALLOW_SHUTDOWN {
@@ -243,7 +272,12 @@ mod app {
                             stack::peak_bytes()
                         );
                         outbox.lock(|o| {
-                            o.send(frame.seq, &Reply::Ack { of: frame.msg.kind() });
+                            o.send(
+                                frame.seq,
+                                &Reply::Ack {
+                                    of: frame.msg.kind(),
+                                },
+                            );
                             o.flush()
                         });
                         hardware::halt(code as i32)
@@ -256,14 +290,25 @@ mod app {
     }
 
     fn not_supported(req: &Request) -> Reply {
-        defmt::warn!("link: request kind {=u8:#04x} not supported on this board", req.kind());
-        Reply::Error { of: req.kind(), reason: LinkError::NotSupported, detail: 0 }
+        defmt::warn!(
+            "link: request kind {=u8:#04x} not supported on this board",
+            req.kind()
+        );
+        Reply::Error {
+            of: req.kind(),
+            reason: LinkError::NotSupported,
+            detail: 0,
+        }
     }
 
     fn log_event(e: &Event) {
         match *e {
             Event::None => {}
-            Event::Applied(Command::MoveTo { target_um, velocity_um_s, accel_um_s2 }) => defmt::info!(
+            Event::Applied(Command::MoveTo {
+                target_um,
+                velocity_um_s,
+                accel_um_s2,
+            }) => defmt::info!(
                 "move to {=i32} um at {=u32} um/s, {=u32} um/s^2",
                 target_um,
                 velocity_um_s,
@@ -272,8 +317,15 @@ mod app {
             Event::Applied(Command::SelectModel(m)) => {
                 defmt::info!("model selected: {=str}", m.as_str())
             }
-            Event::Applied(Command::Home { position_um, scale_um }) => {
-                defmt::info!("homed: motor at {=i32} um, scale at {=i32} um", position_um, scale_um)
+            Event::Applied(Command::Home {
+                position_um,
+                scale_um,
+            }) => {
+                defmt::info!(
+                    "homed: motor at {=i32} um, scale at {=i32} um",
+                    position_um,
+                    scale_um
+                )
             }
             Event::Applied(c) => defmt::info!("command: {=str}", command_name(&c)),
             Event::Refused(c, why) => defmt::warn!(
@@ -291,7 +343,10 @@ mod app {
                 defmt::info!("calibration loaded ({=u32} bytes): Model 3 available", len)
             }
             Event::CalibrationRejected(e) => {
-                defmt::error!("calibration rejected: {=str}; previous tables kept", blob_error_name(e))
+                defmt::error!(
+                    "calibration rejected: {=str}; previous tables kept",
+                    blob_error_name(e)
+                )
             }
         }
     }

@@ -21,7 +21,13 @@ pub struct Outbox {
 impl Outbox {
     /// An empty outbox.
     pub fn new(tx: LinkTx) -> Self {
-        Outbox { tx, ring: [0; CAPACITY], head: 0, len: 0, dropped: 0 }
+        Outbox {
+            tx,
+            ring: [0; CAPACITY],
+            head: 0,
+            len: 0,
+            dropped: 0,
+        }
     }
 
     /// Queues one frame whole, or drops it whole (and counts it) if it does not fit.

@@ -18,7 +18,10 @@ extern "C" {
 
 fn bounds() -> (usize, usize) {
     // Only the addresses of the linker symbols are taken, never their contents.
-    (ptr::addr_of!(_stack_end) as usize, ptr::addr_of!(_stack_start) as usize)
+    (
+        ptr::addr_of!(_stack_end) as usize,
+        ptr::addr_of!(_stack_start) as usize,
+    )
 }
 
 /// Fills the unused part of the stack with a pattern. Call once, early in `init`.

@@ -19,8 +19,12 @@ mod vectors {
 #[inline(never)]
 fn static_drive() -> &'static mut estimator_core::drive::Drive {
     use estimator_core::drive::{Drive, DriveConfig};
-    let Some(slot) = cortex_m::singleton!(: Option<Drive> = None) else { defmt::panic!("twice") };
-    let Ok(d) = Drive::new(&DriveConfig::paper_rig()) else { defmt::panic!("paper rig refused") };
+    let Some(slot) = cortex_m::singleton!(: Option<Drive> = None) else {
+        defmt::panic!("twice")
+    };
+    let Ok(d) = Drive::new(&DriveConfig::paper_rig()) else {
+        defmt::panic!("paper rig refused")
+    };
     slot.insert(d)
 }
 
@@ -39,14 +43,23 @@ fn load(
 #[inline(never)]
 fn endpoint_transfer(drive: &mut estimator_core::drive::Drive, blob: &[u8]) -> bool {
     use estimator_core::link::{crc32, Effect, Endpoint, Reply, Request, CHUNK_MAX};
-    let Some(endpoint) = cortex_m::singleton!(: Endpoint = Endpoint::new()) else { defmt::panic!("twice") };
+    let Some(endpoint) = cortex_m::singleton!(: Endpoint = Endpoint::new()) else {
+        defmt::panic!("twice")
+    };
     let ack = |e: Effect| matches!(e, Effect::Reply(Reply::Ack { .. }));
-    let begin = Request::CalBegin { total_len: blob.len() as u32, crc32: crc32(blob) };
+    let begin = Request::CalBegin {
+        total_len: blob.len() as u32,
+        crc32: crc32(blob),
+    };
     let mut ok = ack(endpoint.handle(&begin, drive).0);
     for (i, piece) in blob.chunks(CHUNK_MAX).enumerate() {
         let mut data = [0u8; CHUNK_MAX];
         data[..piece.len()].copy_from_slice(piece);
-        let chunk = Request::CalChunk { offset: (i * CHUNK_MAX) as u32, len: piece.len() as u8, data };
+        let chunk = Request::CalChunk {
+            offset: (i * CHUNK_MAX) as u32,
+            len: piece.len() as u8,
+            data,
+        };
         ok &= ack(endpoint.handle(&chunk, drive).0);
     }
     ok && ack(endpoint.handle(&Request::CalCommit, drive).0)
@@ -58,11 +71,15 @@ fn endpoint_transfer(drive: &mut estimator_core::drive::Drive, blob: &[u8]) -> b
 fn blob_round_trips(good: &[u8]) {
     use estimator_core::{blob, drive::DriveConfig};
     let rig = DriveConfig::paper_rig().rig;
-    let Ok(params) = blob::decode(good, &rig) else { defmt::panic!("host blob refused on target") };
+    let Ok(params) = blob::decode(good, &rig) else {
+        defmt::panic!("host blob refused on target")
+    };
     let Some(again) = cortex_m::singleton!(: [u8; blob::MAX_BYTES] = [0; blob::MAX_BYTES]) else {
         defmt::panic!("twice")
     };
-    let Ok(n) = blob::encode(&params, &rig, again) else { defmt::panic!("re-encoding failed") };
+    let Ok(n) = blob::encode(&params, &rig, again) else {
+        defmt::panic!("re-encoding failed")
+    };
     defmt::assert_eq!(&again[..n], good, "blob re-encoded on target differs");
 }
 
@@ -101,10 +118,19 @@ mod tests {
     #[test]
     fn closed_loop_runs_match_the_host() {
         for &(model, want) in vectors::CLOSED_LOOP {
-            let Some(kind) = ModelKind::from_u8(model) else { defmt::panic!("model {=u8}", model) };
+            let Some(kind) = ModelKind::from_u8(model) else {
+                defmt::panic!("model {=u8}", model)
+            };
             let got = vectors::closed_loop(kind);
             for (i, (g, w)) in got.blocks.iter().zip(want.blocks.iter()).enumerate() {
-                defmt::assert_eq!(g, w, "model {=u8}: block {=usize} of {=usize} ticks differs", model, i, vectors::BLOCK_TICKS);
+                defmt::assert_eq!(
+                    g,
+                    w,
+                    "model {=u8}: block {=usize} of {=usize} ticks differs",
+                    model,
+                    i,
+                    vectors::BLOCK_TICKS
+                );
             }
             defmt::assert_eq!(got.ticks, want.ticks);
             defmt::assert_eq!(got.final_counts, want.final_counts);

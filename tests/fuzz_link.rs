@@ -35,7 +35,10 @@ mod tests {
         };
         let mut endpoint = Endpoint::new();
         let mut rx = Receiver::new();
-        let rest = Sample { motor_counter: 1000, scale_counter: 2000 };
+        let rest = Sample {
+            motor_counter: 1000,
+            scale_counter: 2000,
+        };
 
         // Enable through the link itself, so the drive could move if a frame got through.
         let mut wire = [0u8; MAX_FRAME];
@@ -57,17 +60,25 @@ mod tests {
                 match rx.push::<Request>(b) {
                     None => {}
                     Some(Err(_)) => frames += 1,
-                    Some(Ok(f)) => defmt::panic!("frame {=u32} accepted: kind {=u8:#04x}", i, f.msg.kind()),
+                    Some(Ok(f)) => {
+                        defmt::panic!("frame {=u32} accepted: kind {=u8:#04x}", i, f.msg.kind())
+                    }
                 }
             }
             defmt::assert_eq!(frames, 1, "frame {=u32} split", i);
             let o = drive.step(rest);
             defmt::assert!(!o.telemetry.moving, "moving after frame {=u32}", i);
-            defmt::assert_eq!(o.telemetry.setpoint_counts, before.telemetry.setpoint_counts);
+            defmt::assert_eq!(
+                o.telemetry.setpoint_counts,
+                before.telemetry.setpoint_counts
+            );
             defmt::assert_eq!(o.current_a.to_bits(), before.current_a.to_bits());
         }
         defmt::assert_eq!(rx.frames_ok, 1);
         defmt::assert_eq!(rx.frames_bad, FRAMES);
-        defmt::info!("{=u32} bad frames rejected and counted, drive unmoved", rx.frames_bad);
+        defmt::info!(
+            "{=u32} bad frames rejected and counted, drive unmoved",
+            rx.frames_bad
+        );
     }
 }

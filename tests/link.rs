@@ -16,8 +16,9 @@ use estimator_core::link::{
 
 /// The same bytes as the host test `known_wire_bytes` (computed independently in Python).
 #[cfg(target_os = "none")]
-const KNOWN_MOVE: [u8; 20] =
-    [9, 1, 9, 112, 47, 252, 255, 80, 195, 1, 4, 64, 13, 3, 5, 157, 230, 2, 169, 0];
+const KNOWN_MOVE: [u8; 20] = [
+    9, 1, 9, 112, 47, 252, 255, 80, 195, 1, 4, 64, 13, 3, 5, 157, 230, 2, 169, 0,
+];
 
 #[cfg(target_os = "none")]
 fn feed(rx: &mut Receiver, bytes: &[u8]) -> Option<Result<Frame<Request>, u8>> {
@@ -54,7 +55,11 @@ mod tests {
     #[test]
     fn known_move_bytes() {
         let mut out = [0u8; MAX_FRAME];
-        let req = Request::Move { target_um: -250_000, velocity_um_s: 50_000, accel_um_s2: 200_000 };
+        let req = Request::Move {
+            target_um: -250_000,
+            velocity_um_s: 50_000,
+            accel_um_s2: 200_000,
+        };
         let n = encode(9, &req, &mut out);
         defmt::assert_eq!(&out[..n], &KNOWN_MOVE[..]);
         let mut rx = Receiver::new();
@@ -77,10 +82,21 @@ mod tests {
         };
         let replies = [
             Reply::Ack { of: kind::STOP },
-            Reply::Error { of: kind::UNKNOWN, reason: LinkError::Crc, detail: 0 },
-            Reply::Status(WireStatus { frames_ok: 5, ..WireStatus::default() }),
+            Reply::Error {
+                of: kind::UNKNOWN,
+                reason: LinkError::Crc,
+                detail: 0,
+            },
+            Reply::Status(WireStatus {
+                frames_ok: 5,
+                ..WireStatus::default()
+            }),
             Reply::Telemetry(t),
-            Reply::Answer { current_a_bits: -5, telemetry: t, step_instructions: 300 },
+            Reply::Answer {
+                current_a_bits: -5,
+                telemetry: t,
+                step_instructions: 300,
+            },
         ];
         for (i, r) in replies.iter().enumerate() {
             let mut out = [0u8; MAX_FRAME];
@@ -92,7 +108,12 @@ mod tests {
                     got = Some(x);
                 }
             }
-            defmt::assert!(got == Some(Ok(Frame { seq: i as u8, msg: *r })));
+            defmt::assert!(
+                got == Some(Ok(Frame {
+                    seq: i as u8,
+                    msg: *r
+                }))
+            );
         }
     }
 
@@ -116,8 +137,14 @@ mod tests {
         let cases: [(&[u8], LinkError); 6] = [
             (&[0x7e, 1], LinkError::UnknownKind),
             (&[kind::STOP, 1, 0], LinkError::BadLength),
-            (&[kind::MOVE, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0], LinkError::OutOfRange),
-            (&[kind::MOVE, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0], LinkError::OutOfRange),
+            (
+                &[kind::MOVE, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0],
+                LinkError::OutOfRange,
+            ),
+            (
+                &[kind::MOVE, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0],
+                LinkError::OutOfRange,
+            ),
             (&[kind::SELECT_MODEL, 1, 4], LinkError::OutOfRange),
             (&[kind::CAL_CHUNK, 1, 0, 0, 0, 0], LinkError::BadLength),
         ];
@@ -135,7 +162,11 @@ mod tests {
         for (i, d) in data.iter_mut().enumerate() {
             *d = (i * 37) as u8;
         }
-        let req = Request::CalChunk { offset: 1234, len: CHUNK_MAX as u8, data };
+        let req = Request::CalChunk {
+            offset: 1234,
+            len: CHUNK_MAX as u8,
+            data,
+        };
         let mut out = [0u8; MAX_FRAME];
         let n = encode(200, &req, &mut out);
         defmt::assert_eq!(req.kind(), kind::CAL_CHUNK);

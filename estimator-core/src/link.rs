@@ -460,7 +460,11 @@ impl Message for Request {
     fn write_payload(&self, out: &mut [u8]) -> usize {
         let mut w = Writer::new(out);
         match *self {
-            Request::Move { target_um, velocity_um_s, accel_um_s2 } => {
+            Request::Move {
+                target_um,
+                velocity_um_s,
+                accel_um_s2,
+            } => {
                 w.i32(target_um);
                 w.u32(velocity_um_s);
                 w.u32(accel_um_s2);
@@ -476,17 +480,27 @@ impl Message for Request {
                 w.u32(total_len);
                 w.u32(crc32);
             }
-            Request::CalChunk { offset, len, ref data } => {
+            Request::CalChunk {
+                offset,
+                len,
+                ref data,
+            } => {
                 w.u32(offset);
                 w.put(&data[..(len as usize).min(CHUNK_MAX)]);
             }
             Request::Telemetry { every_n_ticks } => w.u16(every_n_ticks),
-            Request::Sample { motor_counter, scale_counter } => {
+            Request::Sample {
+                motor_counter,
+                scale_counter,
+            } => {
                 w.u16(motor_counter);
                 w.u16(scale_counter);
             }
             Request::Shutdown { code } => w.u8(code),
-            Request::Home { position_um, scale_um } => {
+            Request::Home {
+                position_um,
+                scale_um,
+            } => {
                 w.i32(position_um);
                 w.i32(scale_um);
             }
@@ -502,7 +516,11 @@ impl Message for Request {
                 if velocity_um_s == 0 || accel_um_s2 == 0 {
                     return Err(LinkError::OutOfRange);
                 }
-                Request::Move { target_um, velocity_um_s, accel_um_s2 }
+                Request::Move {
+                    target_um,
+                    velocity_um_s,
+                    accel_um_s2,
+                }
             }
             kind::STOP => expect_len(payload, 0).map(|_| Request::Stop)?,
             kind::ENABLE => expect_len(payload, 0).map(|_| Request::Enable)?,
@@ -534,17 +552,31 @@ impl Message for Request {
                 let mut data = [0u8; CHUNK_MAX];
                 let n = payload.len() - 4;
                 data[..n].copy_from_slice(&payload[4..]);
-                Request::CalChunk { offset, len: n as u8, data }
+                Request::CalChunk {
+                    offset,
+                    len: n as u8,
+                    data,
+                }
             }
-            kind::TELEMETRY => Request::Telemetry { every_n_ticks: expect_len(payload, 2)?.u16() },
+            kind::TELEMETRY => Request::Telemetry {
+                every_n_ticks: expect_len(payload, 2)?.u16(),
+            },
             kind::SAMPLE => {
                 let mut r = expect_len(payload, 4)?;
-                Request::Sample { motor_counter: r.u16(), scale_counter: r.u16() }
+                Request::Sample {
+                    motor_counter: r.u16(),
+                    scale_counter: r.u16(),
+                }
             }
-            kind::SHUTDOWN => Request::Shutdown { code: expect_len(payload, 1)?.u8() },
+            kind::SHUTDOWN => Request::Shutdown {
+                code: expect_len(payload, 1)?.u8(),
+            },
             kind::HOME => {
                 let mut r = expect_len(payload, 8)?;
-                Request::Home { position_um: r.i32(), scale_um: r.i32() }
+                Request::Home {
+                    position_um: r.i32(),
+                    scale_um: r.i32(),
+                }
             }
             _ => return Err(LinkError::UnknownKind),
         })
@@ -583,7 +615,11 @@ impl Message for Reply {
                 w.u32(s.stack_peak_bytes);
             }
             Reply::Telemetry(t) => t.write(&mut w),
-            Reply::Answer { current_a_bits, telemetry, step_instructions } => {
+            Reply::Answer {
+                current_a_bits,
+                telemetry,
+                step_instructions,
+            } => {
                 w.i32(current_a_bits);
                 telemetry.write(&mut w);
                 w.u32(step_instructions);
@@ -594,12 +630,18 @@ impl Message for Reply {
 
     fn parse(k: u8, payload: &[u8]) -> Result<Self, LinkError> {
         Ok(match k {
-            kind::ACK => Reply::Ack { of: expect_len(payload, 1)?.u8() },
+            kind::ACK => Reply::Ack {
+                of: expect_len(payload, 1)?.u8(),
+            },
             kind::ERROR => {
                 let mut r = expect_len(payload, 3)?;
                 let of = r.u8();
                 let reason = LinkError::from_code(r.u8()).ok_or(LinkError::OutOfRange)?;
-                Reply::Error { of, reason, detail: r.u8() }
+                Reply::Error {
+                    of,
+                    reason,
+                    detail: r.u8(),
+                }
             }
             kind::STATUS_REPLY => {
                 let mut r = expect_len(payload, 24)?;
@@ -619,14 +661,19 @@ impl Message for Reply {
                 }
                 Reply::Status(s)
             }
-            kind::TELEMETRY_FRAME => {
-                Reply::Telemetry(WireTelemetry::read(&mut expect_len(payload, TELEMETRY_LEN)?)?)
-            }
+            kind::TELEMETRY_FRAME => Reply::Telemetry(WireTelemetry::read(&mut expect_len(
+                payload,
+                TELEMETRY_LEN,
+            )?)?),
             kind::ANSWER => {
                 let mut r = expect_len(payload, 4 + TELEMETRY_LEN + 4)?;
                 let current_a_bits = r.i32();
                 let telemetry = WireTelemetry::read(&mut r)?;
-                Reply::Answer { current_a_bits, telemetry, step_instructions: r.u32() }
+                Reply::Answer {
+                    current_a_bits,
+                    telemetry,
+                    step_instructions: r.u32(),
+                }
             }
             _ => return Err(LinkError::UnknownKind),
         })
@@ -643,7 +690,11 @@ const CRC_NIBBLES: [u32; 16] = {
         let mut c = i as u32;
         let mut k = 0;
         while k < 4 {
-            c = if c & 1 != 0 { (c >> 1) ^ 0xEDB8_8320 } else { c >> 1 };
+            c = if c & 1 != 0 {
+                (c >> 1) ^ 0xEDB8_8320
+            } else {
+                c >> 1
+            };
             k += 1;
         }
         t[i] = c;
@@ -772,18 +823,30 @@ pub fn encode<M: Message>(seq: u8, msg: &M, out: &mut [u8; MAX_FRAME]) -> usize 
 pub fn decode_raw<M: Message>(raw: &[u8]) -> Result<Frame<M>, Rejected> {
     if raw.len() < OVERHEAD {
         let (k, seq) = (kind::UNKNOWN, 0);
-        return Err(Rejected { kind: k, seq, error: LinkError::TooShort });
+        return Err(Rejected {
+            kind: k,
+            seq,
+            error: LinkError::TooShort,
+        });
     }
     let (body, crc) = raw.split_at(raw.len() - 4);
     let mut crc_bytes = [0u8; 4];
     crc_bytes.copy_from_slice(crc);
     if crc32(body) != u32::from_le_bytes(crc_bytes) {
-        return Err(Rejected { kind: kind::UNKNOWN, seq: 0, error: LinkError::Crc });
+        return Err(Rejected {
+            kind: kind::UNKNOWN,
+            seq: 0,
+            error: LinkError::Crc,
+        });
     }
     let (k, seq) = (body[0], body[1]);
     M::parse(k, &body[2..])
         .map(|msg| Frame { seq, msg })
-        .map_err(|error| Rejected { kind: k, seq, error })
+        .map_err(|error| Rejected {
+            kind: k,
+            seq,
+            error,
+        })
 }
 
 /// Streaming receiver: feed it every byte from the wire; it returns a result per frame.
@@ -840,11 +903,19 @@ impl Receiver {
             return None; // idle filler
         }
         let result = if overflow {
-            Err(Rejected { kind: kind::UNKNOWN, seq: 0, error: LinkError::Oversize })
+            Err(Rejected {
+                kind: kind::UNKNOWN,
+                seq: 0,
+                error: LinkError::Oversize,
+            })
         } else {
             match cobs_decode_in_place(&mut self.buf[..len]) {
                 Ok(n) => decode_raw(&self.buf[..n]),
-                Err(error) => Err(Rejected { kind: kind::UNKNOWN, seq: 0, error }),
+                Err(error) => Err(Rejected {
+                    kind: kind::UNKNOWN,
+                    seq: 0,
+                    error,
+                }),
             }
         };
         match &result {
@@ -929,16 +1000,28 @@ pub fn blob_error_code(e: BlobError) -> u8 {
 /// The request for a drive command, if `req` is one.
 pub fn to_command(req: &Request) -> Option<Command> {
     Some(match *req {
-        Request::Move { target_um, velocity_um_s, accel_um_s2 } => {
-            Command::MoveTo { target_um, velocity_um_s, accel_um_s2 }
-        }
+        Request::Move {
+            target_um,
+            velocity_um_s,
+            accel_um_s2,
+        } => Command::MoveTo {
+            target_um,
+            velocity_um_s,
+            accel_um_s2,
+        },
         Request::Stop => Command::Stop,
         Request::Enable => Command::Enable,
         Request::Disable => Command::Disable,
         Request::ClearFaults => Command::ClearFaults,
         // Range-checked by the decoder, so `from_u8` cannot fail here; stay total anyway.
         Request::SelectModel(m) => Command::SelectModel(ModelKind::from_u8(m)?),
-        Request::Home { position_um, scale_um } => Command::Home { position_um, scale_um },
+        Request::Home {
+            position_um,
+            scale_um,
+        } => Command::Home {
+            position_um,
+            scale_um,
+        },
         _ => return None,
     })
 }
@@ -946,15 +1029,27 @@ pub fn to_command(req: &Request) -> Option<Command> {
 /// The request that carries `cmd`.
 pub fn from_command(cmd: &Command) -> Request {
     match *cmd {
-        Command::MoveTo { target_um, velocity_um_s, accel_um_s2 } => {
-            Request::Move { target_um, velocity_um_s, accel_um_s2 }
-        }
+        Command::MoveTo {
+            target_um,
+            velocity_um_s,
+            accel_um_s2,
+        } => Request::Move {
+            target_um,
+            velocity_um_s,
+            accel_um_s2,
+        },
         Command::Stop => Request::Stop,
         Command::Enable => Request::Enable,
         Command::Disable => Request::Disable,
         Command::ClearFaults => Request::ClearFaults,
         Command::SelectModel(m) => Request::SelectModel(m as u8),
-        Command::Home { position_um, scale_um } => Request::Home { position_um, scale_um },
+        Command::Home {
+            position_um,
+            scale_um,
+        } => Request::Home {
+            position_um,
+            scale_um,
+        },
     }
 }
 
@@ -1005,7 +1100,11 @@ pub fn answer(out: &Output, step_instructions: u32) -> Reply {
 /// The output a PIL answer carries, or `None` if the reply is not an answer or is invalid.
 pub fn output_of(reply: &Reply) -> Option<(Output, u32)> {
     match *reply {
-        Reply::Answer { current_a_bits, telemetry, step_instructions } => Some((
+        Reply::Answer {
+            current_a_bits,
+            telemetry,
+            step_instructions,
+        } => Some((
             Output {
                 current_a: I16F16::from_bits(current_a_bits),
                 telemetry: Telemetry::try_from(telemetry).ok()?,
@@ -1089,17 +1188,33 @@ impl Endpoint {
     pub fn handle(&mut self, req: &Request, drive: &mut Drive) -> (Effect, Event) {
         let k = req.kind();
         let ack = Effect::Reply(Reply::Ack { of: k });
-        let refuse = |reason: LinkError, detail: u8| Effect::Reply(Reply::Error { of: k, reason, detail });
+        let refuse = |reason: LinkError, detail: u8| {
+            Effect::Reply(Reply::Error {
+                of: k,
+                reason,
+                detail,
+            })
+        };
         if let Some(cmd) = to_command(req) {
             return match drive.command(cmd) {
                 Ok(()) => (ack, Event::Applied(cmd)),
-                Err(e) => (refuse(LinkError::Refused, command_error_code(e)), Event::Refused(cmd, e)),
+                Err(e) => (
+                    refuse(LinkError::Refused, command_error_code(e)),
+                    Event::Refused(cmd, e),
+                ),
             };
         }
         match *req {
-            Request::Sample { motor_counter, scale_counter } => {
-                (Effect::Tick(Sample { motor_counter, scale_counter }), Event::None)
-            }
+            Request::Sample {
+                motor_counter,
+                scale_counter,
+            } => (
+                Effect::Tick(Sample {
+                    motor_counter,
+                    scale_counter,
+                }),
+                Event::None,
+            ),
             Request::Status => (Effect::Status, Event::None),
             Request::Telemetry { every_n_ticks } => {
                 self.streaming = every_n_ticks != 0;
@@ -1110,12 +1225,19 @@ impl Endpoint {
                 if total_len as usize > blob::MAX_BYTES {
                     self.transfer = None;
                     let d = cal_error::TOO_LONG;
-                    return (refuse(LinkError::Calibration, d), Event::CalibrationRefused(d));
+                    return (
+                        refuse(LinkError::Calibration, d),
+                        Event::CalibrationRefused(d),
+                    );
                 }
                 self.transfer = Some((total_len as usize, crc32, 0, Crc32::new()));
                 (ack, Event::CalibrationBegun { total_len })
             }
-            Request::CalChunk { offset, len, ref data } => {
+            Request::CalChunk {
+                offset,
+                len,
+                ref data,
+            } => {
                 let d = match &mut self.transfer {
                     None => cal_error::NOT_STARTED,
                     Some((_, _, got, _)) if offset as usize != *got => cal_error::OFFSET,
@@ -1128,7 +1250,10 @@ impl Endpoint {
                         return (ack, Event::None);
                     }
                 };
-                (refuse(LinkError::Calibration, d), Event::CalibrationRefused(d))
+                (
+                    refuse(LinkError::Calibration, d),
+                    Event::CalibrationRefused(d),
+                )
             }
             Request::CalCommit => {
                 let d = match self.transfer {
@@ -1143,7 +1268,10 @@ impl Endpoint {
                                 (ack, Event::CalibrationLoaded { len: total as u32 })
                             }
                             Err(e) => (
-                                refuse(LinkError::Calibration, cal_error::REJECTED | blob_error_code(e)),
+                                refuse(
+                                    LinkError::Calibration,
+                                    cal_error::REJECTED | blob_error_code(e),
+                                ),
                                 Event::CalibrationRejected(e),
                             ),
                         };
@@ -1152,7 +1280,10 @@ impl Endpoint {
                 if d == cal_error::CRC {
                     self.transfer = None;
                 }
-                (refuse(LinkError::Calibration, d), Event::CalibrationRefused(d))
+                (
+                    refuse(LinkError::Calibration, d),
+                    Event::CalibrationRefused(d),
+                )
             }
             // Every command kind was handled above.
             _ => (refuse(LinkError::NotSupported, 0), Event::None),
@@ -1225,33 +1356,68 @@ mod tests {
             *d = i as u8; // includes a zero byte: COBS must carry it
         }
         vec![
-            Request::Move { target_um: -250_000, velocity_um_s: 50_000, accel_um_s2: 1 },
-            Request::Move { target_um: i32::MAX, velocity_um_s: u32::MAX, accel_um_s2: u32::MAX },
+            Request::Move {
+                target_um: -250_000,
+                velocity_um_s: 50_000,
+                accel_um_s2: 1,
+            },
+            Request::Move {
+                target_um: i32::MAX,
+                velocity_um_s: u32::MAX,
+                accel_um_s2: u32::MAX,
+            },
             Request::Stop,
             Request::Enable,
             Request::Disable,
             Request::ClearFaults,
             Request::SelectModel(0),
             Request::SelectModel(MODEL_MAX),
-            Request::CalBegin { total_len: 1234, crc32: 0 },
-            Request::CalChunk { offset: 0, len: 1, data: [0; CHUNK_MAX] },
-            Request::CalChunk { offset: 4096, len: CHUNK_MAX as u8, data },
+            Request::CalBegin {
+                total_len: 1234,
+                crc32: 0,
+            },
+            Request::CalChunk {
+                offset: 0,
+                len: 1,
+                data: [0; CHUNK_MAX],
+            },
+            Request::CalChunk {
+                offset: 4096,
+                len: CHUNK_MAX as u8,
+                data,
+            },
             Request::CalCommit,
             Request::Status,
             Request::Telemetry { every_n_ticks: 0 },
-            Request::Telemetry { every_n_ticks: 65535 },
-            Request::Sample { motor_counter: 0, scale_counter: 0xffff },
+            Request::Telemetry {
+                every_n_ticks: 65535,
+            },
+            Request::Sample {
+                motor_counter: 0,
+                scale_counter: 0xffff,
+            },
             Request::Shutdown { code: 0 },
             Request::Shutdown { code: 255 },
-            Request::Home { position_um: -5, scale_um: i32::MIN },
+            Request::Home {
+                position_um: -5,
+                scale_um: i32::MIN,
+            },
         ]
     }
 
     fn all_replies() -> Vec<Reply> {
         vec![
             Reply::Ack { of: kind::MOVE },
-            Reply::Error { of: kind::UNKNOWN, reason: LinkError::Crc, detail: 0 },
-            Reply::Error { of: kind::MOVE, reason: LinkError::Refused, detail: 3 },
+            Reply::Error {
+                of: kind::UNKNOWN,
+                reason: LinkError::Crc,
+                detail: 0,
+            },
+            Reply::Error {
+                of: kind::MOVE,
+                reason: LinkError::Refused,
+                detail: 3,
+            },
             Reply::Status(WireStatus {
                 tick: 1,
                 motor_counts: -2,
@@ -1265,7 +1431,11 @@ mod tests {
             }),
             Reply::Telemetry(telemetry()),
             Reply::Telemetry(WireTelemetry::default()),
-            Reply::Answer { current_a_bits: -1, telemetry: telemetry(), step_instructions: 321 },
+            Reply::Answer {
+                current_a_bits: -1,
+                telemetry: telemetry(),
+                step_instructions: 321,
+            },
         ]
     }
 
@@ -1314,7 +1484,13 @@ mod tests {
             assert!(!bytes[..n - 1].contains(&0), "{req:?}");
             let mut rx = Receiver::new();
             let got = feed::<Request>(&mut rx, &bytes[..n]);
-            assert_eq!(got, vec![Ok(Frame { seq: i as u8, msg: req })]);
+            assert_eq!(
+                got,
+                vec![Ok(Frame {
+                    seq: i as u8,
+                    msg: req
+                })]
+            );
             assert_eq!((rx.frames_ok, rx.frames_bad), (1, 0));
         }
     }
@@ -1325,14 +1501,24 @@ mod tests {
             let (bytes, n) = wire(200 + i as u8, &rep);
             let mut rx = Receiver::new();
             let got = feed::<Reply>(&mut rx, &bytes[..n]);
-            assert_eq!(got, vec![Ok(Frame { seq: 200 + i as u8, msg: rep })]);
+            assert_eq!(
+                got,
+                vec![Ok(Frame {
+                    seq: 200 + i as u8,
+                    msg: rep
+                })]
+            );
         }
     }
 
     #[test]
     fn layout_is_fixed() {
         // A Move, byte by byte: kind, seq, target (LE), velocity, accel, CRC.
-        let m = Request::Move { target_um: 0x0403_0201, velocity_um_s: 5, accel_um_s2: 6 };
+        let m = Request::Move {
+            target_um: 0x0403_0201,
+            velocity_um_s: 5,
+            accel_um_s2: 6,
+        };
         let mut raw = [0u8; MAX_RAW];
         raw[0] = m.kind();
         raw[1] = 9;
@@ -1341,8 +1527,14 @@ mod tests {
         assert_eq!(&raw[..14], &[1, 9, 1, 2, 3, 4, 5, 0, 0, 0, 6, 0, 0, 0]);
         let sizes = [
             (Reply::Ack { of: 1 }.write_payload(&mut [0; MAX_PAYLOAD]), 1),
-            (Reply::Status(WireStatus::default()).write_payload(&mut [0; MAX_PAYLOAD]), 24),
-            (Reply::Telemetry(telemetry()).write_payload(&mut [0; MAX_PAYLOAD]), TELEMETRY_LEN),
+            (
+                Reply::Status(WireStatus::default()).write_payload(&mut [0; MAX_PAYLOAD]),
+                24,
+            ),
+            (
+                Reply::Telemetry(telemetry()).write_payload(&mut [0; MAX_PAYLOAD]),
+                TELEMETRY_LEN,
+            ),
             (
                 Reply::Answer {
                     current_a_bits: 0,
@@ -1359,18 +1551,29 @@ mod tests {
     }
 
     /// Wire bytes computed independently (Python: zlib.crc32 and a separate COBS encoder).
-    pub(crate) const KNOWN_MOVE: [u8; 20] =
-        [9, 1, 9, 112, 47, 252, 255, 80, 195, 1, 4, 64, 13, 3, 5, 157, 230, 2, 169, 0];
+    pub(crate) const KNOWN_MOVE: [u8; 20] = [
+        9, 1, 9, 112, 47, 252, 255, 80, 195, 1, 4, 64, 13, 3, 5, 157, 230, 2, 169, 0,
+    ];
     pub(crate) const KNOWN_SAMPLE: [u8; 12] = [2, 12, 3, 52, 18, 1, 5, 48, 121, 235, 166, 0];
 
     #[test]
     fn known_wire_bytes() {
         let (b, n) = wire(
             9,
-            &Request::Move { target_um: -250_000, velocity_um_s: 50_000, accel_um_s2: 200_000 },
+            &Request::Move {
+                target_um: -250_000,
+                velocity_um_s: 50_000,
+                accel_um_s2: 200_000,
+            },
         );
         assert_eq!(&b[..n], &KNOWN_MOVE);
-        let (b, n) = wire(0, &Request::Sample { motor_counter: 0x1234, scale_counter: 0 });
+        let (b, n) = wire(
+            0,
+            &Request::Sample {
+                motor_counter: 0x1234,
+                scale_counter: 0,
+            },
+        );
         assert_eq!(&b[..n], &KNOWN_SAMPLE);
     }
 
@@ -1393,16 +1596,55 @@ mod tests {
             // valid COBS, too short for kind + seq + CRC
             (vec![3, 1, 2, 0], LinkError::TooShort, kind::UNKNOWN),
             // longer than any frame
-            (vec![0x55; MAX_ENCODED + 10].into_iter().chain([0]).collect(), LinkError::Oversize, kind::UNKNOWN),
+            (
+                vec![0x55; MAX_ENCODED + 10]
+                    .into_iter()
+                    .chain([0])
+                    .collect(),
+                LinkError::Oversize,
+                kind::UNKNOWN,
+            ),
             (frame_with_crc(&[0x7e, 1]), LinkError::UnknownKind, 0x7e),
-            (frame_with_crc(&[kind::ACK, 1, 1]), LinkError::UnknownKind, kind::ACK),
-            (frame_with_crc(&[kind::STOP, 1, 0]), LinkError::BadLength, kind::STOP),
-            (frame_with_crc(&[kind::MOVE, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0]), LinkError::OutOfRange, kind::MOVE),
-            (frame_with_crc(&[kind::MOVE, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0]), LinkError::OutOfRange, kind::MOVE),
-            (frame_with_crc(&[kind::MOVE, 1, 0, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0]), LinkError::BadLength, kind::MOVE),
-            (frame_with_crc(&[kind::SELECT_MODEL, 1, MODEL_MAX + 1]), LinkError::OutOfRange, kind::SELECT_MODEL),
-            (frame_with_crc(&[kind::CAL_BEGIN, 1, 0, 0, 0, 0, 1, 2, 3, 4]), LinkError::OutOfRange, kind::CAL_BEGIN),
-            (frame_with_crc(&[kind::CAL_CHUNK, 1, 0, 0, 0, 0]), LinkError::BadLength, kind::CAL_CHUNK),
+            (
+                frame_with_crc(&[kind::ACK, 1, 1]),
+                LinkError::UnknownKind,
+                kind::ACK,
+            ),
+            (
+                frame_with_crc(&[kind::STOP, 1, 0]),
+                LinkError::BadLength,
+                kind::STOP,
+            ),
+            (
+                frame_with_crc(&[kind::MOVE, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0]),
+                LinkError::OutOfRange,
+                kind::MOVE,
+            ),
+            (
+                frame_with_crc(&[kind::MOVE, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0]),
+                LinkError::OutOfRange,
+                kind::MOVE,
+            ),
+            (
+                frame_with_crc(&[kind::MOVE, 1, 0, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0]),
+                LinkError::BadLength,
+                kind::MOVE,
+            ),
+            (
+                frame_with_crc(&[kind::SELECT_MODEL, 1, MODEL_MAX + 1]),
+                LinkError::OutOfRange,
+                kind::SELECT_MODEL,
+            ),
+            (
+                frame_with_crc(&[kind::CAL_BEGIN, 1, 0, 0, 0, 0, 1, 2, 3, 4]),
+                LinkError::OutOfRange,
+                kind::CAL_BEGIN,
+            ),
+            (
+                frame_with_crc(&[kind::CAL_CHUNK, 1, 0, 0, 0, 0]),
+                LinkError::BadLength,
+                kind::CAL_CHUNK,
+            ),
         ];
         for (bytes, error, k) in cases {
             let mut rx = Receiver::new();
@@ -1410,7 +1652,10 @@ mod tests {
             assert_eq!(got.len(), 1, "{bytes:?}");
             let r = got[0].unwrap_err();
             assert_eq!((r.error, r.kind), (error, k), "{bytes:?}");
-            assert_eq!((rx.frames_ok, rx.frames_bad, rx.last_error), (0, 1, Some(error)));
+            assert_eq!(
+                (rx.frames_ok, rx.frames_bad, rx.last_error),
+                (0, 1, Some(error))
+            );
         }
         // A chunk with one byte too many is longer than any frame.
         let mut body = vec![kind::CAL_CHUNK, 1, 0, 0, 0, 0];
@@ -1454,7 +1699,13 @@ mod tests {
         let got = feed::<Request>(&mut rx, &stream);
         assert_eq!(got.len(), 4);
         assert!(got[0].is_err() && got[2].is_err());
-        assert_eq!(got[1], Ok(Frame { seq: 7, msg: Request::Status }));
+        assert_eq!(
+            got[1],
+            Ok(Frame {
+                seq: 7,
+                msg: Request::Status
+            })
+        );
         assert_eq!(got[3], got[1]);
         assert_eq!((rx.frames_ok, rx.frames_bad), (2, 2));
         assert_eq!(rx.last_error, Some(LinkError::Oversize));
@@ -1480,13 +1731,20 @@ mod tests {
     #[test]
     fn commands_map_both_ways() {
         let cmds = [
-            Command::MoveTo { target_um: 1, velocity_um_s: 2, accel_um_s2: 3 },
+            Command::MoveTo {
+                target_um: 1,
+                velocity_um_s: 2,
+                accel_um_s2: 3,
+            },
             Command::Stop,
             Command::Enable,
             Command::Disable,
             Command::ClearFaults,
             Command::SelectModel(ModelKind::Exponential),
-            Command::Home { position_um: -4, scale_um: 5 },
+            Command::Home {
+                position_um: -4,
+                scale_um: 5,
+            },
         ];
         for c in cmds {
             assert_eq!(to_command(&from_command(&c)), Some(c));
@@ -1503,7 +1761,10 @@ mod tests {
     #[test]
     fn telemetry_and_answers_convert_exactly() {
         let mut d = drive();
-        let out = d.step(Sample { motor_counter: 7, scale_counter: 9 });
+        let out = d.step(Sample {
+            motor_counter: 7,
+            scale_counter: 9,
+        });
         let reply = answer(&out, 42);
         assert_eq!(output_of(&reply), Some((out, 42)));
         let mut w = WireTelemetry::from(&out.telemetry);
@@ -1516,25 +1777,55 @@ mod tests {
     fn endpoint_applies_commands_and_reports_refusals() {
         let mut d = drive();
         let mut ep = Endpoint::new();
-        let mv = Request::Move { target_um: 10_000, velocity_um_s: 50_000, accel_um_s2: 500_000 };
+        let mv = Request::Move {
+            target_um: 10_000,
+            velocity_um_s: 50_000,
+            accel_um_s2: 500_000,
+        };
         let (e, ev) = ep.handle(&mv, &mut d);
-        assert_eq!(refused(e), Some((LinkError::Refused, command_error_code(CommandError::NotEnabled))));
+        assert_eq!(
+            refused(e),
+            Some((
+                LinkError::Refused,
+                command_error_code(CommandError::NotEnabled)
+            ))
+        );
         assert!(matches!(ev, Event::Refused(_, CommandError::NotEnabled)));
         assert_eq!(ep.handle(&Request::Enable, &mut d).0, ACK_ENABLE);
         assert!(d.is_enabled());
         let (e, ev) = ep.handle(&mv, &mut d);
         assert_eq!(e, Effect::Reply(Reply::Ack { of: kind::MOVE }));
         assert!(matches!(ev, Event::Applied(Command::MoveTo { .. })));
-        let far = Request::Move { target_um: 10_000_000, velocity_um_s: 1, accel_um_s2: 1 };
+        let far = Request::Move {
+            target_um: 10_000_000,
+            velocity_um_s: 1,
+            accel_um_s2: 1,
+        };
         let code = command_error_code(CommandError::TargetOutOfTravel);
-        assert_eq!(refused(ep.handle(&far, &mut d).0), Some((LinkError::Refused, code)));
+        assert_eq!(
+            refused(ep.handle(&far, &mut d).0),
+            Some((LinkError::Refused, code))
+        );
 
-        let s = Request::Sample { motor_counter: 3, scale_counter: 4 };
-        let tick = Effect::Tick(Sample { motor_counter: 3, scale_counter: 4 });
+        let s = Request::Sample {
+            motor_counter: 3,
+            scale_counter: 4,
+        };
+        let tick = Effect::Tick(Sample {
+            motor_counter: 3,
+            scale_counter: 4,
+        });
         assert_eq!(ep.handle(&s, &mut d).0, tick);
         assert_eq!(ep.handle(&Request::Status, &mut d).0, Effect::Status);
-        assert_eq!(ep.handle(&Request::Telemetry { every_n_ticks: 20 }, &mut d).0, Effect::Stream(20));
-        assert_eq!(ep.handle(&Request::Shutdown { code: 3 }, &mut d).0, Effect::Shutdown(3));
+        assert_eq!(
+            ep.handle(&Request::Telemetry { every_n_ticks: 20 }, &mut d)
+                .0,
+            Effect::Stream(20)
+        );
+        assert_eq!(
+            ep.handle(&Request::Shutdown { code: 3 }, &mut d).0,
+            Effect::Shutdown(3)
+        );
 
         let _ = d.step(Sample::default());
         let mut rx = Receiver::new();
@@ -1543,13 +1834,21 @@ mod tests {
         assert_eq!(st.flags & status_flags::ENABLED, status_flags::ENABLED);
         assert_eq!(st.flags & status_flags::STREAMING, status_flags::STREAMING);
         assert_eq!(st.flags & status_flags::CALIBRATED, 0);
-        assert_eq!((st.frames_bad, st.last_error, st.stack_peak_bytes), (1, LinkError::Crc as u8, 1234));
+        assert_eq!(
+            (st.frames_bad, st.last_error, st.stack_peak_bytes),
+            (1, LinkError::Crc as u8, 1234)
+        );
         assert_eq!(st.tick, d.telemetry().tick);
     }
 
     fn paper_blob() -> Vec<u8> {
         let mut buf = vec![0u8; blob::MAX_BYTES];
-        let n = blob::encode(&crate::model::ModelParams::PAPER, &DriveConfig::paper_rig().rig, &mut buf).unwrap();
+        let n = blob::encode(
+            &crate::model::ModelParams::PAPER,
+            &DriveConfig::paper_rig().rig,
+            &mut buf,
+        )
+        .unwrap();
         buf.truncate(n);
         buf
     }
@@ -1557,7 +1856,11 @@ mod tests {
     fn chunk(offset: usize, piece: &[u8]) -> Request {
         let mut data = [0u8; CHUNK_MAX];
         data[..piece.len()].copy_from_slice(piece);
-        Request::CalChunk { offset: offset as u32, len: piece.len() as u8, data }
+        Request::CalChunk {
+            offset: offset as u32,
+            len: piece.len() as u8,
+            data,
+        }
     }
 
     #[test]
@@ -1567,38 +1870,97 @@ mod tests {
         let mut ep = Endpoint::new();
         let cal = |d: u8| Some((LinkError::Calibration, d));
         // Nothing started.
-        assert_eq!(refused(ep.handle(&chunk(0, &blob[..8]), &mut d).0), cal(cal_error::NOT_STARTED));
-        assert_eq!(refused(ep.handle(&Request::CalCommit, &mut d).0), cal(cal_error::NOT_STARTED));
+        assert_eq!(
+            refused(ep.handle(&chunk(0, &blob[..8]), &mut d).0),
+            cal(cal_error::NOT_STARTED)
+        );
+        assert_eq!(
+            refused(ep.handle(&Request::CalCommit, &mut d).0),
+            cal(cal_error::NOT_STARTED)
+        );
         // Too long for the drive.
-        let huge = Request::CalBegin { total_len: blob::MAX_BYTES as u32 + 1, crc32: 0 };
-        assert_eq!(refused(ep.handle(&huge, &mut d).0), cal(cal_error::TOO_LONG));
+        let huge = Request::CalBegin {
+            total_len: blob::MAX_BYTES as u32 + 1,
+            crc32: 0,
+        };
+        assert_eq!(
+            refused(ep.handle(&huge, &mut d).0),
+            cal(cal_error::TOO_LONG)
+        );
         // A good transfer with one out-of-order chunk refused on the way (and then resent).
-        let begin = Request::CalBegin { total_len: blob.len() as u32, crc32: crc32(&blob) };
-        assert!(matches!(ep.handle(&begin, &mut d).0, Effect::Reply(Reply::Ack { .. })));
-        assert_eq!(refused(ep.handle(&chunk(64, &blob[64..128]), &mut d).0), cal(cal_error::OFFSET));
+        let begin = Request::CalBegin {
+            total_len: blob.len() as u32,
+            crc32: crc32(&blob),
+        };
+        assert!(matches!(
+            ep.handle(&begin, &mut d).0,
+            Effect::Reply(Reply::Ack { .. })
+        ));
+        assert_eq!(
+            refused(ep.handle(&chunk(64, &blob[64..128]), &mut d).0),
+            cal(cal_error::OFFSET)
+        );
         for (i, piece) in blob.chunks(CHUNK_MAX).enumerate() {
             if i == 2 {
                 // Commit before the end.
-                assert_eq!(refused(ep.handle(&Request::CalCommit, &mut d).0), cal(cal_error::INCOMPLETE));
+                assert_eq!(
+                    refused(ep.handle(&Request::CalCommit, &mut d).0),
+                    cal(cal_error::INCOMPLETE)
+                );
             }
-            assert!(matches!(ep.handle(&chunk(i * CHUNK_MAX, piece), &mut d).0, Effect::Reply(Reply::Ack { .. })));
+            assert!(matches!(
+                ep.handle(&chunk(i * CHUNK_MAX, piece), &mut d).0,
+                Effect::Reply(Reply::Ack { .. })
+            ));
         }
         // Past the announced end.
-        assert_eq!(refused(ep.handle(&chunk(blob.len(), &[1]), &mut d).0), cal(cal_error::TOO_LONG));
+        assert_eq!(
+            refused(ep.handle(&chunk(blob.len(), &[1]), &mut d).0),
+            cal(cal_error::TOO_LONG)
+        );
         let (e, ev) = ep.handle(&Request::CalCommit, &mut d);
         assert!(matches!(e, Effect::Reply(Reply::Ack { .. })), "{e:?}");
-        assert_eq!(ev, Event::CalibrationLoaded { len: blob.len() as u32 });
-        assert_ne!(ep.status(&d, &Receiver::new(), 0).flags & status_flags::CALIBRATED, 0);
+        assert_eq!(
+            ev,
+            Event::CalibrationLoaded {
+                len: blob.len() as u32
+            }
+        );
+        assert_ne!(
+            ep.status(&d, &Receiver::new(), 0).flags & status_flags::CALIBRATED,
+            0
+        );
 
         // Bytes that do not match the announced CRC.
-        let begin = Request::CalBegin { total_len: 8, crc32: crc32(&blob[..8]) ^ 1 };
-        assert!(matches!(ep.handle(&begin, &mut d).0, Effect::Reply(Reply::Ack { .. })));
-        assert!(matches!(ep.handle(&chunk(0, &blob[..8]), &mut d).0, Effect::Reply(Reply::Ack { .. })));
-        assert_eq!(refused(ep.handle(&Request::CalCommit, &mut d).0), cal(cal_error::CRC));
+        let begin = Request::CalBegin {
+            total_len: 8,
+            crc32: crc32(&blob[..8]) ^ 1,
+        };
+        assert!(matches!(
+            ep.handle(&begin, &mut d).0,
+            Effect::Reply(Reply::Ack { .. })
+        ));
+        assert!(matches!(
+            ep.handle(&chunk(0, &blob[..8]), &mut d).0,
+            Effect::Reply(Reply::Ack { .. })
+        ));
+        assert_eq!(
+            refused(ep.handle(&Request::CalCommit, &mut d).0),
+            cal(cal_error::CRC)
+        );
         // A transfer that arrives intact but holds no valid blob: the drive refuses it.
-        let begin = Request::CalBegin { total_len: 8, crc32: crc32(&blob[..8]) };
-        assert!(matches!(ep.handle(&begin, &mut d).0, Effect::Reply(Reply::Ack { .. })));
-        assert!(matches!(ep.handle(&chunk(0, &blob[..8]), &mut d).0, Effect::Reply(Reply::Ack { .. })));
+        let begin = Request::CalBegin {
+            total_len: 8,
+            crc32: crc32(&blob[..8]),
+        };
+        assert!(matches!(
+            ep.handle(&begin, &mut d).0,
+            Effect::Reply(Reply::Ack { .. })
+        ));
+        assert!(matches!(
+            ep.handle(&chunk(0, &blob[..8]), &mut d).0,
+            Effect::Reply(Reply::Ack { .. })
+        ));
         let (e, ev) = ep.handle(&Request::CalCommit, &mut d);
         let code = cal_error::REJECTED | blob_error_code(BlobError::Truncated);
         assert_eq!(refused(e), cal(code));
@@ -1617,20 +1979,35 @@ mod tests {
             Just(Request::Disable),
             Just(Request::ClearFaults),
             (0..=MODEL_MAX).prop_map(Request::SelectModel),
-            (1..=u32::MAX, any::<u32>()).prop_map(|(l, c)| Request::CalBegin { total_len: l, crc32: c }),
-            (any::<u32>(), proptest::collection::vec(any::<u8>(), 1..=CHUNK_MAX)).prop_map(|(o, d)| {
-                let mut data = [0u8; CHUNK_MAX];
-                data[..d.len()].copy_from_slice(&d);
-                Request::CalChunk { offset: o, len: d.len() as u8, data }
+            (1..=u32::MAX, any::<u32>()).prop_map(|(l, c)| Request::CalBegin {
+                total_len: l,
+                crc32: c
             }),
+            (
+                any::<u32>(),
+                proptest::collection::vec(any::<u8>(), 1..=CHUNK_MAX)
+            )
+                .prop_map(|(o, d)| {
+                    let mut data = [0u8; CHUNK_MAX];
+                    data[..d.len()].copy_from_slice(&d);
+                    Request::CalChunk {
+                        offset: o,
+                        len: d.len() as u8,
+                        data,
+                    }
+                }),
             Just(Request::CalCommit),
             Just(Request::Status),
             any::<u16>().prop_map(|n| Request::Telemetry { every_n_ticks: n }),
-            (any::<u16>(), any::<u16>())
-                .prop_map(|(m, s)| Request::Sample { motor_counter: m, scale_counter: s }),
+            (any::<u16>(), any::<u16>()).prop_map(|(m, s)| Request::Sample {
+                motor_counter: m,
+                scale_counter: s
+            }),
             any::<u8>().prop_map(|code| Request::Shutdown { code }),
-            (any::<i32>(), any::<i32>())
-                .prop_map(|(p, s)| Request::Home { position_um: p, scale_um: s }),
+            (any::<i32>(), any::<i32>()).prop_map(|(p, s)| Request::Home {
+                position_um: p,
+                scale_um: s
+            }),
         ]
     }
 

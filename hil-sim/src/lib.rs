@@ -12,6 +12,7 @@ pub mod controller;
 pub mod eval;
 pub mod fit;
 pub mod params;
+pub mod pil;
 pub mod plant;
 pub mod plot;
 pub mod progress;
@@ -20,7 +21,6 @@ pub mod run;
 pub mod scenario;
 pub mod stats;
 pub mod tables;
-pub mod pil;
 
 pub use params::PlantParams;
 pub use plant::{BeltForces, Plant};

@@ -427,7 +427,7 @@ impl Plant {
     /// A plant at rest with zero current, carriage at `start_mm`, on the forward band edge but
     /// unloaded: gear backlash and tooth gap closed on their forward-driving flanks with zero
     /// force, spans at preload, bristles relaxed. The first forward move only loads the drive
-    /// (dx drops by the elastic share, ~20 um); the first reverse move sees the full reversal.
+    /// (dx drops by the elastic share, ~15 um); the first reverse move sees the full reversal.
     ///
     /// `seed` draws the run-to-run variation (`[variation]`) and the scale noise.
     ///

@@ -209,15 +209,12 @@ mod analysis {
                 .unwrap();
             a.swap(c, p);
             let piv = a[c][c];
-            for j in c..=n {
-                a[c][j] /= piv;
-            }
-            for i in 0..n {
+            a[c].iter_mut().for_each(|x| *x /= piv);
+            let pivot = a[c].clone();
+            for (i, row) in a.iter_mut().enumerate() {
                 if i != c {
-                    let f = a[i][c];
-                    for j in c..=n {
-                        a[i][j] -= f * a[c][j];
-                    }
+                    let f = row[c];
+                    row.iter_mut().zip(&pivot).for_each(|(x, p)| *x -= f * p);
                 }
             }
         }

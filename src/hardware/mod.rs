@@ -93,7 +93,9 @@ impl LinkTx {
     /// Writes one byte; call only when `can_write()`.
     #[inline]
     pub fn write(&mut self, byte: u8) {
-        self.usart.dr().write(|w| unsafe { w.dr().bits(byte as u16) });
+        self.usart
+            .dr()
+            .write(|w| unsafe { w.dr().bits(byte as u16) });
     }
 
     /// Turns the TXE interrupt on (bytes queued) or off (queue empty).

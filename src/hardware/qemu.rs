@@ -63,7 +63,10 @@ impl ControlIo {
         }
         let raw = SAMPLE.load(Ordering::Relaxed);
         Some(Tick {
-            sample: Sample { motor_counter: raw as u16, scale_counter: (raw >> 16) as u16 },
+            sample: Sample {
+                motor_counter: raw as u16,
+                scale_counter: (raw >> 16) as u16,
+            },
             reply_seq: Some(SEQ.load(Ordering::Relaxed) as u8),
         })
     }
@@ -87,7 +90,10 @@ impl ControlIo {
 
 /// Hands a PIL sample to the control task and pends its interrupt.
 pub fn pil_deliver(seq: u8, sample: Sample) -> Result<(), ()> {
-    SAMPLE.store(sample.motor_counter as u32 | (sample.scale_counter as u32) << 16, Ordering::Relaxed);
+    SAMPLE.store(
+        sample.motor_counter as u32 | (sample.scale_counter as u32) << 16,
+        Ordering::Relaxed,
+    );
     SEQ.store(seq as u32, Ordering::Relaxed);
     PENDING.store(true, Ordering::Release);
     rtic::pend(pac::Interrupt::TIM7);
@@ -95,13 +101,21 @@ pub fn pil_deliver(seq: u8, sample: Sample) -> Result<(), ()> {
 }
 
 /// HSI clocks, SysTick monotonic at 168 MHz, TIM2 instruction counter, USART2.
-pub fn init(dp: pac::Peripherals, syst: cortex_m::peripheral::SYST, _control_rate_hz: u32) -> Board {
+pub fn init(
+    dp: pac::Peripherals,
+    syst: cortex_m::peripheral::SYST,
+    _control_rate_hz: u32,
+) -> Board {
     let mut rcc = dp.RCC.freeze(Config::hsi());
     Mono::start(syst, QEMU_CORE_HZ);
 
     // TIM2 as an instruction counter: PSC = 0, ARR = 0, no interrupt.
     // SAFETY: one RCC bit during init (QEMU ignores it; kept for honesty).
-    unsafe { (*pac::RCC::ptr()).apb1enr().modify(|_, w| w.tim2en().set_bit()) };
+    unsafe {
+        (*pac::RCC::ptr())
+            .apb1enr()
+            .modify(|_, w| w.tim2en().set_bit())
+    };
     let counter = dp.TIM2;
     counter.psc().write(|w| unsafe { w.bits(0) });
     counter.arr().write(|w| unsafe { w.bits(0) });
@@ -119,7 +133,12 @@ pub fn init(dp: pac::Peripherals, syst: cortex_m::peripheral::SYST, _control_rat
     .0;
     let (rx, tx) = link_usart(usart);
 
-    Board { control: ControlIo { counter }, rx, tx, sysclk_hz: QEMU_CORE_HZ }
+    Board {
+        control: ControlIo { counter },
+        rx,
+        tx,
+        sysclk_hz: QEMU_CORE_HZ,
+    }
 }
 
 /// No motor under QEMU.

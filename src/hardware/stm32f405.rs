@@ -71,7 +71,10 @@ impl ControlIo {
         self.tick.clear_flags(Flag::Update);
         use stm32f4xx_hal::hal_02::Qei as _;
         Some(Tick {
-            sample: Sample { motor_counter: self.motor.count(), scale_counter: self.scale.count() },
+            sample: Sample {
+                motor_counter: self.motor.count(),
+                scale_counter: self.scale.count(),
+            },
             reply_seq: None,
         })
     }
@@ -87,7 +90,9 @@ impl ControlIo {
     /// amplifier's enable line.
     #[inline(always)]
     pub fn write_current(&mut self, out: &DriveOutput) {
-        self.dac.dhr12r1().write(|w| unsafe { w.daccdhr().bits(dac_code(out.current_a)) });
+        self.dac
+            .dhr12r1()
+            .write(|w| unsafe { w.daccdhr().bits(dac_code(out.current_a)) });
         if out.telemetry.faults.is_clear() {
             self.amp_enable.set_high();
         } else {
@@ -105,7 +110,11 @@ fn dac_code(current_a: I16F16) -> u16 {
 /// Clocks, encoder timers, DAC, control timer, link USART and the monotonic.
 pub fn init(dp: pac::Peripherals, syst: cortex_m::peripheral::SYST, control_rate_hz: u32) -> Board {
     let mut rcc = dp.RCC.freeze(
-        Config::hse(8.MHz()).sysclk(168.MHz()).hclk(168.MHz()).pclk1(42.MHz()).pclk2(84.MHz()),
+        Config::hse(8.MHz())
+            .sysclk(168.MHz())
+            .hclk(168.MHz())
+            .pclk1(42.MHz())
+            .pclk2(84.MHz()),
     );
     let sysclk_hz = rcc.clocks.sysclk().raw();
     Mono::start(syst, sysclk_hz);
@@ -114,13 +123,21 @@ pub fn init(dp: pac::Peripherals, syst: cortex_m::peripheral::SYST, control_rate
     let gpiob = dp.GPIOB.split(&mut rcc);
 
     // The amplifier stays off until the first tick says otherwise.
-    let amp_enable = gpiob.pb0.into_push_pull_output_in_state(stm32f4xx_hal::gpio::PinState::Low);
+    let amp_enable = gpiob
+        .pb0
+        .into_push_pull_output_in_state(stm32f4xx_hal::gpio::PinState::Low);
 
     // DAC channel 1 on PA4, output buffer on, mid-scale (0 A) before it is enabled.
     let _pa4 = gpioa.pa4.into_analog();
     // SAFETY: a single read-modify-write of RCC during init, before any task runs.
-    unsafe { (*pac::RCC::ptr()).apb1enr().modify(|_, w| w.dacen().set_bit()) };
-    dp.DAC.dhr12r1().write(|w| unsafe { w.daccdhr().bits(DAC_ZERO) });
+    unsafe {
+        (*pac::RCC::ptr())
+            .apb1enr()
+            .modify(|_, w| w.dacen().set_bit())
+    };
+    dp.DAC
+        .dhr12r1()
+        .write(|w| unsafe { w.daccdhr().bits(DAC_ZERO) });
     dp.DAC.cr().modify(|_, w| w.en1().set_bit());
 
     let motor = Qei::new(dp.TIM3, (gpioa.pa6, gpioa.pa7), &mut rcc);
@@ -138,11 +155,18 @@ pub fn init(dp: pac::Peripherals, syst: cortex_m::peripheral::SYST, control_rate
     let (rx, tx) = link_usart(usart);
 
     let mut tick = dp.TIM7.counter_hz(&mut rcc);
-    tick.start(control_rate_hz.Hz()).unwrap_or_else(|_| defmt::panic!("TIM7 rate"));
+    tick.start(control_rate_hz.Hz())
+        .unwrap_or_else(|_| defmt::panic!("TIM7 rate"));
     tick.listen(Event::Update);
 
     Board {
-        control: ControlIo { tick, motor, scale, dac: dp.DAC, amp_enable },
+        control: ControlIo {
+            tick,
+            motor,
+            scale,
+            dac: dp.DAC,
+            amp_enable,
+        },
         rx,
         tx,
         sysclk_hz,
@@ -159,7 +183,9 @@ pub fn emergency_stop() {
     // SAFETY: two single-register writes that cannot conflict with an interrupted writer in a
     // harmful way: whatever it wrote, zero current and a low enable line win.
     unsafe {
-        (*pac::DAC::ptr()).dhr12r1().write(|w| w.daccdhr().bits(DAC_ZERO));
+        (*pac::DAC::ptr())
+            .dhr12r1()
+            .write(|w| w.daccdhr().bits(DAC_ZERO));
         (*pac::GPIOB::ptr()).bsrr().write(|w| w.br0().set_bit());
     }
 }
@@ -172,4 +198,3 @@ pub fn halt(_code: i32) -> ! {
         cortex_m::asm::wfi();
     }
 }
-

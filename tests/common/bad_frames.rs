@@ -35,9 +35,18 @@ fn valid_request(rng: &mut Rng) -> estimator_core::link::Request {
         },
         1 => Request::SelectModel(rng.below(4) as u8),
         2 => Request::Stop,
-        3 => Request::Home { position_um: rng.next() as i32, scale_um: rng.next() as i32 },
-        4 => Request::CalBegin { total_len: 1 + rng.below(4096), crc32: rng.next() },
-        _ => Request::Sample { motor_counter: rng.next() as u16, scale_counter: rng.next() as u16 },
+        3 => Request::Home {
+            position_um: rng.next() as i32,
+            scale_um: rng.next() as i32,
+        },
+        4 => Request::CalBegin {
+            total_len: 1 + rng.below(4096),
+            crc32: rng.next(),
+        },
+        _ => Request::Sample {
+            motor_counter: rng.next() as u16,
+            scale_counter: rng.next() as u16,
+        },
     }
 }
 
@@ -60,7 +69,8 @@ fn seal(raw: &mut [u8; estimator_core::link::MAX_RAW + 8], body_len: usize) -> u
 /// One bad frame on the wire (exactly one delimiter, at the end).
 pub fn bad_frame(rng: &mut Rng, out: &mut [u8; estimator_core::link::MAX_FRAME + 16]) -> usize {
     use estimator_core::link::{
-        cobs_decode_in_place, encode, kind, Message, Request, CHUNK_MAX, MAX_ENCODED, MAX_FRAME, MAX_RAW,
+        cobs_decode_in_place, encode, kind, Message, Request, CHUNK_MAX, MAX_ENCODED, MAX_FRAME,
+        MAX_RAW,
     };
     let mut raw = [0u8; MAX_RAW + 8];
     match rng.below(6) {
@@ -105,7 +115,11 @@ pub fn bad_frame(rng: &mut Rng, out: &mut [u8; estimator_core::link::MAX_FRAME +
         }
         // Correct CRC, a kind the drive does not accept (unused or a reply kind).
         3 => {
-            raw[0] = if rng.below(2) == 0 { 0x0f + rng.below(0x70) as u8 } else { kind::ACK + rng.below(0x7f) as u8 };
+            raw[0] = if rng.below(2) == 0 {
+                0x0f + rng.below(0x70) as u8
+            } else {
+                kind::ACK + rng.below(0x7f) as u8
+            };
             raw[1] = 0;
             let len = rng.below(20) as usize;
             for b in raw[2..2 + len].iter_mut() {
@@ -117,10 +131,21 @@ pub fn bad_frame(rng: &mut Rng, out: &mut [u8; estimator_core::link::MAX_FRAME +
         // Correct CRC and length, a value out of range.
         4 => {
             let req = match rng.below(4) {
-                0 => Request::Move { target_um: rng.next() as i32, velocity_um_s: 0, accel_um_s2: 1 + rng.below(1000) },
-                1 => Request::Move { target_um: rng.next() as i32, velocity_um_s: 1 + rng.below(1000), accel_um_s2: 0 },
+                0 => Request::Move {
+                    target_um: rng.next() as i32,
+                    velocity_um_s: 0,
+                    accel_um_s2: 1 + rng.below(1000),
+                },
+                1 => Request::Move {
+                    target_um: rng.next() as i32,
+                    velocity_um_s: 1 + rng.below(1000),
+                    accel_um_s2: 0,
+                },
                 2 => Request::SelectModel(4 + rng.below(252) as u8),
-                _ => Request::CalBegin { total_len: 0, crc32: rng.next() },
+                _ => Request::CalBegin {
+                    total_len: 0,
+                    crc32: rng.next(),
+                },
             };
             raw[0] = req.kind();
             raw[1] = 0;
@@ -133,9 +158,10 @@ pub fn bad_frame(rng: &mut Rng, out: &mut [u8; estimator_core::link::MAX_FRAME +
             let mut wire = [0u8; MAX_FRAME];
             let n = encode(0, &valid_request(rng), &mut wire);
             out[..n].copy_from_slice(&wire[..n]);
-            out[0] = (n as u8).saturating_add(1 + rng.below(100) as u8).max(n as u8 + 1);
+            out[0] = (n as u8)
+                .saturating_add(1 + rng.below(100) as u8)
+                .max(n as u8 + 1);
             n
         }
     }
 }
-

@@ -40,7 +40,10 @@ pub fn closed_loop(model: estimator_core::model::ModelKind) -> RunDigest {
     };
     let _ = drive.step(sample(pos));
     let setup = [
-        Command::Home { position_um: 10_000, scale_um: 10_000 },
+        Command::Home {
+            position_um: 10_000,
+            scale_um: 10_000,
+        },
         Command::Enable,
         Command::SelectModel(model),
     ];
@@ -49,16 +52,34 @@ pub fn closed_loop(model: estimator_core::model::ModelKind) -> RunDigest {
             panic!("setup command refused");
         }
     }
-    let moves = [(60_000, 100_000, 2_000_000), (30_000, 150_000, 3_000_000), (30_500, 20_000, 500_000)];
-    let mut digest = RunDigest { ticks: 0, blocks: [0; MAX_TICKS / BLOCK_TICKS], final_counts: 0, est_abs_sum: 0 };
+    let moves = [
+        (60_000, 100_000, 2_000_000),
+        (30_000, 150_000, 3_000_000),
+        (30_500, 20_000, 500_000),
+    ];
+    let mut digest = RunDigest {
+        ticks: 0,
+        blocks: [0; MAX_TICKS / BLOCK_TICKS],
+        final_counts: 0,
+        est_abs_sum: 0,
+    };
     let mut crc = Crc32::new();
     let mut next_move = 0;
     let mut rest_ticks = 0;
     for tick in 0..MAX_TICKS {
         if rest_ticks == 20 && next_move < moves.len() {
             let (target_um, velocity_um_s, accel_um_s2) = moves[next_move];
-            if let Err(e) = drive.command(Command::MoveTo { target_um, velocity_um_s, accel_um_s2 }) {
-                panic!("move {} refused: {:?}, faults {:?}", next_move, e, drive.telemetry().faults);
+            if let Err(e) = drive.command(Command::MoveTo {
+                target_um,
+                velocity_um_s,
+                accel_um_s2,
+            }) {
+                panic!(
+                    "move {} refused: {:?}, faults {:?}",
+                    next_move,
+                    e,
+                    drive.telemetry().faults
+                );
             }
             next_move += 1;
             rest_ticks = 0;

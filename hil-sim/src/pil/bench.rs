@@ -15,7 +15,11 @@ use crate::{Plant, PlantParams};
 pub type Move = (f64, f64, f64);
 
 /// The bench's moves: out, back past the start (a reversal), and a short reversal.
-pub const MOVES: [Move; 3] = [(80.0, 200.0, 4000.0), (40.0, 150.0, 3000.0), (42.0, 20.0, 1000.0)];
+pub const MOVES: [Move; 3] = [
+    (80.0, 200.0, 4000.0),
+    (40.0, 150.0, 3000.0),
+    (42.0, 20.0, 1000.0),
+];
 /// Where the carriage starts, mm.
 pub const START_MM: f64 = 50.0;
 
@@ -64,7 +68,10 @@ struct Lockstep {
 impl Lockstep {
     /// One tick: both controllers see the same sample; the firmware's current drives the plant.
     fn step(&mut self) -> Result<Output, PilError> {
-        let s = Sample { motor_counter: self.plant.motor_counter(), scale_counter: self.plant.scale_counter() };
+        let s = Sample {
+            motor_counter: self.plant.motor_counter(),
+            scale_counter: self.plant.scale_counter(),
+        };
         let a = self.host.step(s);
         let b = self.fw.step_sample(s)?;
         if a != b && self.first_mismatch.is_none() {
@@ -80,7 +87,9 @@ impl Lockstep {
         match (self.host.command(c), self.fw.send_command(c)) {
             (Ok(()), Ok(())) => Ok(()),
             (_, Err(PilError::Link(l))) => Err(PilError::Link(l)),
-            (a, b) => Err(PilError::Link(format!("command {c:?}: core {a:?}, firmware {b:?}"))),
+            (a, b) => Err(PilError::Link(format!(
+                "command {c:?}: core {a:?}, firmware {b:?}"
+            ))),
         }
     }
 }
@@ -92,12 +101,22 @@ pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilEr
     let host = Drive::new(&cfg).map_err(|e| PilError::Link(format!("drive config: {e}")))?;
     let fw = PilController::start(opts)?;
     let plant = Plant::new(&PlantParams::paper_rig(), START_MM, 1);
-    let mut ls = Lockstep { host, fw, plant, dt: 1.0 / cfg.rate_hz, ticks: 0, first_mismatch: None };
+    let mut ls = Lockstep {
+        host,
+        fw,
+        plant,
+        dt: 1.0 / cfg.rate_hz,
+        ticks: 0,
+        first_mismatch: None,
+    };
 
     ls.step()?;
     let start_um = (START_MM * 1000.0).round() as i32;
     let scale_um = (ls.plant.scale_counts() as f64 * 0.5).round() as i32;
-    ls.command(Command::Home { position_um: start_um, scale_um })?;
+    ls.command(Command::Home {
+        position_um: start_um,
+        scale_um,
+    })?;
     if model == ModelKind::Table {
         let blob = paper_blob()?;
         ls.host
@@ -118,7 +137,10 @@ pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilEr
         for _ in 0..40_000 {
             let out = ls.step()?;
             if !out.telemetry.faults.is_clear() {
-                return Err(PilError::Link(format!("drive fault {:#04x}", out.telemetry.faults.0)));
+                return Err(PilError::Link(format!(
+                    "drive fault {:#04x}",
+                    out.telemetry.faults.0
+                )));
             }
             if ls.first_mismatch.is_some() {
                 break 'moves;
@@ -158,8 +180,14 @@ pub struct Footprint {
 /// Reads the footprint of `elf` (32-bit little-endian ELF).
 pub fn footprint(elf: &Path) -> Result<Footprint, String> {
     let b = std::fs::read(elf).map_err(|e| format!("{}: {e}", elf.display()))?;
-    let u16_at = |o: usize| b.get(o..o + 2).map(|s| u16::from_le_bytes([s[0], s[1]]) as u64);
-    let u32_at = |o: usize| b.get(o..o + 4).map(|s| u32::from_le_bytes([s[0], s[1], s[2], s[3]]) as u64);
+    let u16_at = |o: usize| {
+        b.get(o..o + 2)
+            .map(|s| u16::from_le_bytes([s[0], s[1]]) as u64)
+    };
+    let u32_at = |o: usize| {
+        b.get(o..o + 4)
+            .map(|s| u32::from_le_bytes([s[0], s[1], s[2], s[3]]) as u64)
+    };
     if b.get(..5) != Some(&[0x7f, b'E', b'L', b'F', 1][..]) {
         return Err(format!("{}: not a 32-bit ELF", elf.display()));
     }
@@ -209,5 +237,9 @@ pub fn bench(opts: &PilOptions) -> Result<BenchReport, PilError> {
     for model in ModelKind::ALL {
         runs.push(run_model(opts, model)?);
     }
-    Ok(BenchReport { elf: opts.elf.clone(), runs, footprint })
+    Ok(BenchReport {
+        elf: opts.elf.clone(),
+        runs,
+        footprint,
+    })
 }

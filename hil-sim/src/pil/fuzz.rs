@@ -33,11 +33,21 @@ pub struct FuzzReport {
 
 /// Sends `n` bad frames to the firmware.
 pub fn run(opts: &PilOptions, n: u32) -> Result<FuzzReport, PilError> {
-    let mut host = Drive::new(&DriveConfig::paper_rig()).map_err(|e| PilError::Link(e.to_string()))?;
+    let mut host =
+        Drive::new(&DriveConfig::paper_rig()).map_err(|e| PilError::Link(e.to_string()))?;
     let mut fw = PilController::start(opts)?;
-    let rest = Sample { motor_counter: 1234, scale_counter: 4321 };
+    let rest = Sample {
+        motor_counter: 1234,
+        scale_counter: 4321,
+    };
     let mut unmoved = host.step(rest) == fw.step_sample(rest)?;
-    for c in [Command::Home { position_um: 100_000, scale_um: 100_000 }, Command::Enable] {
+    for c in [
+        Command::Home {
+            position_um: 100_000,
+            scale_um: 100_000,
+        },
+        Command::Enable,
+    ] {
         host.command(c).map_err(PilError::Refused)?;
         fw.send_command(c)?;
     }

@@ -171,7 +171,8 @@ impl PilController {
             }
         };
         let _ = std::fs::remove_file(&socket);
-        link.set_read_timeout(Some(Duration::from_millis(50))).map_err(link_err)?;
+        link.set_read_timeout(Some(Duration::from_millis(50)))
+            .map_err(link_err)?;
         let mut pil = PilController {
             qemu,
             link,
@@ -183,21 +184,38 @@ impl PilController {
         };
         // QEMU drops bytes that arrive before the firmware enables its USART: wait for the
         // firmware's boot announcement (an unsolicited status, sequence 0) before sending.
-        pil.wait_for(|r| matches!(r, Reply::Status(_)), 0, Duration::from_secs(20))?;
+        pil.wait_for(
+            |r| matches!(r, Reply::Status(_)),
+            0,
+            Duration::from_secs(20),
+        )?;
         Ok(pil)
     }
 
     /// Reads replies until one with sequence `seq` satisfies `want`, or the time is up.
-    fn wait_for(&mut self, want: impl Fn(&Reply) -> bool, seq: u8, limit: Duration) -> Result<Reply, PilError> {
+    fn wait_for(
+        &mut self,
+        want: impl Fn(&Reply) -> bool,
+        seq: u8,
+        limit: Duration,
+    ) -> Result<Reply, PilError> {
         let deadline = Instant::now() + limit;
         let mut buf = [0u8; 256];
         loop {
             let n = match self.link.read(&mut buf) {
                 Ok(0) => return Err(link_err("QEMU closed the link")),
                 Ok(n) => n,
-                Err(e) if matches!(e.kind(), io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut) => {
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
+                    ) =>
+                {
                     if Instant::now() >= deadline {
-                        return Err(link_err(format!("no reply within {:.1} s", limit.as_secs_f64())));
+                        return Err(link_err(format!(
+                            "no reply within {:.1} s",
+                            limit.as_secs_f64()
+                        )));
                     }
                     if !self.qemu.is_running() {
                         return Err(link_err("QEMU exited"));
@@ -255,12 +273,19 @@ impl PilController {
     /// Sends a calibration blob (begin, chunks, commit).
     pub fn load_calibration(&mut self, blob: &[u8]) -> Result<(), PilError> {
         let crc32 = estimator_core::link::crc32(blob);
-        self.expect_ack(&Request::CalBegin { total_len: blob.len() as u32, crc32 })?;
+        self.expect_ack(&Request::CalBegin {
+            total_len: blob.len() as u32,
+            crc32,
+        })?;
         for (i, piece) in blob.chunks(CHUNK_MAX).enumerate() {
             let mut data = [0u8; CHUNK_MAX];
             data[..piece.len()].copy_from_slice(piece);
             let offset = (i * CHUNK_MAX) as u32;
-            self.expect_ack(&Request::CalChunk { offset, len: piece.len() as u8, data })?;
+            self.expect_ack(&Request::CalChunk {
+                offset,
+                len: piece.len() as u8,
+                data,
+            })?;
         }
         self.expect_ack(&Request::CalCommit)
     }
@@ -268,15 +293,18 @@ impl PilController {
     fn expect_ack(&mut self, req: &Request) -> Result<(), PilError> {
         match self.call(req)? {
             Reply::Ack { .. } => Ok(()),
-            Reply::Error { reason: LinkError::Refused, detail, .. } => {
-                match command_error_from_code(detail) {
-                    Some(e) => Err(PilError::Refused(e)),
-                    None => Err(link_err(format!("refused with unknown code {detail}"))),
-                }
-            }
-            Reply::Error { reason, detail, .. } => {
-                Err(link_err(format!("{:?} refused: {reason:?} (detail {detail})", req.kind())))
-            }
+            Reply::Error {
+                reason: LinkError::Refused,
+                detail,
+                ..
+            } => match command_error_from_code(detail) {
+                Some(e) => Err(PilError::Refused(e)),
+                None => Err(link_err(format!("refused with unknown code {detail}"))),
+            },
+            Reply::Error { reason, detail, .. } => Err(link_err(format!(
+                "{:?} refused: {reason:?} (detail {detail})",
+                req.kind()
+            ))),
             other => Err(link_err(format!("unexpected reply: {other:?}"))),
         }
     }
@@ -321,7 +349,6 @@ fn answers(reply: &Reply, k: u8) -> bool {
         Reply::Telemetry(_) => false,
     }
 }
-
 
 impl From<PilError> for ControlError {
     fn from(e: PilError) -> Self {

@@ -82,7 +82,9 @@ impl std::fmt::Display for QemuError {
         match self {
             QemuError::Io(e) => write!(f, "qemu: {e}"),
             QemuError::Elf(e) => write!(f, "firmware ELF: {e}"),
-            QemuError::Timeout(t) => write!(f, "qemu: no exit after {:.1} s, killed", t.as_secs_f64()),
+            QemuError::Timeout(t) => {
+                write!(f, "qemu: no exit after {:.1} s, killed", t.as_secs_f64())
+            }
             QemuError::Signal => write!(f, "qemu: killed by a signal"),
         }
     }
@@ -133,7 +135,10 @@ pub fn command_line(opts: &QemuOptions) -> Vec<String> {
         args.push("-serial".into());
         args.push("chardev:link".into());
         args.push("-chardev".into());
-        args.push(format!("socket,id=link,path={},server=on,wait=on", path.display()));
+        args.push(format!(
+            "socket,id=link,path={},server=on,wait=on",
+            path.display()
+        ));
     }
     args
 }
@@ -156,16 +161,21 @@ impl Qemu {
             .spawn()?;
         // QEMU's own messages pass through, except its note that it waits for the socket.
         if let Some(err) = child.stderr.take() {
-            std::thread::Builder::new().name("qemu-stderr".into()).spawn(move || {
-                use std::io::BufRead;
-                for line in io::BufReader::new(err).lines().map_while(Result::ok) {
-                    if !line.contains("QEMU waiting for connection") {
-                        eprintln!("{line}");
+            std::thread::Builder::new()
+                .name("qemu-stderr".into())
+                .spawn(move || {
+                    use std::io::BufRead;
+                    for line in io::BufReader::new(err).lines().map_while(Result::ok) {
+                        if !line.contains("QEMU waiting for connection") {
+                            eprintln!("{line}");
+                        }
                     }
-                }
-            })?;
+                })?;
         }
-        let stdout = child.stdout.take().ok_or_else(|| io::Error::other("no stdout"))?;
+        let stdout = child
+            .stdout
+            .take()
+            .ok_or_else(|| io::Error::other("no stdout"))?;
 
         let sink: Box<dyn Write + Send> = match &opts.log {
             LogSink::Stderr => Box::new(io::stderr()),
@@ -174,7 +184,10 @@ impl Qemu {
             LogSink::Discard => Box::new(io::sink()),
         };
         let lines = Arc::new(Mutex::new(Vec::new()));
-        let min = LEVELS.iter().position(|l| *l == opts.min_level).unwrap_or(0);
+        let min = LEVELS
+            .iter()
+            .position(|l| *l == opts.min_level)
+            .unwrap_or(0);
         let keep = opts.keep_lines;
         let lines2 = Arc::clone(&lines);
         let log_thread = std::thread::Builder::new()
