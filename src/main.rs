@@ -242,11 +242,12 @@ mod app {
             log_event(&event);
             let reply = match effect {
                 Effect::Reply(r) => r,
-                Effect::Tick(sample) => match hardware::pil_deliver(frame.seq, sample) {
-                    // `control` answers.
-                    Ok(()) => continue,
-                    Err(()) => not_supported(&frame.msg),
-                },
+                Effect::Tick(sample) => {
+                    if hardware::pil_deliver(frame.seq, sample) {
+                        continue; // `control` answers.
+                    }
+                    not_supported(&frame.msg)
+                }
                 Effect::Status => {
                     let peak = stack::peak_bytes();
                     Reply::Status(drive.lock(|d| endpoint.status(d, receiver, peak)))

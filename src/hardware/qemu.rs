@@ -88,8 +88,8 @@ impl ControlIo {
     pub fn write_current(&mut self, _out: &DriveOutput) {}
 }
 
-/// Hands a PIL sample to the control task and pends its interrupt.
-pub fn pil_deliver(seq: u8, sample: Sample) -> Result<(), ()> {
+/// Hands a PIL sample to the control task and pends its interrupt; true (always, here).
+pub fn pil_deliver(seq: u8, sample: Sample) -> bool {
     SAMPLE.store(
         sample.motor_counter as u32 | (sample.scale_counter as u32) << 16,
         Ordering::Relaxed,
@@ -97,7 +97,7 @@ pub fn pil_deliver(seq: u8, sample: Sample) -> Result<(), ()> {
     SEQ.store(seq as u32, Ordering::Relaxed);
     PENDING.store(true, Ordering::Release);
     rtic::pend(pac::Interrupt::TIM7);
-    Ok(())
+    true
 }
 
 /// HSI clocks, SysTick monotonic at 168 MHz, TIM2 instruction counter, USART2.

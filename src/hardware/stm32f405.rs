@@ -173,9 +173,9 @@ pub fn init(dp: pac::Peripherals, syst: cortex_m::peripheral::SYST, control_rate
     }
 }
 
-/// PIL samples exist only under QEMU.
-pub fn pil_deliver(_seq: u8, _sample: Sample) -> Result<(), ()> {
-    Err(())
+/// PIL samples exist only under QEMU: refused (false).
+pub fn pil_deliver(_seq: u8, _sample: Sample) -> bool {
+    false
 }
 
 /// Mid-scale current and amplifier off, from any context (panic, HardFault, exit).
