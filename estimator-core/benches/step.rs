@@ -16,7 +16,11 @@ fn main() {
     for kind in ModelKind::ALL {
         let mut d = Drive::new(&DriveConfig::paper_rig()).expect("paper rig");
         d.step(Sample::default());
-        d.command(Command::Home { position_um: 150_000, scale_um: 0 }).expect("home");
+        d.command(Command::Home {
+            position_um: 150_000,
+            scale_um: 0,
+        })
+        .expect("home");
         d.command(Command::Enable).expect("enable");
         d.command(Command::SelectModel(kind)).expect("model");
         // Ideal motor following the set-point: the per-tick path sees real motion.
@@ -27,9 +31,16 @@ fn main() {
         for k in 0..TICKS {
             if k % 40_000 == 0 {
                 let t = targets[(k / 40_000) % targets.len()];
-                let _ = d.command(Command::MoveTo { target_um: t, velocity_um_s: 80_000, accel_um_s2: 1_500_000 });
+                let _ = d.command(Command::MoveTo {
+                    target_um: t,
+                    velocity_um_s: 80_000,
+                    accel_um_s2: 1_500_000,
+                });
             }
-            let s = Sample { motor_counter: (x as i64) as u16, scale_counter: 0 };
+            let s = Sample {
+                motor_counter: (x as i64) as u16,
+                scale_counter: 0,
+            };
             samples.push(s);
             let o = d.step(s);
             v += (o.current_a.to_num::<f64>() * 1.09e3 * cpm - 2.0 * v) / 2000.0;
@@ -39,14 +50,22 @@ fn main() {
         // Timed pass: replay the recorded samples through a fresh drive in the same state.
         let mut d2 = Drive::new(&DriveConfig::paper_rig()).expect("paper rig");
         d2.step(Sample::default());
-        d2.command(Command::Home { position_um: 150_000, scale_um: 0 }).expect("home");
+        d2.command(Command::Home {
+            position_um: 150_000,
+            scale_um: 0,
+        })
+        .expect("home");
         d2.command(Command::Enable).expect("enable");
         d2.command(Command::SelectModel(kind)).expect("model");
         let start = Instant::now();
         for (k, s) in samples.iter().enumerate() {
             if k % 40_000 == 0 {
                 let t = targets[(k / 40_000) % targets.len()];
-                let _ = d2.command(Command::MoveTo { target_um: t, velocity_um_s: 80_000, accel_um_s2: 1_500_000 });
+                let _ = d2.command(Command::MoveTo {
+                    target_um: t,
+                    velocity_um_s: 80_000,
+                    accel_um_s2: 1_500_000,
+                });
             }
             black_box(d2.step(black_box(*s)));
         }

@@ -69,9 +69,14 @@ impl core::fmt::Display for BlobError {
             BlobError::Truncated => f.write_str("calibration blob truncated"),
             BlobError::TooLong => f.write_str("calibration blob longer than its header says"),
             BlobError::BadMagic => f.write_str("not a calibration blob (bad magic)"),
-            BlobError::UnsupportedVersion(v) => write!(f, "calibration blob version {v} is not supported (want {VERSION})"),
+            BlobError::UnsupportedVersion(v) => write!(
+                f,
+                "calibration blob version {v} is not supported (want {VERSION})"
+            ),
             BlobError::BadChecksum => f.write_str("calibration blob checksum mismatch"),
-            BlobError::RigMismatch => f.write_str("calibration blob is for another rig (counts per mm differ)"),
+            BlobError::RigMismatch => {
+                f.write_str("calibration blob is for another rig (counts per mm differ)")
+            }
             BlobError::BadCount(x) => write!(f, "calibration blob: {x} out of bounds"),
             BlobError::Invalid(e) => write!(f, "calibration blob: {e}"),
             BlobError::Busy => f.write_str("calibration refused: the drive is moving"),
@@ -87,8 +92,22 @@ impl std::error::Error for BlobError {}
 /// CRC-32 (IEEE 802.3, reflected, as zlib), nibble-table: small flash, fast enough for 5 KiB.
 pub fn crc32(chunks: &[&[u8]]) -> u32 {
     const T: [u32; 16] = [
-        0x0000_0000, 0x1DB7_1064, 0x3B6E_20C8, 0x26D9_30AC, 0x76DC_4190, 0x6B6B_51F4, 0x4DB2_6158, 0x5005_713C,
-        0xEDB8_8320, 0xF00F_9344, 0xD6D6_A3E8, 0xCB61_B38C, 0x9B64_C2B0, 0x86D3_D2D4, 0xA00A_E278, 0xBDBD_F21C,
+        0x0000_0000,
+        0x1DB7_1064,
+        0x3B6E_20C8,
+        0x26D9_30AC,
+        0x76DC_4190,
+        0x6B6B_51F4,
+        0x4DB2_6158,
+        0x5005_713C,
+        0xEDB8_8320,
+        0xF00F_9344,
+        0xD6D6_A3E8,
+        0xCB61_B38C,
+        0x9B64_C2B0,
+        0x86D3_D2D4,
+        0xA00A_E278,
+        0xBDBD_F21C,
     ];
     let mut c = !0u32;
     for chunk in chunks {
@@ -111,8 +130,14 @@ struct Writer<'a> {
 
 impl Writer<'_> {
     fn bytes(&mut self, b: &[u8]) -> Result<(), BlobError> {
-        let end = self.at.checked_add(b.len()).ok_or(BlobError::BufferTooSmall)?;
-        self.buf.get_mut(self.at..end).ok_or(BlobError::BufferTooSmall)?.copy_from_slice(b);
+        let end = self
+            .at
+            .checked_add(b.len())
+            .ok_or(BlobError::BufferTooSmall)?;
+        self.buf
+            .get_mut(self.at..end)
+            .ok_or(BlobError::BufferTooSmall)?
+            .copy_from_slice(b);
         self.at = end;
         Ok(())
     }
@@ -173,8 +198,16 @@ pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, 
     w.fixed(m1.offset_mm * 1000.0, Q16, "model1.offset_mm")?;
     w.fixed(m1.h_mm * 1000.0, Q16, "model1.h_mm")?;
     w.fixed(m1.h_g_mm * 1000.0, Q16, "model1.h_g_mm")?;
-    w.fixed(m1.slope_a_mm_per_mm * 1000.0, Q16, "model1.slope_a_mm_per_mm")?;
-    w.fixed(m1.slope_b_mm_per_mm * 1000.0, Q16, "model1.slope_b_mm_per_mm")?;
+    w.fixed(
+        m1.slope_a_mm_per_mm * 1000.0,
+        Q16,
+        "model1.slope_a_mm_per_mm",
+    )?;
+    w.fixed(
+        m1.slope_b_mm_per_mm * 1000.0,
+        Q16,
+        "model1.slope_b_mm_per_mm",
+    )?;
     let m2 = &params.model2;
     w.fixed(m2.m_mm_per_mm * 1000.0, Q16, "model2.m_mm_per_mm")?;
     w.fixed(m2.offset_mm * 1000.0, Q16, "model2.offset_mm")?;
@@ -185,7 +218,10 @@ pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, 
     w.fixed(m2.amplitude_a_mm * 1000.0, Q16, "model2.amplitude_a_mm")?;
     w.fixed(m2.amplitude_b_mm * 1000.0, Q16, "model2.amplitude_b_mm")?;
     let m3 = &params.model3;
-    for (band, name) in [(&m3.forward_band, "model3.forward_band"), (&m3.reverse_band, "model3.reverse_band")] {
+    for (band, name) in [
+        (&m3.forward_band, "model3.forward_band"),
+        (&m3.reverse_band, "model3.reverse_band"),
+    ] {
         let n = band.len.min(MAX_BAND_POINTS);
         w.u16(n as u16)?;
         w.u16(0)?;
@@ -253,7 +289,10 @@ pub fn decode(blob: &[u8], rig: &Rig) -> Result<ModelParams, BlobError> {
     if crc32(&[&blob[..12], &blob[HEADER..]]) != crc {
         return Err(BlobError::BadChecksum);
     }
-    let mut r = Reader { buf: &blob[HEADER..], at: 0 };
+    let mut r = Reader {
+        buf: &blob[HEADER..],
+        at: 0,
+    };
     if r.u32()? != rig_q16(rig) {
         return Err(BlobError::RigMismatch);
     }
@@ -293,23 +332,24 @@ pub fn decode(blob: &[u8], rig: &Rig) -> Result<ModelParams, BlobError> {
     };
     let forward_band = read_band(&mut r, "model3.forward_band")?;
     let reverse_band = read_band(&mut r, "model3.reverse_band")?;
-    let read_transition = |r: &mut Reader, name: &'static str| -> Result<TransitionParams, BlobError> {
-        let (nd, ng) = (r.u16()? as usize, r.u16()? as usize);
-        if nd > MAX_TRANSITION_D || ng > MAX_TRANSITION_G0 {
-            return Err(BlobError::BadCount(name));
-        }
-        let mut t = TransitionParams::EMPTY;
-        t.n_d = nd;
-        t.n_g0 = ng;
-        t.d_step_mm = r.fixed(Q16)? / 1000.0;
-        t.g0_step_um = r.fixed(Q16)?;
-        for i in 0..nd {
-            for j in 0..ng {
-                t.gap_um[i][j] = r.u16()? as f64 / 32.0;
+    let read_transition =
+        |r: &mut Reader, name: &'static str| -> Result<TransitionParams, BlobError> {
+            let (nd, ng) = (r.u16()? as usize, r.u16()? as usize);
+            if nd > MAX_TRANSITION_D || ng > MAX_TRANSITION_G0 {
+                return Err(BlobError::BadCount(name));
             }
-        }
-        Ok(t)
-    };
+            let mut t = TransitionParams::EMPTY;
+            t.n_d = nd;
+            t.n_g0 = ng;
+            t.d_step_mm = r.fixed(Q16)? / 1000.0;
+            t.g0_step_um = r.fixed(Q16)?;
+            for i in 0..nd {
+                for j in 0..ng {
+                    t.gap_um[i][j] = r.u16()? as f64 / 32.0;
+                }
+            }
+            Ok(t)
+        };
     let forward_transition = read_transition(&mut r, "model3.forward_transition")?;
     let reverse_transition = read_transition(&mut r, "model3.reverse_transition")?;
     if r.at != r.buf.len() {
@@ -318,7 +358,12 @@ pub fn decode(blob: &[u8], rig: &Rig) -> Result<ModelParams, BlobError> {
     let params = ModelParams {
         model1,
         model2,
-        model3: Model3Params { forward_band, reverse_band, forward_transition, reverse_transition },
+        model3: Model3Params {
+            forward_band,
+            reverse_band,
+            forward_transition,
+            reverse_transition,
+        },
         reversal_deadband_counts,
     };
     params.build(rig).map_err(BlobError::Invalid)?;

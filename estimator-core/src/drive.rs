@@ -9,10 +9,10 @@
 
 use fixed::types::I16F16;
 
+use crate::blob::{self, BlobError};
 use crate::model::{self, ModelCoeffs, ModelKind, ModelParams, ModelState};
 use crate::rig::Rig;
 use crate::trajectory::{self, Trajectory};
-use crate::blob::{self, BlobError};
 use crate::{encoder, pid, ConfigError};
 
 /// What the board samples at the start of every tick.
@@ -292,9 +292,13 @@ impl Drive {
             max_accel_um_s2: (amax * 1000.0) as u32,
             max_following_error_counts: to_i32(fe * cpm, "drive.max_following_error_mm")?,
         };
-        let enc = encoder::Config { max_speed_mm_s: cfg.encoder_max_speed_mm_s, rate_hz };
+        let enc = encoder::Config {
+            max_speed_mm_s: cfg.encoder_max_speed_mm_s,
+            rate_hz,
+        };
         let motor = enc.build::<u16>(&cfg.rig)?;
-        let scale_per_tick = finite(cfg.encoder_max_speed_mm_s, "encoder.max_speed_mm_s")? * 1000.0
+        let scale_per_tick = finite(cfg.encoder_max_speed_mm_s, "encoder.max_speed_mm_s")?
+            * 1000.0
             * SCALE_COUNTS_PER_UM as f64
             / rate_hz;
         let scale = encoder::Coeffs::<u16>::from_max_delta_counts(scale_per_tick as u32 + 1)
@@ -326,7 +330,10 @@ impl Drive {
             enabled: false,
             faults: Faults::NONE,
             tick: 0,
-            last: Telemetry { model: cfg.initial_model, ..Telemetry::default() },
+            last: Telemetry {
+                model: cfg.initial_model,
+                ..Telemetry::default()
+            },
         })
     }
 
@@ -366,19 +373,26 @@ impl Drive {
     /// Micrometres of nominal travel to counts (round to nearest), saturating.
     fn um_to_counts(&self, um: i32) -> i32 {
         // |um| * 2^33 can exceed i64: saturate, the range check then refuses it.
-        let q = (um as i64).saturating_mul(self.limits.counts_per_um_q32).saturating_add(1 << 31);
+        let q = (um as i64)
+            .saturating_mul(self.limits.counts_per_um_q32)
+            .saturating_add(1 << 31);
         (q >> 32).clamp(i32::MIN as i64, i32::MAX as i64) as i32
     }
 
     /// Applies a command. A refused command changes nothing.
     pub fn command(&mut self, cmd: Command) -> Result<(), CommandError> {
         match cmd {
-            Command::MoveTo { target_um, velocity_um_s, accel_um_s2 } => {
+            Command::MoveTo {
+                target_um,
+                velocity_um_s,
+                accel_um_s2,
+            } => {
                 if !self.enabled {
                     return Err(CommandError::NotEnabled);
                 }
                 let target = self.um_to_counts(target_um);
-                if target < self.limits.target_min_counts || target > self.limits.target_max_counts {
+                if target < self.limits.target_min_counts || target > self.limits.target_max_counts
+                {
                     return Err(CommandError::TargetOutOfTravel);
                 }
                 if velocity_um_s == 0 || velocity_um_s > self.limits.max_velocity_um_s {
@@ -399,7 +413,9 @@ impl Drive {
                         "trajectory.velocity_mm_s" => CommandError::VelocityOutOfRange,
                         _ => CommandError::AccelOutOfRange,
                     })?;
-                    self.trajectory.set_coeffs(coeffs).map_err(|_| CommandError::Busy)?;
+                    self.trajectory
+                        .set_coeffs(coeffs)
+                        .map_err(|_| CommandError::Busy)?;
                     self.move_limits = (velocity_um_s, accel_um_s2);
                 }
                 self.trajectory.set_target(target);
@@ -417,7 +433,10 @@ impl Drive {
             Command::Disable => self.enabled = false,
             Command::ClearFaults => self.faults = Faults::NONE,
             Command::SelectModel(kind) => self.model = kind,
-            Command::Home { position_um, scale_um } => {
+            Command::Home {
+                position_um,
+                scale_um,
+            } => {
                 if !self.trajectory.is_done() {
                     return Err(CommandError::Busy);
                 }
@@ -442,7 +461,10 @@ impl Drive {
     /// One control tick. Integer-only, allocation-free, bounded time; never panics.
     pub fn step(&mut self, sample: Sample) -> Output {
         self.tick = self.tick.wrapping_add(1);
-        let x = match self.motor.update(&mut self.motor_state, sample.motor_counter) {
+        let x = match self
+            .motor
+            .update(&mut self.motor_state, sample.motor_counter)
+        {
             Ok(x) => x,
             Err(_) => {
                 self.faults.0 |= Faults::ENCODER_JUMP;
@@ -467,7 +489,8 @@ impl Drive {
             following_error_counts = out.following_error_counts.to_bits() >> 8;
             setpoint_counts = (sp.position_counts().to_bits() >> 24)
                 .clamp(i32::MIN as i64, i32::MAX as i64) as i32;
-            if following_error_counts.unsigned_abs() > self.limits.max_following_error_counts as u32 {
+            if following_error_counts.unsigned_abs() > self.limits.max_following_error_counts as u32
+            {
                 self.faults.0 |= Faults::FOLLOWING_ERROR;
             } else {
                 current_a = out.current_a;
@@ -493,6 +516,9 @@ impl Drive {
             model: self.model,
             moving: self.enabled && !self.trajectory.is_done(),
         };
-        Output { current_a, telemetry: self.last }
+        Output {
+            current_a,
+            telemetry: self.last,
+        }
     }
 }

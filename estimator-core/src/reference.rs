@@ -205,7 +205,10 @@ impl Reference {
     fn model1(&self, x: i32) -> f64 {
         let p = &self.m1;
         let xm = self.mm(x as f64);
-        let (lower, upper) = (p.m_mm_per_mm * xm + p.offset_mm - p.h_mm, p.m_mm_per_mm * xm + p.offset_mm);
+        let (lower, upper) = (
+            p.m_mm_per_mm * xm + p.offset_mm - p.h_mm,
+            p.m_mm_per_mm * xm + p.offset_mm,
+        );
         if !self.transition {
             return match self.dir {
                 Direction::Forward => lower,
@@ -227,7 +230,10 @@ impl Reference {
     fn model2(&self, x: i32) -> f64 {
         let p = &self.m2;
         let xm = self.mm(x as f64);
-        let (lower, upper) = (p.m_mm_per_mm * xm + p.offset_mm - p.h_mm, p.m_mm_per_mm * xm + p.offset_mm);
+        let (lower, upper) = (
+            p.m_mm_per_mm * xm + p.offset_mm - p.h_mm,
+            p.m_mm_per_mm * xm + p.offset_mm,
+        );
         if !self.transition {
             return match self.dir {
                 Direction::Forward => lower,

@@ -62,7 +62,8 @@ impl Rig {
         if !(self.gear_ratio.is_finite() && self.gear_ratio > 0.0 && self.gear_ratio < 1e4) {
             return Err(E::OutOfRange("rig.gear_ratio"));
         }
-        if !(self.belt_pitch_mm.is_finite() && self.belt_pitch_mm > 0.0 && self.belt_pitch_mm < 1e3) {
+        if !(self.belt_pitch_mm.is_finite() && self.belt_pitch_mm > 0.0 && self.belt_pitch_mm < 1e3)
+        {
             return Err(E::OutOfRange("rig.belt_pitch_mm"));
         }
         if self.pulley_teeth == 0 || self.pulley_teeth > 1000 {
@@ -86,7 +87,11 @@ mod tests {
     fn paper_rig_scale() {
         let r = Rig::PAPER;
         assert_eq!(r.counts_per_motor_rev(), 8000.0);
-        assert!((r.counts_per_mm() - 1867.89).abs() < 0.01, "{}", r.counts_per_mm());
+        assert!(
+            (r.counts_per_mm() - 1867.89).abs() < 0.01,
+            "{}",
+            r.counts_per_mm()
+        );
         assert!((r.um_per_count() - 0.53536).abs() < 1e-4);
     }
 }

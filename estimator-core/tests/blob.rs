@@ -35,7 +35,10 @@ fn round_trip_quantises_within_the_format() {
     assert_eq!(p.model3.forward_band.len, q.model3.forward_band.len);
     for i in 0..q.model3.forward_transition.n_d {
         for j in 0..q.model3.forward_transition.n_g0 {
-            let (a, b) = (p.model3.forward_transition.gap_um[i][j], q.model3.forward_transition.gap_um[i][j]);
+            let (a, b) = (
+                p.model3.forward_transition.gap_um[i][j],
+                q.model3.forward_transition.gap_um[i][j],
+            );
             assert!((a - b).abs() <= 1.0 / 64.0, "{a} vs {b}");
         }
     }
@@ -50,7 +53,10 @@ fn each_defect_has_its_reason() {
     let good = paper_blob();
     let rig = Rig::PAPER;
     assert_eq!(decode(&good[..10], &rig), Err(BlobError::Truncated));
-    assert_eq!(decode(&good[..good.len() - 1], &rig), Err(BlobError::Truncated));
+    assert_eq!(
+        decode(&good[..good.len() - 1], &rig),
+        Err(BlobError::Truncated)
+    );
     let mut long = good.clone();
     long.push(0);
     assert_eq!(decode(&long, &rig), Err(BlobError::TooLong));
@@ -63,12 +69,21 @@ fn each_defect_has_its_reason() {
     let mut b = good.clone();
     b[40] ^= 0x10;
     assert_eq!(decode(&b, &rig), Err(BlobError::BadChecksum));
-    let other = Rig { pulley_teeth: 18, ..Rig::PAPER };
+    let other = Rig {
+        pulley_teeth: 18,
+        ..Rig::PAPER
+    };
     assert_eq!(decode(&good, &other), Err(BlobError::RigMismatch));
     assert_eq!(decode(&[], &rig), Err(BlobError::Truncated));
-    assert_eq!(decode(&vec![0u8; MAX_BYTES + 1], &rig), Err(BlobError::TooLong));
+    assert_eq!(
+        decode(&vec![0u8; MAX_BYTES + 1], &rig),
+        Err(BlobError::TooLong)
+    );
     let mut small = [0u8; 64];
-    assert_eq!(encode(&ModelParams::PAPER, &rig, &mut small), Err(BlobError::BufferTooSmall));
+    assert_eq!(
+        encode(&ModelParams::PAPER, &rig, &mut small),
+        Err(BlobError::BufferTooSmall)
+    );
 }
 
 /// Re-signs a modified payload so that only the semantic checks can catch it.
@@ -90,7 +105,10 @@ fn well_signed_nonsense_is_refused_by_the_model_checks() {
     let band_at = 16 + 8 + 24 + 32;
     b[band_at..band_at + 2].copy_from_slice(&500u16.to_le_bytes());
     resign(&mut b);
-    assert_eq!(decode(&b, &rig), Err(BlobError::BadCount("model3.forward_band")));
+    assert_eq!(
+        decode(&b, &rig),
+        Err(BlobError::BadCount("model3.forward_band"))
+    );
 }
 
 #[test]
@@ -106,7 +124,11 @@ fn drive_loads_good_blobs_and_refuses_bad_ones_unchanged() {
     d.load_calibration(&paper_blob()).unwrap();
     assert_ne!(d.models(), &before);
     // The offset shows in the estimate at rest on the forward edge: m*0 + c - h.
-    let y = d.step(Sample::default()).telemetry.est_error_um.to_num::<f64>();
+    let y = d
+        .step(Sample::default())
+        .telemetry
+        .est_error_um
+        .to_num::<f64>();
     assert!((y - (-42.3 - 340.0)).abs() < 0.01, "{y}");
 }
 

@@ -13,10 +13,17 @@ struct Mass {
 impl Mass {
     fn new(x_mm: f64) -> Mass {
         let cpm = estimator_core::rig::Rig::PAPER.counts_per_mm();
-        Mass { x_counts: x_mm * cpm, v_counts_s: 0.0, cpm }
+        Mass {
+            x_counts: x_mm * cpm,
+            v_counts_s: 0.0,
+            cpm,
+        }
     }
     fn sample(&self) -> Sample {
-        Sample { motor_counter: (self.x_counts.floor() as i64) as u16, scale_counter: 0 }
+        Sample {
+            motor_counter: (self.x_counts.floor() as i64) as u16,
+            scale_counter: 0,
+        }
     }
     fn step(&mut self, current_a: f64, dt: f64) {
         let a_counts_s2 = current_a * 1.09e3 * self.cpm - 2.0 * self.v_counts_s;
@@ -29,7 +36,11 @@ fn homed(x_mm: f64) -> (Drive, Mass) {
     let mut d = Drive::new(&DriveConfig::paper_rig()).unwrap();
     let m = Mass::new(x_mm);
     d.step(m.sample());
-    d.command(Command::Home { position_um: (x_mm * 1000.0) as i32, scale_um: 0 }).unwrap();
+    d.command(Command::Home {
+        position_um: (x_mm * 1000.0) as i32,
+        scale_um: 0,
+    })
+    .unwrap();
     (d, m)
 }
 
@@ -44,7 +55,11 @@ fn run(d: &mut Drive, m: &mut Mass, ticks: usize) -> Vec<estimator_core::drive::
 }
 
 fn mv(target_mm: f64) -> Command {
-    Command::MoveTo { target_um: (target_mm * 1000.0) as i32, velocity_um_s: 80_000, accel_um_s2: 1_000_000 }
+    Command::MoveTo {
+        target_um: (target_mm * 1000.0) as i32,
+        velocity_um_s: 80_000,
+        accel_um_s2: 1_000_000,
+    }
 }
 
 #[test]
@@ -67,10 +82,22 @@ fn move_arrives_and_holds() {
     assert!(!last.moving && last.faults.is_clear());
     let target = (120.0 * m.cpm).round() as i32;
     assert_eq!(last.setpoint_counts, target);
-    assert!((last.motor_counts - target).abs() <= 2, "{} vs {}", last.motor_counts, target);
+    assert!(
+        (last.motor_counts - target).abs() <= 2,
+        "{} vs {}",
+        last.motor_counts,
+        target
+    );
     // Following error stays small throughout a moderate move.
-    let worst = outs.iter().map(|o| o.telemetry.following_error_counts.abs()).max().unwrap();
-    assert!(worst < (0.5 * m.cpm) as i32, "following error {worst} counts");
+    let worst = outs
+        .iter()
+        .map(|o| o.telemetry.following_error_counts.abs())
+        .max()
+        .unwrap();
+    assert!(
+        worst < (0.5 * m.cpm) as i32,
+        "following error {worst} counts"
+    );
 }
 
 #[test]
@@ -80,12 +107,54 @@ fn refused_commands_change_nothing() {
     run(&mut d, &mut m, 10);
     let before = d.telemetry();
     let bad = [
-        (Command::MoveTo { target_um: 400_000, velocity_um_s: 1000, accel_um_s2: 1000 }, CommandError::TargetOutOfTravel),
-        (Command::MoveTo { target_um: -1, velocity_um_s: 1000, accel_um_s2: 1000 }, CommandError::TargetOutOfTravel),
-        (Command::MoveTo { target_um: 60_000, velocity_um_s: 0, accel_um_s2: 1000 }, CommandError::VelocityOutOfRange),
-        (Command::MoveTo { target_um: 60_000, velocity_um_s: u32::MAX, accel_um_s2: 1000 }, CommandError::VelocityOutOfRange),
-        (Command::MoveTo { target_um: 60_000, velocity_um_s: 1000, accel_um_s2: 0 }, CommandError::AccelOutOfRange),
-        (Command::MoveTo { target_um: i32::MIN, velocity_um_s: 1, accel_um_s2: 1 }, CommandError::TargetOutOfTravel),
+        (
+            Command::MoveTo {
+                target_um: 400_000,
+                velocity_um_s: 1000,
+                accel_um_s2: 1000,
+            },
+            CommandError::TargetOutOfTravel,
+        ),
+        (
+            Command::MoveTo {
+                target_um: -1,
+                velocity_um_s: 1000,
+                accel_um_s2: 1000,
+            },
+            CommandError::TargetOutOfTravel,
+        ),
+        (
+            Command::MoveTo {
+                target_um: 60_000,
+                velocity_um_s: 0,
+                accel_um_s2: 1000,
+            },
+            CommandError::VelocityOutOfRange,
+        ),
+        (
+            Command::MoveTo {
+                target_um: 60_000,
+                velocity_um_s: u32::MAX,
+                accel_um_s2: 1000,
+            },
+            CommandError::VelocityOutOfRange,
+        ),
+        (
+            Command::MoveTo {
+                target_um: 60_000,
+                velocity_um_s: 1000,
+                accel_um_s2: 0,
+            },
+            CommandError::AccelOutOfRange,
+        ),
+        (
+            Command::MoveTo {
+                target_um: i32::MIN,
+                velocity_um_s: 1,
+                accel_um_s2: 1,
+            },
+            CommandError::TargetOutOfTravel,
+        ),
     ];
     for (cmd, err) in bad {
         assert_eq!(d.command(cmd), Err(err), "{cmd:?}");
@@ -101,15 +170,29 @@ fn new_limits_mid_move_are_refused_same_limits_retarget() {
     d.command(Command::Enable).unwrap();
     d.command(mv(200.0)).unwrap();
     run(&mut d, &mut m, 400);
-    let other = Command::MoveTo { target_um: 100_000, velocity_um_s: 40_000, accel_um_s2: 1_000_000 };
+    let other = Command::MoveTo {
+        target_um: 100_000,
+        velocity_um_s: 40_000,
+        accel_um_s2: 1_000_000,
+    };
     assert_eq!(d.command(other), Err(CommandError::Busy));
     // Same limits: an abrupt reversal is accepted and the set-point velocity never steps.
     d.command(mv(60.0)).unwrap();
     let outs = run(&mut d, &mut m, 2000 * 4);
-    let sp: Vec<i64> = outs.iter().map(|o| o.telemetry.setpoint_counts as i64).collect();
-    let max_dv = sp.windows(3).map(|w| ((w[2] - w[1]) - (w[1] - w[0])).abs()).max().unwrap();
+    let sp: Vec<i64> = outs
+        .iter()
+        .map(|o| o.telemetry.setpoint_counts as i64)
+        .collect();
+    let max_dv = sp
+        .windows(3)
+        .map(|w| ((w[2] - w[1]) - (w[1] - w[0])).abs())
+        .max()
+        .unwrap();
     // 1000 mm/s^2 at 2 kHz is 0.47 counts/tick^2; whole-count rounding adds at most 2.
-    assert!(max_dv <= 3, "set-point velocity stepped by {max_dv} counts/tick");
+    assert!(
+        max_dv <= 3,
+        "set-point velocity stepped by {max_dv} counts/tick"
+    );
     assert_eq!(*sp.last().unwrap(), (60.0 * m.cpm).round() as i64);
 }
 
@@ -120,7 +203,10 @@ fn encoder_jump_faults_to_zero_current_until_cleared() {
     d.command(mv(100.0)).unwrap();
     run(&mut d, &mut m, 500);
     let s = m.sample();
-    let o = d.step(Sample { motor_counter: s.motor_counter.wrapping_add(20_000), ..s });
+    let o = d.step(Sample {
+        motor_counter: s.motor_counter.wrapping_add(20_000),
+        ..s
+    });
     assert!(o.telemetry.faults.has(Faults::ENCODER_JUMP));
     assert_eq!(o.current_a.to_bits(), 0);
     for o in run(&mut d, &mut m, 200) {
@@ -128,7 +214,10 @@ fn encoder_jump_faults_to_zero_current_until_cleared() {
     }
     assert_eq!(d.command(Command::Enable), Err(CommandError::NotEnabled));
     d.command(Command::ClearFaults).unwrap();
-    assert!(!d.is_enabled(), "clearing faults does not re-enable by itself");
+    assert!(
+        !d.is_enabled(),
+        "clearing faults does not re-enable by itself"
+    );
     d.command(Command::Enable).unwrap();
     let o = run(&mut d, &mut m, 1)[0];
     assert!(o.telemetry.faults.is_clear());
@@ -180,7 +269,13 @@ fn home_is_refused_while_moving_and_model_select_applies() {
     d.command(Command::Enable).unwrap();
     d.command(mv(100.0)).unwrap();
     run(&mut d, &mut m, 10);
-    assert_eq!(d.command(Command::Home { position_um: 0, scale_um: 0 }), Err(CommandError::Busy));
+    assert_eq!(
+        d.command(Command::Home {
+            position_um: 0,
+            scale_um: 0
+        }),
+        Err(CommandError::Busy)
+    );
     d.command(Command::SelectModel(ModelKind::Table)).unwrap();
     let o = run(&mut d, &mut m, 1)[0];
     assert_eq!(o.telemetry.model, ModelKind::Table);
@@ -192,7 +287,8 @@ fn same_inputs_same_outputs() {
     let go = || {
         let (mut d, mut m) = homed(30.0);
         d.command(Command::Enable).unwrap();
-        d.command(Command::SelectModel(ModelKind::Exponential)).unwrap();
+        d.command(Command::SelectModel(ModelKind::Exponential))
+            .unwrap();
         d.command(mv(90.0)).unwrap();
         let mut outs = run(&mut d, &mut m, 1500);
         d.command(mv(40.0)).unwrap();
@@ -209,7 +305,10 @@ fn bad_configuration_names_the_field() {
     assert_eq!(Drive::new(&c).unwrap_err().field(), "drive.travel_max_mm");
     let mut c = DriveConfig::paper_rig();
     c.max_following_error_mm = -1.0;
-    assert_eq!(Drive::new(&c).unwrap_err().field(), "drive.max_following_error_mm");
+    assert_eq!(
+        Drive::new(&c).unwrap_err().field(),
+        "drive.max_following_error_mm"
+    );
     let mut c = DriveConfig::paper_rig();
     c.model.model1.h_mm = -0.1;
     assert_eq!(Drive::new(&c).unwrap_err().field(), "model1.h_mm");
@@ -236,7 +335,10 @@ mod props {
             Just(Command::Disable),
             Just(Command::ClearFaults),
             (0u8..4).prop_map(|k| Command::SelectModel(ModelKind::from_u8(k).unwrap())),
-            (any::<i32>(), any::<i32>()).prop_map(|(p, s)| Command::Home { position_um: p, scale_um: s }),
+            (any::<i32>(), any::<i32>()).prop_map(|(p, s)| Command::Home {
+                position_um: p,
+                scale_um: s
+            }),
         ]
     }
 

@@ -14,7 +14,15 @@ fn main() {
     for name in ["fig18", "reversals"] {
         let s = Scenario::load(name).expect("preset");
         let start = Instant::now();
-        let t = run_in_process(&s, &plant, &ModelParams::PAPER, ModelKind::Table, 1, &mut |_| {}).expect("run");
+        let t = run_in_process(
+            &s,
+            &plant,
+            &ModelParams::PAPER,
+            ModelKind::Table,
+            1,
+            &mut |_| {},
+        )
+        .expect("run");
         let wall = start.elapsed().as_secs_f64();
         let sim = t.records.last().map_or(0.0, |r| r.t_s);
         println!(

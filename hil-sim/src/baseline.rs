@@ -67,7 +67,10 @@ impl Backlash {
             return None;
         }
         let (f, r) = (sf / nf as f64, sr / nr as f64);
-        Some(Backlash { offset_um: 0.5 * (f + r), backlash_um: r - f })
+        Some(Backlash {
+            offset_um: 0.5 * (f + r),
+            backlash_um: r - f,
+        })
     }
 
     /// The estimate y for every record of `trace`, um.
@@ -75,7 +78,9 @@ impl Backlash {
         trace
             .records
             .iter()
-            .map(|r| self.offset_um + 0.5 * self.backlash_um * if r.cmd_dir > 0 { -1.0 } else { 1.0 })
+            .map(|r| {
+                self.offset_um + 0.5 * self.backlash_um * if r.cmd_dir > 0 { -1.0 } else { 1.0 }
+            })
             .collect()
     }
 }
@@ -94,8 +99,10 @@ pub struct BidirTable {
 }
 
 fn fill_gaps(sum: &[f64], n: &[usize]) -> Option<Vec<f64>> {
-    let known: Vec<(usize, f64)> =
-        (0..sum.len()).filter(|&i| n[i] > 0).map(|i| (i, sum[i] / n[i] as f64)).collect();
+    let known: Vec<(usize, f64)> = (0..sum.len())
+        .filter(|&i| n[i] > 0)
+        .map(|i| (i, sum[i] / n[i] as f64))
+        .collect();
     if known.is_empty() {
         return None;
     }
@@ -167,7 +174,11 @@ impl BidirTable {
     pub fn estimate(&self, trace: &Trace) -> Vec<f64> {
         (0..trace.records.len())
             .map(|i| {
-                let t = if trace.records[i].cmd_dir > 0 { &self.forward_um } else { &self.reverse_um };
+                let t = if trace.records[i].cmd_dir > 0 {
+                    &self.forward_um
+                } else {
+                    &self.reverse_um
+                };
                 self.lookup(t, trace.x_pe_mm(i))
             })
             .collect()

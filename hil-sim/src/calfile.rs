@@ -25,11 +25,18 @@ struct CalFile {
 }
 
 fn table(pairs: &[(&str, f64)]) -> toml::Table {
-    pairs.iter().map(|(k, v)| (k.to_string(), toml::Value::Float(*v))).collect()
+    pairs
+        .iter()
+        .map(|(k, v)| (k.to_string(), toml::Value::Float(*v)))
+        .collect()
 }
 
 fn floats(v: &[f64]) -> toml::Value {
-    toml::Value::Array(v.iter().map(|x| toml::Value::Float((x * 1e4).round() / 1e4)).collect())
+    toml::Value::Array(
+        v.iter()
+            .map(|x| toml::Value::Float((x * 1e4).round() / 1e4))
+            .collect(),
+    )
 }
 
 /// Writes both files into `dir`; the parameters are those of the blob (quantised).
@@ -42,15 +49,26 @@ pub fn save(dir: &Path, cal: &Calibration, rig: &Rig) -> Result<(), String> {
     let p = blob::decode(&buf[..n], rig).map_err(|e| e.to_string())?;
     let (m1, m2, m3) = (&p.model1, &p.model2, &p.model3);
     let mut model3 = toml::Table::new();
-    for (name, b) in [("forward_band", &m3.forward_band), ("reverse_band", &m3.reverse_band)] {
+    for (name, b) in [
+        ("forward_band", &m3.forward_band),
+        ("reverse_band", &m3.reverse_band),
+    ] {
         let mut t = toml::Table::new();
         t.insert("x_mm".into(), floats(&b.x_mm[..b.len]));
         t.insert("y_um".into(), floats(&b.y_um[..b.len]));
         model3.insert(name.into(), toml::Value::Table(t));
     }
-    for (name, tr) in [("forward_transition", &m3.forward_transition), ("reverse_transition", &m3.reverse_transition)] {
+    for (name, tr) in [
+        ("forward_transition", &m3.forward_transition),
+        ("reverse_transition", &m3.reverse_transition),
+    ] {
         let mut t = table(&[("d_step_mm", tr.d_step_mm), ("g0_step_um", tr.g0_step_um)]);
-        let rows = tr.gap_um.iter().take(tr.n_d).map(|r| floats(&r[..tr.n_g0])).collect();
+        let rows = tr
+            .gap_um
+            .iter()
+            .take(tr.n_d)
+            .map(|r| floats(&r[..tr.n_g0]))
+            .collect();
         t.insert("gap_um".into(), toml::Value::Array(rows));
         model3.insert(name.into(), toml::Value::Table(t));
     }
@@ -92,17 +110,27 @@ pub fn save(dir: &Path, cal: &Calibration, rig: &Rig) -> Result<(), String> {
 pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, String> {
     let bin = dir.join("calibration.bin");
     let bytes = std::fs::read(&bin).map_err(|e| format!("{}: {e}", bin.display()))?;
-    let params: ModelParams = blob::decode(&bytes, rig).map_err(|e| format!("{}: {e}", bin.display()))?;
+    let params: ModelParams =
+        blob::decode(&bytes, rig).map_err(|e| format!("{}: {e}", bin.display()))?;
     let path = dir.join("calibration.toml");
     let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
     let file: CalFile = toml::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
-    let rms = |k: &str| file.fit_rms_um.get(k).and_then(|v| v.as_float()).unwrap_or(f64::NAN);
+    let rms = |k: &str| {
+        file.fit_rms_um
+            .get(k)
+            .and_then(|v| v.as_float())
+            .unwrap_or(f64::NAN)
+    };
     use estimator_core::model::ModelKind as K;
     Ok(Calibration {
         params,
         backlash: file.backlash,
         bidir: file.bidir_table,
-        fit_rms_um: [(K::Linear, rms("model1")), (K::Exponential, rms("model2")), (K::Table, rms("model3"))],
+        fit_rms_um: [
+            (K::Linear, rms("model1")),
+            (K::Exponential, rms("model2")),
+            (K::Table, rms("model3")),
+        ],
         samples: 0,
     })
 }

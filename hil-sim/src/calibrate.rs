@@ -65,7 +65,10 @@ fn prepare(trace: &Trace) -> Prepared {
     }
     let dx_um = (0..n)
         .map(|i| {
-            let (a, b) = (i.saturating_sub(FILTER_HALF_WIDTH), (i + FILTER_HALF_WIDTH + 1).min(n));
+            let (a, b) = (
+                i.saturating_sub(FILTER_HALF_WIDTH),
+                (i + FILTER_HALF_WIDTH + 1).min(n),
+            );
             (prefix[b] - prefix[a]) / (b - a) as f64
         })
         .collect();
@@ -81,8 +84,12 @@ fn sse(params: &ModelParams, rig: &Rig, kind: ModelKind, runs: &[Prepared]) -> (
     let mut s = 0.0;
     let mut n = 0;
     for r in runs {
-        let Some(&x0) = r.x_counts.first() else { continue };
-        let Ok(mut m) = Reference::new(params, rig, x0) else { return (f64::INFINITY, 1) };
+        let Some(&x0) = r.x_counts.first() else {
+            continue;
+        };
+        let Ok(mut m) = Reference::new(params, rig, x0) else {
+            return (f64::INFINITY, 1);
+        };
         for (x, dx) in r.x_counts.iter().zip(&r.dx_um) {
             let e = dx - m.estimate_um(kind, *x);
             s += e * e;
@@ -160,12 +167,21 @@ fn model3(
     };
     let closing = m1.closing();
     let settle_mm = |dir: i8| {
-        let c = if dir > 0 { closing.forward_mm } else { closing.reverse_mm };
+        let c = if dir > 0 {
+            closing.forward_mm
+        } else {
+            closing.reverse_mm
+        };
         c.map_or(150.0, |v| v.to_num::<f64>()).clamp(5.0, 150.0)
     };
 
     // Band tables: bins of one belt pitch over the travel seen.
-    let (lo, hi) = runs.iter().flat_map(|r| r.x_mm.iter()).fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &x| (l.min(x), h.max(x)));
+    let (lo, hi) = runs
+        .iter()
+        .flat_map(|r| r.x_mm.iter())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &x| {
+            (l.min(x), h.max(x))
+        });
     if !(hi - lo > 2.0 * rig.belt_pitch_mm) {
         return Err("calibration data covers less than two belt pitches of travel".into());
     }
@@ -174,7 +190,10 @@ fn model3(
     let band = |dir: i8| -> Result<BandParams, String> {
         let (mut sum, mut cnt) = (vec![0.0; n_bins], vec![0usize; n_bins]);
         for r in runs {
-            for s in strokes(&r.x_counts, deadband).into_iter().filter(|s| s.dir == dir) {
+            for s in strokes(&r.x_counts, deadband)
+                .into_iter()
+                .filter(|s| s.dir == dir)
+            {
                 let x_turn = r.x_mm[s.turn_index];
                 for i in s.start..s.end {
                     if (r.x_mm[i] - x_turn).abs() >= settle_mm(dir) {
@@ -188,7 +207,11 @@ fn model3(
         let pts: Vec<(f64, f64)> = (0..n_bins)
             .map(|b| {
                 let x = lo + (b as f64 + 0.5) * bin_w;
-                let corr = if cnt[b] >= 20 { sum[b] / cnt[b] as f64 } else { 0.0 };
+                let corr = if cnt[b] >= 20 {
+                    sum[b] / cnt[b] as f64
+                } else {
+                    0.0
+                };
                 (x, edge(x, dir) + corr)
             })
             .collect();
@@ -198,14 +221,19 @@ fn model3(
     let reverse_band = band(-1)?;
 
     // Transition tables: gap to the new band edge after each reversal.
-    let band_at = |b: &BandParams, x: f64| crate::tables::interp(&b.x_mm[..b.len], &b.y_um[..b.len], x);
+    let band_at =
+        |b: &BandParams, x: f64| crate::tables::interp(&b.x_mm[..b.len], &b.y_um[..b.len], x);
     let mut samples: [Vec<GapSample>; 2] = [Vec::new(), Vec::new()];
     let mut d_max = [0.0f64; 2];
     for r in runs {
         let ss = strokes(&r.x_counts, deadband);
         for s in ss.iter().skip(1) {
             let k = if s.dir > 0 { 0 } else { 1 };
-            let b = if s.dir > 0 { &forward_band } else { &reverse_band };
+            let b = if s.dir > 0 {
+                &forward_band
+            } else {
+                &reverse_band
+            };
             let x_d = r.x_mm[s.turn_index];
             // Error at the turning point: the filtered Delta x there.
             let g0 = (r.dx_um[s.turn_index] - band_at(b, x_d)) * s.dir as f64;
@@ -215,7 +243,11 @@ fn model3(
             for i in s.start..s.end {
                 let d = (r.x_mm[i] - x_d).abs();
                 let gap = (r.dx_um[i] - band_at(b, r.x_mm[i])) * s.dir as f64;
-                samples[k].push(GapSample { d_mm: d, g0_um: g0, gap_um: gap });
+                samples[k].push(GapSample {
+                    d_mm: d,
+                    g0_um: g0,
+                    gap_um: gap,
+                });
                 d_max[k] = d_max[k].max(d);
             }
         }
@@ -223,13 +255,21 @@ fn model3(
     let transition = |k: usize, hg_um: f64| -> Result<TransitionParams, String> {
         let s = &samples[k];
         if s.len() < 100 {
-            return Err("calibration data has too few reversals for Model 3's transition tables".into());
+            return Err(
+                "calibration data has too few reversals for Model 3's transition tables".into(),
+            );
         }
         let g_max = s.iter().map(|g| g.g0_um).fold(0.0, f64::max).max(1.0);
-        let d_len = settle_mm(if k == 0 { 1 } else { -1 }).min(d_max[k]).max(1.0);
+        let d_len = settle_mm(if k == 0 { 1 } else { -1 })
+            .min(d_max[k])
+            .max(1.0);
         let (nd, ng) = (MAX_TRANSITION_D, MAX_TRANSITION_G0);
-        let d_axis: Vec<f64> = (0..nd).map(|i| d_len * i as f64 / (nd - 1) as f64).collect();
-        let g_axis: Vec<f64> = (0..ng).map(|j| g_max * j as f64 / (ng - 1) as f64).collect();
+        let d_axis: Vec<f64> = (0..nd)
+            .map(|i| d_len * i as f64 / (nd - 1) as f64)
+            .collect();
+        let g_axis: Vec<f64> = (0..ng)
+            .map(|j| g_max * j as f64 / (ng - 1) as f64)
+            .collect();
         let used: Vec<GapSample> = s.iter().copied().filter(|g| g.d_mm <= d_len).collect();
         let anchor: Vec<f64> = g_axis.iter().map(|g| (g - hg_um).max(0.0)).collect();
         let vals = fit_gap_table(&used, &d_axis, &g_axis, smooth, &anchor)
@@ -256,8 +296,16 @@ fn model3(
 }
 
 /// Calibrates every model and both baselines from `traces`. `progress(stage, fraction)` reports.
-pub fn calibrate(traces: &[Trace], rig: &Rig, progress: &mut dyn FnMut(&str, f64)) -> Result<Calibration, String> {
-    let runs: Vec<Prepared> = traces.iter().filter(|t| !t.records.is_empty()).map(prepare).collect();
+pub fn calibrate(
+    traces: &[Trace],
+    rig: &Rig,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Calibration, String> {
+    let runs: Vec<Prepared> = traces
+        .iter()
+        .filter(|t| !t.records.is_empty())
+        .map(prepare)
+        .collect();
     if runs.is_empty() {
         return Err("no calibration samples".into());
     }
@@ -274,7 +322,10 @@ pub fn calibrate(traces: &[Trace], rig: &Rig, progress: &mut dyn FnMut(&str, f64
     // the carriage has not moved; too wide a band registers real reversals late.
     let mut best = (f64::INFINITY, ModelParams::DEFAULT_DEADBAND_COUNTS);
     for (k, &db) in DEADBAND_CANDIDATES_COUNTS.iter().enumerate() {
-        progress("choose dead band", k as f64 / DEADBAND_CANDIDATES_COUNTS.len() as f64);
+        progress(
+            "choose dead band",
+            k as f64 / DEADBAND_CANDIDATES_COUNTS.len() as f64,
+        );
         params.reversal_deadband_counts = db;
         let trial = nelder_mead(
             |v| {
@@ -310,7 +361,16 @@ pub fn calibrate(traces: &[Trace], rig: &Rig, progress: &mut dyn FnMut(&str, f64
 
     let p2 = Model2Params::PAPER;
     let f = &fit1.x;
-    let x2 = [f[0], f[1], f[2], f[3], p2.rate_a_per_mm, p2.rate_b_per_mm, p2.amplitude_a_mm, p2.amplitude_b_mm];
+    let x2 = [
+        f[0],
+        f[1],
+        f[2],
+        f[3],
+        p2.rate_a_per_mm,
+        p2.rate_b_per_mm,
+        p2.amplitude_a_mm,
+        p2.amplitude_b_mm,
+    ];
     let step2 = [2e-4, 0.02, 0.03, 0.02, 0.02, 0.02, 0.03, 0.03];
     let mut evals = 0usize;
     let fit2 = nelder_mead(
@@ -331,7 +391,10 @@ pub fn calibrate(traces: &[Trace], rig: &Rig, progress: &mut dyn FnMut(&str, f64
     // tooth ripple make a lightly smoothed table oscillate between cells.
     let mut best = (f64::INFINITY, SMOOTHING_CANDIDATES[0]);
     for (k, &smooth) in SMOOTHING_CANDIDATES.iter().enumerate() {
-        progress("Model 3 tables", k as f64 / SMOOTHING_CANDIDATES.len() as f64);
+        progress(
+            "Model 3 tables",
+            k as f64 / SMOOTHING_CANDIDATES.len() as f64,
+        );
         params.model3 = model3(&params.model1, &runs, rig, deadband, smooth)?;
         let v = sse(&params, rig, ModelKind::Table, &runs).0;
         if v < best.0 {
@@ -340,7 +403,8 @@ pub fn calibrate(traces: &[Trace], rig: &Rig, progress: &mut dyn FnMut(&str, f64
     }
     params.model3 = model3(&params.model1, &runs, rig, deadband, best.1)?;
     // From here on, exactly what the firmware will hold: the blob's fixed-point formats.
-    let params = crate::calfile::quantised(&params, rig).map_err(|e| format!("calibrated parameters rejected: {e}"))?;
+    let params = crate::calfile::quantised(&params, rig)
+        .map_err(|e| format!("calibrated parameters rejected: {e}"))?;
     progress("Model 3 tables", 1.0);
 
     let rms = |kind| {

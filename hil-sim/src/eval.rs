@@ -18,11 +18,22 @@ pub const CALIBRATION_SCENARIOS: &[&str] = &["repeatability", "reversals", "velo
 pub const CALIBRATION_SEED_BASE: u64 = 1_000;
 
 /// Names of the estimators in report order.
-pub const ESTIMATORS: &[&str] = &["none", "model1", "model2", "model3", "backlash", "bidir_table"];
+pub const ESTIMATORS: &[&str] = &[
+    "none",
+    "model1",
+    "model2",
+    "model3",
+    "backlash",
+    "bidir_table",
+];
 
 /// The drive configuration used by simulations: the paper rig with `params` loaded.
 pub fn drive_config(params: &ModelParams, model: ModelKind) -> DriveConfig {
-    DriveConfig { model: params.clone(), initial_model: model, ..DriveConfig::paper_rig() }
+    DriveConfig {
+        model: params.clone(),
+        initial_model: model,
+        ..DriveConfig::paper_rig()
+    }
 }
 
 /// Runs `scenario` with the core in-process.
@@ -36,7 +47,9 @@ pub fn run_in_process(
 ) -> Result<Trace, RunError> {
     let cfg = drive_config(params, model);
     let drive = Drive::new(&cfg).map_err(|e| {
-        RunError::Control(crate::controller::ControlError::Link(format!("drive configuration: {e}")))
+        RunError::Control(crate::controller::ControlError::Link(format!(
+            "drive configuration: {e}"
+        )))
     })?;
     let mut c = InProcess(drive);
     run_with(scenario, plant, &cfg.rig, &mut c, seed, progress)
@@ -51,7 +64,10 @@ pub fn run_with(
     seed: u64,
     progress: &mut dyn FnMut(f64),
 ) -> Result<Trace, RunError> {
-    let rc = RunConfig { seed, ..RunConfig::default() };
+    let rc = RunConfig {
+        seed,
+        ..RunConfig::default()
+    };
     run(scenario, plant, rig, controller, &rc, progress)
 }
 
@@ -65,9 +81,14 @@ pub fn record_calibration(
     for (k, name) in CALIBRATION_SCENARIOS.iter().enumerate() {
         let s = Scenario::load(name)?;
         let label = format!("record {name}");
-        let t = run_in_process(&s, plant, &ModelParams::PAPER, ModelKind::None, CALIBRATION_SEED_BASE + k as u64, &mut |f| {
-            progress(&label, f)
-        })
+        let t = run_in_process(
+            &s,
+            plant,
+            &ModelParams::PAPER,
+            ModelKind::None,
+            CALIBRATION_SEED_BASE + k as u64,
+            &mut |f| progress(&label, f),
+        )
         .map_err(|e| format!("{name}: {e}"))?;
         traces.push(t);
     }
@@ -75,14 +96,21 @@ pub fn record_calibration(
 }
 
 /// Records the calibration scenarios and calibrates.
-pub fn calibrate_plant(plant: &PlantParams, progress: &mut dyn FnMut(&str, f64)) -> Result<Calibration, String> {
+pub fn calibrate_plant(
+    plant: &PlantParams,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Calibration, String> {
     let traces = record_calibration(plant, progress)?;
     calibrate(&traces, &Rig::PAPER, progress)
 }
 
 /// Every estimator's y along `trace`, um, in `ESTIMATORS` order. The paper's models are replayed
 /// through the fixed-point code the firmware runs, from the recorded motor counts.
-pub fn estimates(trace: &Trace, coeffs: &ModelCoeffs, cal: &Calibration) -> Vec<(&'static str, Vec<f64>)> {
+pub fn estimates(
+    trace: &Trace,
+    coeffs: &ModelCoeffs,
+    cal: &Calibration,
+) -> Vec<(&'static str, Vec<f64>)> {
     let x0 = trace.records.first().map_or(0, |r| r.motor_counts);
     let mut out: Vec<(&'static str, Vec<f64>)> = ModelKind::ALL
         .iter()
@@ -102,11 +130,15 @@ pub fn estimates(trace: &Trace, coeffs: &ModelCoeffs, cal: &Calibration) -> Vec<
 }
 
 /// Table 3 for one trace.
-pub fn table3(trace: &Trace, estimates: &[(&'static str, Vec<f64>)]) -> Vec<(&'static str, ErrorStats)> {
+pub fn table3(
+    trace: &Trace,
+    estimates: &[(&'static str, Vec<f64>)],
+) -> Vec<(&'static str, ErrorStats)> {
     estimates
         .iter()
         .filter_map(|(name, y)| {
-            ErrorStats::of((0..trace.records.len()).map(|i| trace.dx_um(i) - y[i])).map(|s| (*name, s))
+            ErrorStats::of((0..trace.records.len()).map(|i| trace.dx_um(i) - y[i]))
+                .map(|s| (*name, s))
         })
         .collect()
 }
@@ -115,7 +147,41 @@ pub fn table3(trace: &Trace, estimates: &[(&'static str, Vec<f64>)]) -> Vec<(&'s
 pub fn to_json(scenario: &str, samples: usize, table: &[(&'static str, ErrorStats)]) -> String {
     let models: serde_json::Map<String, serde_json::Value> = table
         .iter()
-        .map(|(n, s)| (n.to_string(), serde_json::to_value(s).unwrap_or(serde_json::Value::Null)))
+        .map(|(n, s)| {
+            (
+                n.to_string(),
+                serde_json::to_value(s).unwrap_or(serde_json::Value::Null),
+            )
+        })
         .collect();
     serde_json::json!({ "scenario": scenario, "samples": samples, "models": models }).to_string()
+}
+
+/// Runs `scenario` with the firmware under QEMU in the loop: the calibration goes over the link
+/// as the blob, the model is selected by command, then the very same scenario code as
+/// [`run_in_process`] drives it. Ends QEMU and checks its exit status.
+pub fn run_pil(
+    scenario: &Scenario,
+    plant: &PlantParams,
+    params: &ModelParams,
+    model: ModelKind,
+    seed: u64,
+    opts: &crate::pil::PilOptions,
+    progress: &mut dyn FnMut(f64),
+) -> Result<Trace, String> {
+    let rig = Rig::PAPER;
+    let mut buf = vec![0u8; estimator_core::blob::MAX_BYTES];
+    let n = estimator_core::blob::encode(params, &rig, &mut buf).map_err(|e| e.to_string())?;
+    let mut c = crate::pil::PilController::start(opts).map_err(|e| format!("PIL: {e}"))?;
+    c.load_calibration(&buf[..n])
+        .map_err(|e| format!("PIL: loading the calibration: {e}"))?;
+    c.send_command(estimator_core::drive::Command::SelectModel(model))
+        .map_err(|e| format!("PIL: selecting {model}: {e}"))?;
+    let trace =
+        run_with(scenario, plant, &rig, &mut c, seed, progress).map_err(|e| format!("PIL: {e}"))?;
+    let status = c.shutdown(0).map_err(|e| format!("PIL: {e}"))?;
+    if status != 0 {
+        return Err(format!("PIL: QEMU exited with status {status}"));
+    }
+    Ok(trace)
 }

@@ -53,10 +53,13 @@ pub fn nelder_mead(
         if spread <= tol * (vals[0].abs() + 1e-30) {
             break;
         }
-        let centroid: Vec<f64> =
-            (0..n).map(|j| pts[..n].iter().map(|p| p[j]).sum::<f64>() / n as f64).collect();
+        let centroid: Vec<f64> = (0..n)
+            .map(|j| pts[..n].iter().map(|p| p[j]).sum::<f64>() / n as f64)
+            .collect();
         let towards = |t: f64, p: &[f64]| -> Vec<f64> {
-            (0..n).map(|j| centroid[j] + t * (p[j] - centroid[j])).collect()
+            (0..n)
+                .map(|j| centroid[j] + t * (p[j] - centroid[j]))
+                .collect()
         };
         let xr = towards(-alpha, &pts[n]);
         let fr = eval(&xr, &mut evals);
@@ -88,14 +91,22 @@ pub fn nelder_mead(
                 vals[n] = fc;
             } else {
                 for i in 1..=n {
-                    pts[i] = (0..n).map(|j| pts[0][j] + sigma * (pts[i][j] - pts[0][j])).collect();
+                    pts[i] = (0..n)
+                        .map(|j| pts[0][j] + sigma * (pts[i][j] - pts[0][j]))
+                        .collect();
                     vals[i] = eval(&pts[i], &mut evals);
                 }
             }
         }
     }
-    let best = (0..=n).min_by(|&a, &b| vals[a].total_cmp(&vals[b])).unwrap_or(0);
-    Minimum { x: pts[best].clone(), value: vals[best], evaluations: evals }
+    let best = (0..=n)
+        .min_by(|&a, &b| vals[a].total_cmp(&vals[b]))
+        .unwrap_or(0);
+    Minimum {
+        x: pts[best].clone(),
+        value: vals[best],
+        evaluations: evals,
+    }
 }
 
 #[cfg(test)]
@@ -111,19 +122,31 @@ mod tests {
             1e-14,
             5000,
         );
-        assert!((m.x[0] - 1.0).abs() < 1e-3 && (m.x[1] - 1.0).abs() < 1e-3, "{:?}", m);
+        assert!(
+            (m.x[0] - 1.0).abs() < 1e-3 && (m.x[1] - 1.0).abs() < 1e-3,
+            "{:?}",
+            m
+        );
     }
 
     #[test]
     fn recovers_line_parameters_by_least_squares() {
         let xs: Vec<f64> = (0..50).map(|i| i as f64).collect();
         let m = nelder_mead(
-            |p| xs.iter().map(|x| (p[0] * x + p[1] - (0.3 * x - 2.0)).powi(2)).sum(),
+            |p| {
+                xs.iter()
+                    .map(|x| (p[0] * x + p[1] - (0.3 * x - 2.0)).powi(2))
+                    .sum()
+            },
             &[0.0, 0.0],
             &[0.1, 1.0],
             1e-16,
             4000,
         );
-        assert!((m.x[0] - 0.3).abs() < 1e-4 && (m.x[1] + 2.0).abs() < 1e-3, "{:?}", m);
+        assert!(
+            (m.x[0] - 0.3).abs() < 1e-4 && (m.x[1] + 2.0).abs() < 1e-3,
+            "{:?}",
+            m
+        );
     }
 }

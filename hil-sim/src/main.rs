@@ -7,13 +7,18 @@ use clap::{Parser, Subcommand};
 use estimator_core::model::ModelKind;
 use estimator_core::rig::Rig;
 use hil_sim::calibrate::Calibration;
+use hil_sim::pil::PilOptions;
 use hil_sim::plant::PlantParams;
 use hil_sim::progress::Progress;
 use hil_sim::scenario::{preset_names, Scenario};
 use hil_sim::{calfile, eval, report};
 
 #[derive(Parser)]
-#[command(name = "hil-sim", version, about = "Simulated timing-belt drive: run, calibrate and evaluate the belt-drive controller")]
+#[command(
+    name = "hil-sim",
+    version,
+    about = "Simulated timing-belt drive: run, calibrate and evaluate the belt-drive controller"
+)]
 struct Cli {
     #[command(subcommand)]
     cmd: Cmd,
@@ -30,6 +35,56 @@ struct Common {
     /// A calibration directory written by `hil-sim calibrate`; default: calibrate now.
     #[arg(long)]
     calibration: Option<PathBuf>,
+    /// Processor in the loop: the firmware runs under QEMU and closes the loop over its USART.
+    #[arg(long)]
+    pil: bool,
+    /// Firmware ELF for --pil (default: target/thumbv7em-none-eabihf/release/belt-drive).
+    #[arg(long)]
+    elf: Option<PathBuf>,
+    /// Lowest level of the firmware's defmt log shown with --pil (trace, debug, info, warn, error).
+    #[arg(long, default_value = "info")]
+    log_level: String,
+}
+
+impl Common {
+    /// Runs `scenario` in-process, or under QEMU with --pil.
+    fn run(
+        &self,
+        scenario: &Scenario,
+        plant: &PlantParams,
+        params: &estimator_core::model::ModelParams,
+        model: ModelKind,
+        progress: &mut Progress,
+    ) -> Result<hil_sim::run::Trace, String> {
+        let label = format!("{} {}", if self.pil { "PIL" } else { "run" }, scenario.name);
+        let mut p = |f| progress.stage(&label, f);
+        if self.pil {
+            let elf = self
+                .elf
+                .clone()
+                .unwrap_or_else(|| PilOptions::default_elf(None));
+            if !elf.exists() {
+                return Err(format!(
+                    "{}: no firmware ELF; build it with `cargo fw-qemu`",
+                    elf.display()
+                ));
+            }
+            let mut opts = PilOptions::new(elf);
+            opts.min_level = hil_sim::pil::qemu::LEVELS
+                .iter()
+                .find(|l| **l == self.log_level)
+                .ok_or_else(|| {
+                    format!(
+                        "--log-level {}: use trace, debug, info, warn or error",
+                        self.log_level
+                    )
+                })?;
+            eval::run_pil(scenario, plant, params, model, self.seed, &opts, &mut p)
+        } else {
+            eval::run_in_process(scenario, plant, params, model, self.seed, &mut p)
+                .map_err(|e| format!("{}: {e}", scenario.name))
+        }
+    }
 }
 
 #[derive(Subcommand)]
@@ -91,7 +146,11 @@ fn plant_params(path: &Option<PathBuf>) -> Result<PlantParams, String> {
     }
 }
 
-fn calibration(common: &Common, plant: &PlantParams, progress: &mut Progress) -> Result<Calibration, String> {
+fn calibration(
+    common: &Common,
+    plant: &PlantParams,
+    progress: &mut Progress,
+) -> Result<Calibration, String> {
     match &common.calibration {
         Some(dir) => calfile::load(dir, &Rig::PAPER),
         None => eval::calibrate_plant(plant, &mut |stage, f| progress.stage(stage, f)),
@@ -103,25 +162,34 @@ fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), String> {
     let plant = plant_params(&common.plant)?;
     let mut progress = Progress::new();
     let cal = calibration(common, &plant, &mut progress)?;
-    let label = format!("run {}", scenario.name);
-    let trace = eval::run_in_process(&scenario, &plant, &cal.params, ModelKind::Table, common.seed, &mut |f| {
-        progress.stage(&label, f)
-    })
-    .map_err(|e| format!("{}: {e}", scenario.name))?;
+    let trace = common.run(
+        &scenario,
+        &plant,
+        &cal.params,
+        ModelKind::Table,
+        &mut progress,
+    )?;
     progress.finish();
     let coeffs = cal.params.build(&Rig::PAPER).map_err(|e| e.to_string())?;
     let est = eval::estimates(&trace, &coeffs, &cal);
     let table = eval::table3(&trace, &est);
     if json {
-        println!("{}", eval::to_json(&scenario.name, trace.records.len(), &table));
+        println!(
+            "{}",
+            eval::to_json(&scenario.name, trace.records.len(), &table)
+        );
     } else {
-        print!("{}", report::table_markdown(&scenario.name, trace.records.len(), &table));
+        print!(
+            "{}",
+            report::table_markdown(&scenario.name, trace.records.len(), &table)
+        );
     }
     Ok(())
 }
 
 fn run_csv(scenario: &str, common: &Common, model: &str, out: &str) -> Result<(), String> {
-    let kind = ModelKind::parse(model).ok_or_else(|| format!("--model {model}: use none, model1, model2 or model3"))?;
+    let kind = ModelKind::parse(model)
+        .ok_or_else(|| format!("--model {model}: use none, model1, model2 or model3"))?;
     let scenario = Scenario::load(scenario)?;
     let plant = plant_params(&common.plant)?;
     let mut progress = Progress::new();
@@ -129,14 +197,14 @@ fn run_csv(scenario: &str, common: &Common, model: &str, out: &str) -> Result<()
         Some(dir) => calfile::load(dir, &Rig::PAPER)?.params,
         None => estimator_core::model::ModelParams::PAPER,
     };
-    let label = format!("run {}", scenario.name);
-    let trace = eval::run_in_process(&scenario, &plant, &params, kind, common.seed, &mut |f| progress.stage(&label, f))
-        .map_err(|e| format!("{}: {e}", scenario.name))?;
+    let trace = common.run(&scenario, &plant, &params, kind, &mut progress)?;
     progress.finish();
     let mut w: Box<dyn std::io::Write> = if out == "-" {
         Box::new(std::io::stdout().lock())
     } else {
-        Box::new(std::io::BufWriter::new(std::fs::File::create(out).map_err(|e| format!("{out}: {e}"))?))
+        Box::new(std::io::BufWriter::new(
+            std::fs::File::create(out).map_err(|e| format!("{out}: {e}"))?,
+        ))
     };
     report::write_csv(&mut w, &trace).map_err(|e| format!("{out}: {e}"))
 }
@@ -144,27 +212,64 @@ fn run_csv(scenario: &str, common: &Common, model: &str, out: &str) -> Result<()
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.cmd {
-        Cmd::Evaluate { scenario, common, json } => evaluate(&scenario, &common, json),
+        Cmd::Evaluate {
+            scenario,
+            common,
+            json,
+        } => evaluate(&scenario, &common, json),
         Cmd::Calibrate { plant, out } => (|| {
             let plant = plant_params(&plant)?;
             let mut progress = Progress::new();
             let cal = eval::calibrate_plant(&plant, &mut |s, f| progress.stage(s, f))?;
             progress.finish();
             calfile::save(&out, &cal, &Rig::PAPER)?;
-            eprintln!("reversal dead band: {} counts", cal.params.reversal_deadband_counts);
+            eprintln!(
+                "reversal dead band: {} counts",
+                cal.params.reversal_deadband_counts
+            );
             for (k, rms) in cal.fit_rms_um {
-                eprintln!("fit {:<7} RMS {:6.2} um on {} calibration samples", k.as_str(), rms, cal.samples);
+                eprintln!(
+                    "fit {:<7} RMS {:6.2} um on {} calibration samples",
+                    k.as_str(),
+                    rms,
+                    cal.samples
+                );
             }
-            eprintln!("wrote {} and {}", out.join("calibration.bin").display(), out.join("calibration.toml").display());
+            eprintln!(
+                "wrote {} and {}",
+                out.join("calibration.bin").display(),
+                out.join("calibration.toml").display()
+            );
             Ok(())
         })(),
-        Cmd::Run { scenario, common, model, out } => run_csv(&scenario, &common, &model, &out),
-        Cmd::Report { scenario, common, out } => (|| {
+        Cmd::Run {
+            scenario,
+            common,
+            model,
+            out,
+        } => run_csv(&scenario, &common, &model, &out),
+        Cmd::Report {
+            scenario,
+            common,
+            out,
+        } => (|| {
             let plant = plant_params(&common.plant)?;
             let mut progress = Progress::new();
             let cal = calibration(&common, &plant, &mut progress)?;
             let scenario = Scenario::load(&scenario)?;
-            report::write(Path::new(&out), &scenario, &plant, &cal, common.seed, &mut progress)?;
+            let trace = common.run(
+                &scenario,
+                &plant,
+                &cal.params,
+                ModelKind::Table,
+                &mut progress,
+            )?;
+            let how = if common.pil {
+                "firmware under QEMU (PIL)"
+            } else {
+                "core in-process"
+            };
+            report::write(Path::new(&out), &trace, how, &plant, &cal, &mut progress)?;
             progress.finish();
             eprintln!("wrote {}", out.join("report.md").display());
             Ok(())

@@ -24,7 +24,10 @@ pub fn init_fonts() -> Result<(), String> {
                     .map_err(|_| format!("{p}: not a usable TrueType font"));
             }
         }
-        Err(format!("no font found (tried {}); install fonts-dejavu-core", FONT_PATHS.join(", ")))
+        Err(format!(
+            "no font found (tried {}); install fonts-dejavu-core",
+            FONT_PATHS.join(", ")
+        ))
     })
     .clone()
 }
@@ -32,7 +35,9 @@ pub fn init_fonts() -> Result<(), String> {
 type PlotResult = Result<(), Box<dyn std::error::Error>>;
 
 fn range(vals: impl Iterator<Item = f64>) -> (f64, f64) {
-    let (lo, hi) = vals.fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), v| (l.min(v), h.max(v)));
+    let (lo, hi) = vals.fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), v| {
+        (l.min(v), h.max(v))
+    });
     if !(hi > lo) {
         return (lo - 1.0, lo + 1.0);
     }
@@ -51,15 +56,27 @@ pub fn hysteresis(path: &Path, title: &str, traces: &[Trace]) -> PlotResult {
     init_fonts()?;
     let root = BitMapBackend::new(path, (1000, 600)).into_drawing_area();
     root.fill(&WHITE)?;
-    let xs = range(traces.iter().flat_map(|t| (0..t.records.len()).map(move |i| t.x_pe_mm(i))));
-    let ys = range(traces.iter().flat_map(|t| (0..t.records.len()).map(move |i| t.dx_um(i))));
+    let xs = range(
+        traces
+            .iter()
+            .flat_map(|t| (0..t.records.len()).map(move |i| t.x_pe_mm(i))),
+    );
+    let ys = range(
+        traces
+            .iter()
+            .flat_map(|t| (0..t.records.len()).map(move |i| t.dx_um(i))),
+    );
     let mut chart = ChartBuilder::on(&root)
         .caption(title, ("sans-serif", 22))
         .margin(12)
         .x_label_area_size(40)
         .y_label_area_size(60)
         .build_cartesian_2d(xs.0..xs.1, ys.0..ys.1)?;
-    chart.configure_mesh().x_desc("x_PE (mm)").y_desc("x_LS - x_PE (um)").draw()?;
+    chart
+        .configure_mesh()
+        .x_desc("x_PE (mm)")
+        .y_desc("x_LS - x_PE (um)")
+        .draw()?;
     for (k, t) in traces.iter().enumerate() {
         let color = Palette99::pick(k).mix(0.8);
         chart.draw_series(LineSeries::new(
@@ -100,7 +117,10 @@ pub fn estimate(path: &Path, title: &str, trace: &Trace, y_um: &[f64]) -> PlotRe
     ))?
     .label("estimate y")
     .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RED));
-    c.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw()?;
+    c.configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()?;
 
     let es = range((0..n).map(|i| trace.dx_um(i) - y_um[i]));
     let mut c = ChartBuilder::on(&bottom)
@@ -108,7 +128,10 @@ pub fn estimate(path: &Path, title: &str, trace: &Trace, y_um: &[f64]) -> PlotRe
         .x_label_area_size(40)
         .y_label_area_size(60)
         .build_cartesian_2d(0.0..t_end, es.0..es.1)?;
-    c.configure_mesh().x_desc("time (s)").y_desc("error e (um)").draw()?;
+    c.configure_mesh()
+        .x_desc("time (s)")
+        .y_desc("error e (um)")
+        .draw()?;
     c.draw_series(LineSeries::new(
         thin(n, 20_000).map(|i| (trace.records[i].t_s, trace.dx_um(i) - y_um[i])),
         BLACK.stroke_width(1),
@@ -131,7 +154,10 @@ pub fn scenario(path: &Path, title: &str, trace: &Trace) -> PlotResult {
         .x_label_area_size(40)
         .y_label_area_size(60)
         .build_cartesian_2d(0.0..t_end, xs.0..xs.1)?;
-    c.configure_mesh().x_desc("time (s)").y_desc("x_PE (mm)").draw()?;
+    c.configure_mesh()
+        .x_desc("time (s)")
+        .y_desc("x_PE (mm)")
+        .draw()?;
     c.draw_series(LineSeries::new(
         thin(n, 20_000).map(|i| (trace.records[i].t_s, trace.x_pe_mm(i))),
         BLUE.stroke_width(2),

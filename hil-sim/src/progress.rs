@@ -20,7 +20,11 @@ impl Default for Progress {
 impl Progress {
     /// A reporter; draws a bar only when standard error is a terminal.
     pub fn new() -> Progress {
-        Progress { bar: None, stage: String::new(), tty: std::io::stderr().is_terminal() }
+        Progress {
+            bar: None,
+            stage: String::new(),
+            tty: std::io::stderr().is_terminal(),
+        }
     }
 
     /// Reports `fraction` (0..=1) of `stage`.

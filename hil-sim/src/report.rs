@@ -24,14 +24,20 @@ pub const PAPER_TABLE3: &[(&str, f64, f64, f64)] = &[
 ];
 
 /// Table 3 as Markdown, with the paper's figures beside ours.
-pub fn table_markdown(scenario: &str, samples: usize, table: &[(&'static str, ErrorStats)]) -> String {
+pub fn table_markdown(
+    scenario: &str,
+    samples: usize,
+    table: &[(&'static str, ErrorStats)],
+) -> String {
     let mut s = format!(
         "Scenario `{scenario}`, {samples} samples; e = x_LS - x_PE - y in um (eq. 19)\n\n\
          | estimator | max | min | RMS | paper max | paper min | paper RMS |\n|---|---:|---:|---:|---:|---:|---:|\n"
     );
     for (name, st) in table {
         let paper = PAPER_TABLE3.iter().find(|p| p.0 == *name);
-        let p = |f: fn(&(&str, f64, f64, f64)) -> f64| paper.map_or("-".to_string(), |q| format!("{:.0}", f(q)));
+        let p = |f: fn(&(&str, f64, f64, f64)) -> f64| {
+            paper.map_or("-".to_string(), |q| format!("{:.0}", f(q)))
+        };
         s += &format!(
             "| {name} | {:.1} | {:.1} | {:.1} | {} | {} | {} |\n",
             st.max_um,
@@ -78,30 +84,30 @@ pub const FIG11_RUNS: u64 = 12;
 /// Runs the scenario, writes report.md, the figures and the CSV into `dir`.
 pub fn write(
     dir: &Path,
-    scenario: &Scenario,
+    trace: &Trace,
+    how: &str,
     plant: &PlantParams,
     cal: &Calibration,
-    seed: u64,
     progress: &mut Progress,
 ) -> Result<(), String> {
     std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
-    let label = format!("run {}", scenario.name);
-    let trace = eval::run_in_process(scenario, plant, &cal.params, ModelKind::Table, seed, &mut |f| {
-        progress.stage(&label, f)
-    })
-    .map_err(|e| format!("{}: {e}", scenario.name))?;
     let coeffs = cal.params.build(&Rig::PAPER).map_err(|e| e.to_string())?;
-    let est = eval::estimates(&trace, &coeffs, cal);
-    let table = eval::table3(&trace, &est);
+    let est = eval::estimates(trace, &coeffs, cal);
+    let table = eval::table3(trace, &est);
 
     let rep = Scenario::load("repeatability")?;
     let mut overlay = Vec::new();
     for k in 0..FIG11_RUNS {
         let label = format!("Fig. 11 run {}/{}", k + 1, FIG11_RUNS);
         overlay.push(
-            eval::run_in_process(&rep, plant, &ModelParams::PAPER, ModelKind::None, 2_000 + k, &mut |f| {
-                progress.stage(&label, f)
-            })
+            eval::run_in_process(
+                &rep,
+                plant,
+                &ModelParams::PAPER,
+                ModelKind::None,
+                2_000 + k,
+                &mut |f| progress.stage(&label, f),
+            )
             .map_err(|e| format!("repeatability: {e}"))?,
         );
     }
@@ -116,26 +122,44 @@ pub fn write(
     fig(
         "fig11_hysteresis.png",
         format!("Fig. 11: x_LS - x_PE against x_PE, {FIG11_RUNS} runs of `repeatability` overlaid"),
-        plot::hysteresis(&dir.join("fig11_hysteresis.png"), "Position error, repeated runs (Fig. 11)", &overlay),
+        plot::hysteresis(
+            &dir.join("fig11_hysteresis.png"),
+            "Position error, repeated runs (Fig. 11)",
+            &overlay,
+        ),
     );
     fig(
         "fig18_scenario.png",
-        format!("Fig. 18: the `{}` scenario", scenario.name),
-        plot::scenario(&dir.join("fig18_scenario.png"), &format!("Scenario {} (Fig. 18)", scenario.name), &trace),
+        format!("Fig. 18: the `{}` scenario", trace.scenario),
+        plot::scenario(
+            &dir.join("fig18_scenario.png"),
+            &format!("Scenario {} (Fig. 18)", trace.scenario),
+            trace,
+        ),
     );
     for (name, y) in &est {
         let file = format!("estimate_{name}.png");
         fig(
             &file,
-            format!("Figs. 19-24: `{name}` estimate and its error along `{}`", scenario.name),
-            plot::estimate(&dir.join(&file), &format!("{name}: estimate and error"), &trace, y),
+            format!(
+                "Figs. 19-24: `{name}` estimate and its error along `{}`",
+                trace.scenario
+            ),
+            plot::estimate(
+                &dir.join(&file),
+                &format!("{name}: estimate and error"),
+                trace,
+                y,
+            ),
         );
     }
     progress.stage("figures", 1.0);
 
     let spread = repeatability_spread_um(&overlay);
-    let mut md = String::from("# belt-drive: estimation of the carriage position (paper's Table 3)\n\n");
-    md += &table_markdown(&scenario.name, trace.records.len(), &table);
+    let mut md =
+        String::from("# belt-drive: estimation of the carriage position (paper's Table 3)\n\n");
+    md += &format!("Closed loop: {how}; noise seed {}.\n\n", trace.seed);
+    md += &table_markdown(&trace.scenario, trace.records.len(), &table);
     md += "\nCalibration fit on its own data (RMS, um): ";
     md += &cal
         .fit_rms_um
@@ -156,9 +180,11 @@ pub fn write(
             md += &format!("- {f}\n");
         }
     }
-    let csv = dir.join(format!("{}.csv", scenario.name));
-    let mut w = std::io::BufWriter::new(std::fs::File::create(&csv).map_err(|e| format!("{}: {e}", csv.display()))?);
-    write_csv(&mut w, &trace).map_err(|e| format!("{}: {e}", csv.display()))?;
+    let csv = dir.join(format!("{}.csv", trace.scenario));
+    let mut w = std::io::BufWriter::new(
+        std::fs::File::create(&csv).map_err(|e| format!("{}: {e}", csv.display()))?,
+    );
+    write_csv(&mut w, trace).map_err(|e| format!("{}: {e}", csv.display()))?;
     std::fs::write(dir.join("report.md"), md).map_err(|e| format!("{}: {e}", dir.display()))?;
     for f in &failures {
         eprintln!("hil-sim: figure not drawn: {f}");
@@ -172,7 +198,9 @@ pub fn repeatability_spread_um(runs: &[Trace]) -> f64 {
     let mut bins: HashMap<(i64, i8, usize), (f64, usize)> = HashMap::new();
     for (k, t) in runs.iter().enumerate() {
         for (i, r) in t.records.iter().enumerate() {
-            let e = bins.entry(((t.x_pe_mm(i)).floor() as i64, r.cmd_dir, k)).or_insert((0.0, 0));
+            let e = bins
+                .entry(((t.x_pe_mm(i)).floor() as i64, r.cmd_dir, k))
+                .or_insert((0.0, 0));
             e.0 += t.dx_um(i);
             e.1 += 1;
         }

@@ -61,7 +61,11 @@ pub struct RunConfig {
 
 impl Default for RunConfig {
     fn default() -> Self {
-        RunConfig { rate_hz: 2000.0, seed: 1, settle_s: 0.2 }
+        RunConfig {
+            rate_hz: 2000.0,
+            seed: 1,
+            settle_s: 0.2,
+        }
     }
 }
 
@@ -85,8 +89,12 @@ impl std::fmt::Display for RunError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             RunError::Control(e) => write!(f, "{e}"),
-            RunError::Fault { bits, t_s } => write!(f, "drive fault 0x{bits:02x} at t = {t_s:.4} s"),
-            RunError::Timeout(t) => write!(f, "scenario still moving after {t:.1} s of simulated time"),
+            RunError::Fault { bits, t_s } => {
+                write!(f, "drive fault 0x{bits:02x} at t = {t_s:.4} s")
+            }
+            RunError::Timeout(t) => {
+                write!(f, "scenario still moving after {t:.1} s of simulated time")
+            }
         }
     }
 }
@@ -105,7 +113,9 @@ fn budget_s(s: &Scenario) -> f64 {
     let mut t = 0.0;
     for m in &s.moves {
         let d = (m.to_mm - x).abs();
-        t += d / m.velocity_mm_s + 2.0 * m.velocity_mm_s / m.accel_mm_s2 + m.dwell_ms as f64 / 1000.0;
+        t += d / m.velocity_mm_s
+            + 2.0 * m.velocity_mm_s / m.accel_mm_s2
+            + m.dwell_ms as f64 / 1000.0;
         x = m.to_mm;
     }
     2.0 * t + 5.0
@@ -126,12 +136,19 @@ pub fn run(
     // Homing as on a machine: both encoders get positions tied to the stage, not to where this
     // run happens to start, so calibrations carry over between runs.
     let start_um = (plant.motor_counts() as f64 / rig.counts_per_mm() * 1000.0).round() as i32;
-    let scale_um = (plant.scale_counts() as f64 / plant.scale_counts_per_mm() * 1000.0).round() as i32;
-    let sample = |p: &Plant| Sample { motor_counter: p.motor_counter(), scale_counter: p.scale_counter() };
+    let scale_um =
+        (plant.scale_counts() as f64 / plant.scale_counts_per_mm() * 1000.0).round() as i32;
+    let sample = |p: &Plant| Sample {
+        motor_counter: p.motor_counter(),
+        scale_counter: p.scale_counter(),
+    };
 
     // One tick at rest so the drive has seen the counters before homing.
     controller.step(sample(&plant))?;
-    controller.command(Command::Home { position_um: start_um, scale_um })?;
+    controller.command(Command::Home {
+        position_um: start_um,
+        scale_um,
+    })?;
     controller.command(Command::Enable)?;
 
     let budget = budget_s(scenario);
@@ -167,7 +184,10 @@ pub fn run(
         let out = controller.step(sample(&plant))?;
         let tel = out.telemetry;
         if !tel.faults.is_clear() {
-            return Err(RunError::Fault { bits: tel.faults.0, t_s: t });
+            return Err(RunError::Fault {
+                bits: tel.faults.0,
+                t_s: t,
+            });
         }
         if last_sp != i32::MIN && tel.setpoint_counts != last_sp {
             cmd_dir = if tel.setpoint_counts > last_sp { 1 } else { -1 };
@@ -188,12 +208,21 @@ pub fn run(
         // Arrival of a move without retarget: rest for its dwell (or the final settle).
         if next_at.is_none() && rest_since.is_none() && !tel.moving {
             let dwell = scenario.moves[next - 1].dwell_ms as f64 / 1000.0;
-            let extra = if next == scenario.moves.len() { dwell + cfg.settle_s } else { dwell };
+            let extra = if next == scenario.moves.len() {
+                dwell + cfg.settle_s
+            } else {
+                dwell
+            };
             rest_since = Some(t + extra);
         }
         if t > budget {
             return Err(RunError::Timeout(t));
         }
     }
-    Ok(Trace { scenario: scenario.name.clone(), seed: cfg.seed, counts_per_mm: rig.counts_per_mm(), records })
+    Ok(Trace {
+        scenario: scenario.name.clone(),
+        seed: cfg.seed,
+        counts_per_mm: rig.counts_per_mm(),
+        records,
+    })
 }

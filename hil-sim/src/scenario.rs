@@ -46,9 +46,15 @@ pub struct Scenario {
 
 /// The shipped presets, by name, mirroring the paper's experiments.
 pub const PRESETS: &[(&str, &str)] = &[
-    ("repeatability", include_str!("../scenarios/repeatability.toml")),
+    (
+        "repeatability",
+        include_str!("../scenarios/repeatability.toml"),
+    ),
     ("velocities", include_str!("../scenarios/velocities.toml")),
-    ("accelerations", include_str!("../scenarios/accelerations.toml")),
+    (
+        "accelerations",
+        include_str!("../scenarios/accelerations.toml"),
+    ),
     ("reversals", include_str!("../scenarios/reversals.toml")),
     ("fig18", include_str!("../scenarios/fig18.toml")),
     ("zigzag", include_str!("../scenarios/zigzag.toml")),
@@ -67,8 +73,12 @@ impl Scenario {
         if let Some((_, text)) = PRESETS.iter().find(|(n, _)| *n == path_or_preset) {
             return Scenario::from_toml_str(text);
         }
-        let text = std::fs::read_to_string(path_or_preset)
-            .map_err(|e| format!("scenario {path_or_preset}: {e} (presets: {})", preset_names()))?;
+        let text = std::fs::read_to_string(path_or_preset).map_err(|e| {
+            format!(
+                "scenario {path_or_preset}: {e} (presets: {})",
+                preset_names()
+            )
+        })?;
         Scenario::from_toml_str(&text).map_err(|e| format!("{path_or_preset}: {e}"))
     }
 
@@ -76,7 +86,10 @@ impl Scenario {
     pub fn validate(&self) -> Result<(), String> {
         let travel = |v: f64| v.is_finite() && (0.0..=2000.0).contains(&v);
         if !travel(self.start_mm) {
-            return Err(format!("start_mm = {} is outside 0..=2000 mm", self.start_mm));
+            return Err(format!(
+                "start_mm = {} is outside 0..=2000 mm",
+                self.start_mm
+            ));
         }
         if self.moves.is_empty() {
             return Err("a scenario needs at least one [[move]]".into());
@@ -84,13 +97,23 @@ impl Scenario {
         for (i, m) in self.moves.iter().enumerate() {
             let n = i + 1;
             if !travel(m.to_mm) {
-                return Err(format!("move {n}: to_mm = {} is outside 0..=2000 mm", m.to_mm));
+                return Err(format!(
+                    "move {n}: to_mm = {} is outside 0..=2000 mm",
+                    m.to_mm
+                ));
             }
-            if !(m.velocity_mm_s.is_finite() && m.velocity_mm_s > 0.0 && m.velocity_mm_s <= 1000.0) {
-                return Err(format!("move {n}: velocity_mm_s = {} must be in (0, 1000]", m.velocity_mm_s));
+            if !(m.velocity_mm_s.is_finite() && m.velocity_mm_s > 0.0 && m.velocity_mm_s <= 1000.0)
+            {
+                return Err(format!(
+                    "move {n}: velocity_mm_s = {} must be in (0, 1000]",
+                    m.velocity_mm_s
+                ));
             }
             if !(m.accel_mm_s2.is_finite() && m.accel_mm_s2 > 0.0 && m.accel_mm_s2 <= 50_000.0) {
-                return Err(format!("move {n}: accel_mm_s2 = {} must be in (0, 50000]", m.accel_mm_s2));
+                return Err(format!(
+                    "move {n}: accel_mm_s2 = {} must be in (0, 50000]",
+                    m.accel_mm_s2
+                ));
             }
             if m.retarget_after_ms == Some(0) {
                 return Err(format!("move {n}: retarget_after_ms must be > 0"));
@@ -102,7 +125,11 @@ impl Scenario {
 
 /// Comma-separated preset names, for error messages and `--help`.
 pub fn preset_names() -> String {
-    PRESETS.iter().map(|(n, _)| *n).collect::<Vec<_>>().join(", ")
+    PRESETS
+        .iter()
+        .map(|(n, _)| *n)
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 #[cfg(test)]
@@ -123,7 +150,11 @@ mod tests {
         let e = Scenario::from_toml_str(bad).unwrap_err();
         assert!(e.contains("move 1") && e.contains("velocity_mm_s"), "{e}");
         let unknown = "name='x'\nstart_mm=10\n[[move]]\nto_mm=20\nvelocity_mm_s=1\naccel_mm_s2=100\nspeed=3\n";
-        assert!(Scenario::from_toml_str(unknown).unwrap_err().contains("speed"));
-        assert!(Scenario::load("no-such-file.toml").unwrap_err().contains("fig18"));
+        assert!(Scenario::from_toml_str(unknown)
+            .unwrap_err()
+            .contains("speed"));
+        assert!(Scenario::load("no-such-file.toml")
+            .unwrap_err()
+            .contains("fig18"));
     }
 }

@@ -23,7 +23,11 @@ impl ErrorStats {
             ss += v * v;
             n += 1;
         }
-        (n > 0).then(|| ErrorStats { max_um: max, min_um: min, rms_um: (ss / n as f64).sqrt() })
+        (n > 0).then(|| ErrorStats {
+            max_um: max,
+            min_um: min,
+            rms_um: (ss / n as f64).sqrt(),
+        })
     }
 }
 

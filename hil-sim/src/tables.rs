@@ -44,7 +44,13 @@ pub fn strokes(x_counts: &[i32], deadband_counts: u32) -> Vec<Stroke> {
             ext = x;
             ext_i = i;
         } else if (ext - x) * dir as i64 > db {
-            out.push(Stroke { dir, x_turn_counts: turn.0, turn_index: turn.1, start, end: i });
+            out.push(Stroke {
+                dir,
+                x_turn_counts: turn.0,
+                turn_index: turn.1,
+                start,
+                end: i,
+            });
             dir = -dir;
             turn = (ext as i32, ext_i);
             start = i;
@@ -52,7 +58,13 @@ pub fn strokes(x_counts: &[i32], deadband_counts: u32) -> Vec<Stroke> {
             ext_i = i;
         }
     }
-    out.push(Stroke { dir, x_turn_counts: turn.0, turn_index: turn.1, start, end: x_counts.len() });
+    out.push(Stroke {
+        dir,
+        x_turn_counts: turn.0,
+        turn_index: turn.1,
+        start,
+        end: x_counts.len(),
+    });
     out
 }
 
@@ -170,14 +182,30 @@ pub fn fit_gap_table(
     let w = smooth * (1.0 + samples.len() as f64 / n as f64);
     for id in 0..nd {
         for ig in 1..ng.saturating_sub(1) {
-            add_row(&[(id * ng + ig - 1, 1.0), (id * ng + ig, -2.0), (id * ng + ig + 1, 1.0)], 0.0, w);
+            add_row(
+                &[
+                    (id * ng + ig - 1, 1.0),
+                    (id * ng + ig, -2.0),
+                    (id * ng + ig + 1, 1.0),
+                ],
+                0.0,
+                w,
+            );
         }
     }
     for ig in 0..ng {
         for id in 1..nd.saturating_sub(1) {
             let (h0, h1) = (d_axis[id] - d_axis[id - 1], d_axis[id + 1] - d_axis[id]);
             let (c0, c2) = (h1 / (h0 + h1), h0 / (h0 + h1));
-            add_row(&[((id - 1) * ng + ig, c0), (id * ng + ig, -1.0), ((id + 1) * ng + ig, c2)], 0.0, w);
+            add_row(
+                &[
+                    ((id - 1) * ng + ig, c0),
+                    (id * ng + ig, -1.0),
+                    ((id + 1) * ng + ig, c2),
+                ],
+                0.0,
+                w,
+            );
         }
     }
     // A whisper of ridge keeps cells no sample and no difference reaches well posed.
@@ -223,14 +251,22 @@ mod tests {
             let g0 = 350.0 * k as f64 / 39.0;
             for i in 0..400 {
                 let d = i as f64 * 0.25;
-                samples.push(GapSample { d_mm: d, g0_um: g0, gap_um: g0 * (-d / 10.0).exp() });
+                samples.push(GapSample {
+                    d_mm: d,
+                    g0_um: g0,
+                    gap_um: g0 * (-d / 10.0).exp(),
+                });
             }
         }
         let t = fit_gap_table(&samples, &d_axis, &g_axis, 1e-4, &g_axis).unwrap();
         for (id, d) in d_axis.iter().enumerate() {
             for (ig, g0) in g_axis.iter().enumerate() {
                 let want = g0 * (-d / 10.0).exp();
-                assert!((t[id * g_axis.len() + ig] - want).abs() < 6.0, "d {d} g0 {g0}: {} vs {want}", t[id * 8 + ig]);
+                assert!(
+                    (t[id * g_axis.len() + ig] - want).abs() < 6.0,
+                    "d {d} g0 {g0}: {} vs {want}",
+                    t[id * 8 + ig]
+                );
             }
         }
     }

@@ -10,12 +10,22 @@ use hil_sim::scenario::Scenario;
 use hil_sim::stats::ErrorStats;
 
 fn rms(table: &[(&'static str, ErrorStats)], name: &str) -> f64 {
-    table.iter().find(|(n, _)| *n == name).map(|(_, s)| s.rms_um).unwrap()
+    table
+        .iter()
+        .find(|(n, _)| *n == name)
+        .map(|(_, s)| s.rms_um)
+        .unwrap()
 }
 
-fn evaluate(cal: &Calibration, plant: &PlantParams, name: &str, seed: u64) -> Vec<(&'static str, ErrorStats)> {
+fn evaluate(
+    cal: &Calibration,
+    plant: &PlantParams,
+    name: &str,
+    seed: u64,
+) -> Vec<(&'static str, ErrorStats)> {
     let s = Scenario::load(name).unwrap();
-    let trace = eval::run_in_process(&s, plant, &cal.params, ModelKind::Table, seed, &mut |_| {}).unwrap();
+    let trace =
+        eval::run_in_process(&s, plant, &cal.params, ModelKind::Table, seed, &mut |_| {}).unwrap();
     let coeffs = cal.params.build(&Rig::PAPER).unwrap();
     let est = eval::estimates(&trace, &coeffs, cal);
     // The drive's own per-tick estimate is the replayed fixed-point Model 3, bit for bit.
@@ -45,10 +55,19 @@ fn table3_ordering_holds_on_unseen_scenarios() {
         );
         // Model 3 best; Models 1 and 2 close; today's compensations behind the paper's models;
         // no model worst.
-        assert!(r("model3") <= r("model1") && r("model3") <= r("model2"), "{name}: model 3 not best");
-        assert!((r("model1") - r("model2")).abs() <= 0.2 * r("model1").max(r("model2")), "{name}: models 1 and 2 not close");
+        assert!(
+            r("model3") <= r("model1") && r("model3") <= r("model2"),
+            "{name}: model 3 not best"
+        );
+        assert!(
+            (r("model1") - r("model2")).abs() <= 0.2 * r("model1").max(r("model2")),
+            "{name}: models 1 and 2 not close"
+        );
         for base in ["backlash", "bidir_table"] {
-            assert!(r(base) > r("model1").max(r("model2")), "{name}: {base} beats a paper model");
+            assert!(
+                r(base) > r("model1").max(r("model2")),
+                "{name}: {base} beats a paper model"
+            );
             assert!(r(base) < r("none"), "{name}: {base} worse than nothing");
         }
     }

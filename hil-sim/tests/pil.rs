@@ -1,0 +1,60 @@
+//! Processor in the loop: the firmware under QEMU and the core in-process run the Fig. 18
+//! scenario through the same plant, with the same calibration and seed, and must agree bit for bit
+//! on every tick (current and telemetry, the estimate included).
+//!
+//! Needs the QEMU firmware (`cargo fw-qemu`), so it is ignored by a plain `cargo test`;
+//! `.ci/test` builds the firmware and runs it with `--ignored`.
+
+use estimator_core::model::ModelKind;
+use hil_sim::eval;
+use hil_sim::pil::qemu::LogSink;
+use hil_sim::pil::PilOptions;
+use hil_sim::plant::PlantParams;
+use hil_sim::scenario::Scenario;
+
+#[test]
+#[ignore = "needs the QEMU firmware ELF (cargo fw-qemu); run by .ci/test"]
+fn fig18_pil_is_bit_identical_to_the_host() {
+    let elf = std::env::var_os("BELT_DRIVE_ELF")
+        .map(Into::into)
+        .unwrap_or_else(|| PilOptions::default_elf(None));
+    assert!(
+        elf.exists(),
+        "{}: build the firmware with `cargo fw-qemu` first",
+        elf.display()
+    );
+    let plant = PlantParams::paper_rig();
+    let cal = eval::calibrate_plant(&plant, &mut |_, _| {}).unwrap();
+    let scenario = Scenario::load("fig18").unwrap();
+
+    let host = eval::run_in_process(
+        &scenario,
+        &plant,
+        &cal.params,
+        ModelKind::Table,
+        3,
+        &mut |_| {},
+    )
+    .unwrap();
+    let mut opts = PilOptions::new(elf);
+    opts.log = LogSink::Discard;
+    let pil = eval::run_pil(
+        &scenario,
+        &plant,
+        &cal.params,
+        ModelKind::Table,
+        3,
+        &opts,
+        &mut |_| {},
+    )
+    .unwrap();
+
+    assert_eq!(host.records.len(), pil.records.len(), "tick counts differ");
+    for (k, (h, p)) in host.records.iter().zip(&pil.records).enumerate() {
+        assert_eq!(h, p, "tick {k} differs: host {h:?} firmware {p:?}");
+    }
+    eprintln!(
+        "fig18: {} ticks bit-identical between host and firmware under QEMU",
+        host.records.len()
+    );
+}
