@@ -23,7 +23,7 @@ use belt_drive as _;
 mod app {
     use core::sync::atomic::{AtomicBool, AtomicU16, Ordering};
 
-    use belt_drive::drive::{Command, CommandError, Drive, DriveConfig, Telemetry};
+    use belt_drive::drive::{Command, CommandError, Drive, DriveConfig, Faults, Telemetry};
     use belt_drive::hardware::{self, ControlIo, LinkRx};
     use belt_drive::outbox::Outbox;
     use belt_drive::stack;
@@ -160,10 +160,10 @@ mod app {
                 *silent_ticks = silent_ticks.saturating_add(1);
                 if *silent_ticks >= LINK_TIMEOUT_TICKS && drive.lock(|d| d.is_enabled()) {
                     defmt::error!(
-                        "fault: link silent for {=u32} ticks: motor disabled (re-enable over the link)",
+                        "fault: link silent for {=u32} ticks: motor disabled (clear faults and enable over the link)",
                         *silent_ticks
                     );
-                    let _ = drive.lock(|d| d.command(Command::Disable));
+                    drive.lock(|d| d.raise_fault(Faults::LINK_TIMEOUT));
                 }
             }
         }
@@ -370,7 +370,6 @@ mod app {
             CommandError::VelocityOutOfRange => "velocity out of range",
             CommandError::AccelOutOfRange => "acceleration out of range",
             CommandError::NotEnabled => "drive not enabled (or faulted)",
-            CommandError::ModelNotCalibrated => "model needs calibration tables",
             CommandError::Busy => "busy (moving)",
         }
     }

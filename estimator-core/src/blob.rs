@@ -20,8 +20,8 @@
 //! refused with the reason and changes nothing.
 
 use crate::model::{
-    BandParams, Model1Params, Model2Params, Model3Params, ModelParams, TransitionParams,
-    MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
+    build_coeffs, BandParams, Model1Params, Model2Params, Model3Params, Model3Source, ModelCoeffs,
+    ModelParams, TransitionParams, MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
 };
 use crate::rig::Rig;
 use crate::ConfigError;
@@ -262,8 +262,64 @@ pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, 
     Ok(len)
 }
 
-/// Checks and decodes a blob for a drive on `rig`.
-pub fn decode(blob: &[u8], rig: &Rig) -> Result<ModelParams, BlobError> {
+/// A checked blob: Models 1 and 2 read out, Model 3's tables left in place in the bytes.
+struct Parsed<'a> {
+    deadband: u32,
+    model1: Model1Params,
+    model2: Model2Params,
+    model3: BlobModel3<'a>,
+}
+
+/// Model 3's tables read straight from a checked blob.
+struct BlobModel3<'a> {
+    /// Per direction: the points, 8 bytes each.
+    bands: [&'a [u8]; 2],
+    /// Per direction: `(n_d, n_g0, d_step_mm, g0_step_um)` and the cells, 2 bytes each.
+    shapes: [(usize, usize, f64, f64); 2],
+    gaps: [&'a [u8]; 2],
+}
+
+fn le_i32(b: &[u8], at: usize) -> i32 {
+    match b.get(at..at + 4) {
+        Some(s) => i32::from_le_bytes([s[0], s[1], s[2], s[3]]),
+        None => 0,
+    }
+}
+
+impl Model3Source for BlobModel3<'_> {
+    fn band_len(&self, dir: usize) -> usize {
+        self.bands[dir & 1].len() / 8
+    }
+    fn band_point(&self, dir: usize, i: usize) -> (f64, f64) {
+        let b = self.bands[dir & 1];
+        (
+            le_i32(b, 8 * i) as f64 / 1000.0,
+            le_i32(b, 8 * i + 4) as f64 / 65536.0,
+        )
+    }
+    fn transition_shape(&self, dir: usize) -> (usize, usize, f64, f64) {
+        self.shapes[dir & 1]
+    }
+    fn gap_um(&self, dir: usize, i: usize, j: usize) -> f64 {
+        let n_g0 = self.shapes[dir & 1].1;
+        let at = 2 * (i * n_g0 + j);
+        match self.gaps[dir & 1].get(at..at + 2) {
+            Some(s) => u16::from_le_bytes([s[0], s[1]]) as f64 / 32.0,
+            None => f64::NAN,
+        }
+    }
+}
+
+impl<'a> Reader<'a> {
+    fn slice(&mut self, n: usize) -> Result<&'a [u8], BlobError> {
+        let end = self.at.checked_add(n).ok_or(BlobError::Truncated)?;
+        let s = self.buf.get(self.at..end).ok_or(BlobError::Truncated)?;
+        self.at = end;
+        Ok(s)
+    }
+}
+
+fn parse<'a>(blob: &'a [u8], rig: &Rig) -> Result<Parsed<'a>, BlobError> {
     if blob.len() < HEADER {
         return Err(BlobError::Truncated);
     }
@@ -296,7 +352,7 @@ pub fn decode(blob: &[u8], rig: &Rig) -> Result<ModelParams, BlobError> {
     if r.u32()? != rig_q16(rig) {
         return Err(BlobError::RigMismatch);
     }
-    let reversal_deadband_counts = r.u32()?;
+    let deadband = r.u32()?;
     let um = |v: f64| v / 1000.0;
     let model1 = Model1Params {
         m_mm_per_mm: um(r.fixed(Q16)?),
@@ -316,55 +372,91 @@ pub fn decode(blob: &[u8], rig: &Rig) -> Result<ModelParams, BlobError> {
         amplitude_a_mm: um(r.fixed(Q16)?),
         amplitude_b_mm: um(r.fixed(Q16)?),
     };
-    let read_band = |r: &mut Reader, name: &'static str| -> Result<BandParams, BlobError> {
+    let mut bands: [&[u8]; 2] = [&[], &[]];
+    for (dir, name) in ["model3.forward_band", "model3.reverse_band"]
+        .into_iter()
+        .enumerate()
+    {
         let n = r.u16()? as usize;
         r.u16()?;
         if n > MAX_BAND_POINTS {
             return Err(BlobError::BadCount(name));
         }
-        let mut b = BandParams::EMPTY;
-        b.len = n;
-        for i in 0..n {
-            b.x_mm[i] = r.fixed(0)? / 1000.0;
-            b.y_um[i] = r.fixed(Q16)?;
+        bands[dir] = r.slice(8 * n)?;
+    }
+    let mut shapes = [(0, 0, 0.0, 0.0); 2];
+    let mut gaps: [&[u8]; 2] = [&[], &[]];
+    for (dir, name) in ["model3.forward_transition", "model3.reverse_transition"]
+        .into_iter()
+        .enumerate()
+    {
+        let (nd, ng) = (r.u16()? as usize, r.u16()? as usize);
+        if nd > MAX_TRANSITION_D || ng > MAX_TRANSITION_G0 {
+            return Err(BlobError::BadCount(name));
         }
-        Ok(b)
-    };
-    let forward_band = read_band(&mut r, "model3.forward_band")?;
-    let reverse_band = read_band(&mut r, "model3.reverse_band")?;
-    let read_transition =
-        |r: &mut Reader, name: &'static str| -> Result<TransitionParams, BlobError> {
-            let (nd, ng) = (r.u16()? as usize, r.u16()? as usize);
-            if nd > MAX_TRANSITION_D || ng > MAX_TRANSITION_G0 {
-                return Err(BlobError::BadCount(name));
-            }
-            let mut t = TransitionParams::EMPTY;
-            t.n_d = nd;
-            t.n_g0 = ng;
-            t.d_step_mm = r.fixed(Q16)? / 1000.0;
-            t.g0_step_um = r.fixed(Q16)?;
-            for i in 0..nd {
-                for j in 0..ng {
-                    t.gap_um[i][j] = r.u16()? as f64 / 32.0;
-                }
-            }
-            Ok(t)
-        };
-    let forward_transition = read_transition(&mut r, "model3.forward_transition")?;
-    let reverse_transition = read_transition(&mut r, "model3.reverse_transition")?;
+        let d_step_mm = r.fixed(Q16)? / 1000.0;
+        let g0_step_um = r.fixed(Q16)?;
+        shapes[dir] = (nd, ng, d_step_mm, g0_step_um);
+        gaps[dir] = r.slice(2 * nd * ng)?;
+    }
     if r.at != r.buf.len() {
         return Err(BlobError::TooLong);
     }
-    let params = ModelParams {
+    Ok(Parsed {
+        deadband,
         model1,
         model2,
-        model3: Model3Params {
-            forward_band,
-            reverse_band,
-            forward_transition,
-            reverse_transition,
+        model3: BlobModel3 {
+            bands,
+            shapes,
+            gaps,
         },
-        reversal_deadband_counts,
+    })
+}
+
+/// Checks a blob for a drive on `rig` and builds the fixed-point coefficients straight from its
+/// bytes: what the firmware does, without ever holding the `f64` parameters.
+pub fn decode_coeffs(blob: &[u8], rig: &Rig) -> Result<ModelCoeffs, BlobError> {
+    let p = parse(blob, rig)?;
+    build_coeffs(&p.model1, &p.model2, &p.model3, p.deadband, rig).map_err(BlobError::Invalid)
+}
+
+/// Checks and decodes a blob for a drive on `rig` into `f64` parameters (host tools).
+pub fn decode(blob: &[u8], rig: &Rig) -> Result<ModelParams, BlobError> {
+    let p = parse(blob, rig)?;
+    let mut model3 = Model3Params {
+        forward_band: BandParams::EMPTY,
+        reverse_band: BandParams::EMPTY,
+        forward_transition: TransitionParams::EMPTY,
+        reverse_transition: TransitionParams::EMPTY,
+    };
+    for dir in 0..2 {
+        let band = if dir == 0 {
+            &mut model3.forward_band
+        } else {
+            &mut model3.reverse_band
+        };
+        band.len = p.model3.band_len(dir);
+        for i in 0..band.len {
+            (band.x_mm[i], band.y_um[i]) = p.model3.band_point(dir, i);
+        }
+        let t = if dir == 0 {
+            &mut model3.forward_transition
+        } else {
+            &mut model3.reverse_transition
+        };
+        (t.n_d, t.n_g0, t.d_step_mm, t.g0_step_um) = p.model3.transition_shape(dir);
+        for i in 0..t.n_d {
+            for j in 0..t.n_g0 {
+                t.gap_um[i][j] = p.model3.gap_um(dir, i, j);
+            }
+        }
+    }
+    let params = ModelParams {
+        model1: p.model1,
+        model2: p.model2,
+        model3,
+        reversal_deadband_counts: p.deadband,
     };
     params.build(rig).map_err(BlobError::Invalid)?;
     Ok(params)

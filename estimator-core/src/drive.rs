@@ -128,8 +128,6 @@ pub enum CommandError {
     AccelOutOfRange,
     /// The drive is faulted or disabled.
     NotEnabled,
-    /// Model 3 selected but no calibration tables are loaded.
-    ModelNotCalibrated,
     /// The command needs the drive at rest.
     Busy,
 }
@@ -141,15 +139,17 @@ impl core::fmt::Display for CommandError {
             CommandError::VelocityOutOfRange => "velocity zero or above the configured maximum",
             CommandError::AccelOutOfRange => "acceleration zero or above the configured maximum",
             CommandError::NotEnabled => "drive disabled or faulted",
-            CommandError::ModelNotCalibrated => "model 3 has no calibration tables",
             CommandError::Busy => "the drive must be at rest (or keep the move's limits)",
         })
     }
 }
 
 /// The whole drive in SI units; `Drive::new` checks it and converts it once.
+///
+/// The model parameters are borrowed: their `f64` tables take 16 KiB, which the firmware keeps in
+/// flash (`ModelParams::PAPER`) rather than copying onto its stack.
 #[derive(Clone, Debug, PartialEq)]
-pub struct DriveConfig {
+pub struct DriveConfig<'a> {
     /// Drive-train geometry.
     pub rig: Rig,
     /// Control rate (ticks per second); overrides the rate inside `pid`.
@@ -171,14 +171,14 @@ pub struct DriveConfig {
     /// Position-loop gains (its `rate_hz` is replaced by the drive's).
     pub pid: pid::Config,
     /// Error-model parameters (Table 2 presets or a calibration).
-    pub model: ModelParams,
+    pub model: &'a ModelParams,
     /// Model in use at start.
     pub initial_model: ModelKind,
 }
 
-impl DriveConfig {
+impl DriveConfig<'static> {
     /// The paper's rig (Table 1) at 2 kHz, 0-300 mm of travel, Table 2 models, Model 1 active.
-    pub fn paper_rig() -> DriveConfig {
+    pub fn paper_rig() -> DriveConfig<'static> {
         DriveConfig {
             rig: Rig::PAPER,
             rate_hz: 2000.0,
@@ -190,7 +190,7 @@ impl DriveConfig {
             max_following_error_mm: 2.0,
             encoder_max_speed_mm_s: 1000.0,
             pid: pid::Config::PAPER_RIG,
-            model: ModelParams::PAPER,
+            model: &ModelParams::PAPER,
             initial_model: ModelKind::Linear,
         }
     }
@@ -351,8 +351,10 @@ impl Drive {
         if !self.trajectory.is_done() {
             return Err(BlobError::Busy);
         }
-        let params = blob::decode(blob, &self.rig)?;
-        self.set_model_params(&params).map_err(BlobError::Invalid)
+        // Straight into fixed point: the f64 parameters (16 KiB) never touch the stack.
+        self.models = blob::decode_coeffs(blob, &self.rig)?;
+        self.model_state.settle(self.motor_state.position_counts());
+        Ok(())
     }
 
     /// The coefficients of the error models in use.
@@ -363,6 +365,14 @@ impl Drive {
     /// Telemetry of the last tick.
     pub fn telemetry(&self) -> Telemetry {
         self.last
+    }
+
+    /// Latches `bits` (e.g. `Faults::LINK_TIMEOUT` from the board's watchdog): zero current from
+    /// the next tick until `ClearFaults` and `Enable`.
+    pub fn raise_fault(&mut self, bits: u8) {
+        self.faults.0 |= bits;
+        self.enabled = false;
+        self.hold_here();
     }
 
     /// Whether the current output is enabled.

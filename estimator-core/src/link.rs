@@ -946,7 +946,6 @@ pub fn command_error_code(e: CommandError) -> u8 {
         CommandError::VelocityOutOfRange => 2,
         CommandError::AccelOutOfRange => 3,
         CommandError::NotEnabled => 4,
-        CommandError::ModelNotCalibrated => 5,
         CommandError::Busy => 6,
     }
 }
@@ -958,7 +957,6 @@ pub fn command_error_from_code(code: u8) -> Option<CommandError> {
         2 => CommandError::VelocityOutOfRange,
         3 => CommandError::AccelOutOfRange,
         4 => CommandError::NotEnabled,
-        5 => CommandError::ModelNotCalibrated,
         6 => CommandError::Busy,
         _ => return None,
     })

@@ -1,6 +1,6 @@
 //! The calibration blob: round trip, and every way a blob can be wrong is refused with a reason.
 
-use estimator_core::blob::{crc32, decode, encode, BlobError, MAX_BYTES};
+use estimator_core::blob::{crc32, decode, decode_coeffs, encode, BlobError, MAX_BYTES};
 use estimator_core::drive::{Command, Drive, DriveConfig, Sample};
 use estimator_core::model::{ModelKind, ModelParams};
 use estimator_core::rig::Rig;
@@ -145,5 +145,47 @@ proptest! {
         let pos = pos % b.len();
         b[pos] ^= 1 << bit;
         prop_assert!(decode(&b, &Rig::PAPER).is_err());
+    }
+}
+
+#[test]
+fn in_place_decoding_builds_the_same_coefficients() {
+    let rig = Rig::PAPER;
+    let blob = paper_blob();
+    assert_eq!(
+        decode_coeffs(&blob, &rig).unwrap(),
+        decode(&blob, &rig).unwrap().build(&rig).unwrap()
+    );
+    // And refuses what decode refuses, for the same reason.
+    let mut b = paper_blob();
+    let band_at = 16 + 8 + 24 + 32;
+    b[band_at..band_at + 2].copy_from_slice(&500u16.to_le_bytes());
+    resign(&mut b);
+    assert_eq!(
+        decode_coeffs(&b, &rig),
+        Err(BlobError::BadCount("model3.forward_band"))
+    );
+    let mut b = paper_blob();
+    b[16 + 16..16 + 20].copy_from_slice(&(-5i32 << 16).to_le_bytes());
+    resign(&mut b);
+    assert!(
+        matches!(decode_coeffs(&b, &rig), Err(BlobError::Invalid(e)) if e.field() == "model1.h_mm")
+    );
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(2000))]
+    #[test]
+    fn both_decoders_agree_on_corrupted_blobs(pos in 0usize..5000, byte in any::<u8>()) {
+        let mut b = paper_blob();
+        let pos = pos % b.len();
+        b[pos] = byte;
+        resign(&mut b);
+        let rig = Rig::PAPER;
+        match (decode(&b, &rig), decode_coeffs(&b, &rig)) {
+            (Ok(p), Ok(c)) => prop_assert_eq!(p.build(&rig).unwrap(), c),
+            (Err(a), Err(b)) => prop_assert_eq!(a, b),
+            (a, b) => prop_assert!(false, "decoders disagree: {:?} vs {:?}", a.map(|_| ()), b.map(|_| ())),
+        }
     }
 }

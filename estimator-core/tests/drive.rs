@@ -309,8 +309,10 @@ fn bad_configuration_names_the_field() {
         Drive::new(&c).unwrap_err().field(),
         "drive.max_following_error_mm"
     );
+    let mut bad = estimator_core::model::ModelParams::PAPER;
+    bad.model1.h_mm = -0.1;
     let mut c = DriveConfig::paper_rig();
-    c.model.model1.h_mm = -0.1;
+    c.model = &bad;
     assert_eq!(Drive::new(&c).unwrap_err().field(), "model1.h_mm");
 }
 
@@ -365,4 +367,22 @@ mod props {
             }
         }
     }
+}
+
+#[test]
+fn raised_fault_latches_zero_current() {
+    let (mut d, mut m) = homed(50.0);
+    d.command(Command::Enable).unwrap();
+    d.command(mv(100.0)).unwrap();
+    run(&mut d, &mut m, 300);
+    d.raise_fault(Faults::LINK_TIMEOUT);
+    for o in run(&mut d, &mut m, 50) {
+        assert!(o.telemetry.faults.has(Faults::LINK_TIMEOUT));
+        assert_eq!(o.current_a.to_bits(), 0);
+        assert!(!o.telemetry.moving);
+    }
+    assert_eq!(d.command(Command::Enable), Err(CommandError::NotEnabled));
+    d.command(Command::ClearFaults).unwrap();
+    d.command(Command::Enable).unwrap();
+    assert!(run(&mut d, &mut m, 1)[0].telemetry.faults.is_clear());
 }

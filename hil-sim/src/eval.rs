@@ -28,9 +28,9 @@ pub const ESTIMATORS: &[&str] = &[
 ];
 
 /// The drive configuration used by simulations: the paper rig with `params` loaded.
-pub fn drive_config(params: &ModelParams, model: ModelKind) -> DriveConfig {
+pub fn drive_config(params: &ModelParams, model: ModelKind) -> DriveConfig<'_> {
     DriveConfig {
-        model: params.clone(),
+        model: params,
         initial_model: model,
         ..DriveConfig::paper_rig()
     }

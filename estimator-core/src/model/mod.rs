@@ -98,8 +98,8 @@ pub use exponential::{Model2Coeffs, Model2Params};
 pub use fixmath::Scale;
 pub use linear::{LinearBand, Model1Coeffs, Model1Params};
 pub use table::{
-    BandCoeffs, BandParams, Model3Coeffs, Model3Params, TransitionCoeffs, TransitionParams,
-    MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
+    BandCoeffs, BandParams, Model3Coeffs, Model3Params, Model3Source, TransitionCoeffs,
+    TransitionParams, MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
 };
 
 use crate::rig::Rig;
@@ -238,15 +238,33 @@ impl ModelParams {
     /// Checks every field and converts to fixed-point coefficients for `rig`. The error names
     /// the first offending field, e.g. `"model1.h_mm"` or `"model3.forward_band.x_mm"`.
     pub fn build(&self, rig: &Rig) -> Result<ModelCoeffs, ConfigError> {
-        rig.validate()?;
-        let cpm = rig.counts_per_mm();
-        Ok(ModelCoeffs {
-            model1: self.model1.build(cpm)?,
-            model2: self.model2.build(cpm)?,
-            model3: self.model3.build(cpm)?,
-            deadband_counts: self.reversal_deadband_counts,
-        })
+        build_coeffs(
+            &self.model1,
+            &self.model2,
+            &self.model3,
+            self.reversal_deadband_counts,
+            rig,
+        )
     }
+}
+
+/// Checks and converts every model's parameters, Model 3's read from any [`Model3Source`] (the
+/// `f64` tables of [`Model3Params`], or a calibration blob in place).
+pub fn build_coeffs(
+    model1: &Model1Params,
+    model2: &Model2Params,
+    model3: &impl Model3Source,
+    reversal_deadband_counts: u32,
+    rig: &Rig,
+) -> Result<ModelCoeffs, ConfigError> {
+    rig.validate()?;
+    let cpm = rig.counts_per_mm();
+    Ok(ModelCoeffs {
+        model1: model1.build(cpm)?,
+        model2: model2.build(cpm)?,
+        model3: table::build_model3(model3, cpm)?,
+        deadband_counts: reversal_deadband_counts,
+    })
 }
 
 impl Default for ModelParams {

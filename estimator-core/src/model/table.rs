@@ -76,30 +76,6 @@ impl BandParams {
         }
         Some(b)
     }
-
-    /// The used points `(x_mm, y_um)`.
-    fn points(&self) -> impl Iterator<Item = (f64, f64)> + '_ {
-        self.x_mm
-            .iter()
-            .copied()
-            .zip(self.y_um.iter().copied())
-            .take(self.len)
-    }
-
-    /// Linear interpolation in `f64`, clamped outside the axis (build-time checks).
-    fn value_at(&self, x_mm: f64) -> f64 {
-        let mut prev: Option<(f64, f64)> = None;
-        for (x1, y1) in self.points() {
-            match prev {
-                None if x_mm <= x1 => return y1,
-                Some((x0, y0)) if x_mm < x1 => {
-                    return y0 + (x_mm - x0) / (x1 - x0) * (y1 - y0);
-                }
-                _ => prev = Some((x1, y1)),
-            }
-        }
-        prev.map_or(0.0, |(_, y)| y)
-    }
 }
 
 /// One transition table: `gap_um[i][j] = G(i * d_step_mm, j * g0_step_um)`.
@@ -290,52 +266,109 @@ const REV_TRANSITION: TransitionFields = TransitionFields {
     gap: "model3.reverse_transition.gap_um",
 };
 
-impl Model3Params {
-    /// Checks and quantises the tables for a rig with `counts_per_mm` counts per mm.
-    ///
-    /// Errors name the table and field: NaN/inf (`NotFinite`), a point count outside its limits
-    /// (`TableSize`), an axis not strictly increasing after rounding to counts (`NotMonotonic`),
-    /// a value outside its format, a negative gap, or a reverse band below the forward band
-    /// (`OutOfRange`, on `model3.reverse_band.y_um`).
-    pub fn build(&self, counts_per_mm: f64) -> Result<Model3Coeffs, ConfigError> {
-        let forward_band = build_band(&self.forward_band, counts_per_mm, &FWD_BAND)?;
-        let reverse_band = build_band(&self.reverse_band, counts_per_mm, &REV_BAND)?;
-        check_band_order(&self.forward_band, &self.reverse_band)?;
-        let forward_transition =
-            build_transition(&self.forward_transition, counts_per_mm, &FWD_TRANSITION)?;
-        let reverse_transition =
-            build_transition(&self.reverse_transition, counts_per_mm, &REV_TRANSITION)?;
-        let closing = Closing::from_mm(
-            forward_transition.closing_mm(counts_per_mm),
-            reverse_transition.closing_mm(counts_per_mm),
-        );
-        Ok(Model3Coeffs {
-            forward_band,
-            reverse_band,
-            forward_transition,
-            reverse_transition,
-            closing,
-        })
+/// Where Model 3's table values come from when the coefficients are built: the `f64` arrays of
+/// [`Model3Params`] on the host, or a calibration blob read in place on the target, so that the
+/// firmware never holds the 16 KiB of `f64` tables. `dir` is 0 forward, 1 reverse.
+pub trait Model3Source {
+    /// Points of band table `dir`.
+    fn band_len(&self, dir: usize) -> usize;
+    /// Point `i` of band table `dir`: `(x_mm, y_um)`.
+    fn band_point(&self, dir: usize, i: usize) -> (f64, f64);
+    /// Shape of transition table `dir`: `(n_d, n_g0, d_step_mm, g0_step_um)`.
+    fn transition_shape(&self, dir: usize) -> (usize, usize, f64, f64);
+    /// Cell `(i, j)` of transition table `dir`, um.
+    fn gap_um(&self, dir: usize, i: usize, j: usize) -> f64;
+}
+
+impl Model3Source for Model3Params {
+    fn band_len(&self, dir: usize) -> usize {
+        self.band(dir).len
+    }
+    fn band_point(&self, dir: usize, i: usize) -> (f64, f64) {
+        let b = self.band(dir);
+        (b.x_mm[i % MAX_BAND_POINTS], b.y_um[i % MAX_BAND_POINTS])
+    }
+    fn transition_shape(&self, dir: usize) -> (usize, usize, f64, f64) {
+        let t = self.transition(dir);
+        (t.n_d, t.n_g0, t.d_step_mm, t.g0_step_um)
+    }
+    fn gap_um(&self, dir: usize, i: usize, j: usize) -> f64 {
+        self.transition(dir).gap_um[i % MAX_TRANSITION_D][j % MAX_TRANSITION_G0]
     }
 }
 
+impl Model3Params {
+    fn band(&self, dir: usize) -> &BandParams {
+        if dir == 0 {
+            &self.forward_band
+        } else {
+            &self.reverse_band
+        }
+    }
+
+    fn transition(&self, dir: usize) -> &TransitionParams {
+        if dir == 0 {
+            &self.forward_transition
+        } else {
+            &self.reverse_transition
+        }
+    }
+
+    /// Checks and quantises the tables for a rig with `counts_per_mm` counts per mm
+    /// (see [`build_model3`]).
+    pub fn build(&self, counts_per_mm: f64) -> Result<Model3Coeffs, ConfigError> {
+        build_model3(self, counts_per_mm)
+    }
+}
+
+/// Checks and quantises Model 3's tables from `src` for a rig with `counts_per_mm` counts per mm.
+///
+/// Errors name the table and field: NaN/inf (`NotFinite`), a point count outside its limits
+/// (`TableSize`), an axis not strictly increasing after rounding to counts (`NotMonotonic`),
+/// a value outside its format, a negative gap, or a reverse band below the forward band
+/// (`OutOfRange`, on `model3.reverse_band.y_um`).
+pub fn build_model3(
+    src: &impl Model3Source,
+    counts_per_mm: f64,
+) -> Result<Model3Coeffs, ConfigError> {
+    let forward_band = build_band(src, 0, counts_per_mm, &FWD_BAND)?;
+    let reverse_band = build_band(src, 1, counts_per_mm, &REV_BAND)?;
+    check_band_order(src)?;
+    let forward_transition = build_transition(src, 0, counts_per_mm, &FWD_TRANSITION)?;
+    let reverse_transition = build_transition(src, 1, counts_per_mm, &REV_TRANSITION)?;
+    let closing = Closing::from_mm(
+        forward_transition.closing_mm(counts_per_mm),
+        reverse_transition.closing_mm(counts_per_mm),
+    );
+    Ok(Model3Coeffs {
+        forward_band,
+        reverse_band,
+        forward_transition,
+        reverse_transition,
+        closing,
+    })
+}
+
 fn build_band(
-    p: &BandParams,
+    src: &impl Model3Source,
+    dir: usize,
     counts_per_mm: f64,
     f: &BandFields,
 ) -> Result<BandCoeffs, ConfigError> {
-    if p.len < 2 || p.len > MAX_BAND_POINTS {
+    let len = src.band_len(dir);
+    if !(2..=MAX_BAND_POINTS).contains(&len) {
         return Err(ConfigError::TableSize(f.len));
     }
     let mut c = BandCoeffs {
-        len: p.len as u8,
+        len: len as u8,
         x_counts: [0; MAX_BAND_POINTS],
         y_um: [I16F16::ZERO; MAX_BAND_POINTS],
     };
-    for i in 0..p.len {
-        let x = finite(p.x_mm[i], f.x)? * counts_per_mm;
+    for i in 0..len {
+        let (x_mm, y_um) = src.band_point(dir, i);
+        let x = finite(x_mm, f.x)? * counts_per_mm;
         c.x_counts[i] = round_i32(x).ok_or(ConfigError::OutOfRange(f.x))?;
-        c.y_um[i] = um_q16(p.y_um[i], -MAX_ABS_UM, f.y)?;
+        c.y_um[i] = um_q16(y_um, -MAX_ABS_UM, f.y)?;
         if i > 0 && c.x_counts[i] <= c.x_counts[i - 1] {
             return Err(ConfigError::NotMonotonic(f.x));
         }
@@ -343,34 +376,55 @@ fn build_band(
     Ok(c)
 }
 
+/// Linear interpolation of band `dir` of `src` in `f64`, clamped outside the axis.
+fn source_value_at(src: &impl Model3Source, dir: usize, x_mm: f64) -> f64 {
+    let mut prev: Option<(f64, f64)> = None;
+    for i in 0..src.band_len(dir).min(MAX_BAND_POINTS) {
+        let (x1, y1) = src.band_point(dir, i);
+        match prev {
+            None if x_mm <= x1 => return y1,
+            Some((x0, y0)) if x_mm < x1 => {
+                return y0 + (x_mm - x0) / (x1 - x0) * (y1 - y0);
+            }
+            _ => prev = Some((x1, y1)),
+        }
+    }
+    prev.map_or(0.0, |(_, y)| y)
+}
+
 /// `Λ_r >= Λ_f` everywhere; both are piecewise linear, so checking every knot of both suffices.
-fn check_band_order(fwd: &BandParams, rev: &BandParams) -> Result<(), ConfigError> {
-    let below = |x: f64| rev.value_at(x) < fwd.value_at(x);
-    let mut knots = fwd.points().chain(rev.points()).map(|(x, _)| x);
-    if knots.any(below) {
-        return Err(ConfigError::OutOfRange(REV_BAND.y));
+fn check_band_order(src: &impl Model3Source) -> Result<(), ConfigError> {
+    for dir in 0..2 {
+        for i in 0..src.band_len(dir).min(MAX_BAND_POINTS) {
+            let x = src.band_point(dir, i).0;
+            if source_value_at(src, 1, x) < source_value_at(src, 0, x) {
+                return Err(ConfigError::OutOfRange(REV_BAND.y));
+            }
+        }
     }
     Ok(())
 }
 
 fn build_transition(
-    p: &TransitionParams,
+    src: &impl Model3Source,
+    dir: usize,
     counts_per_mm: f64,
     f: &TransitionFields,
 ) -> Result<TransitionCoeffs, ConfigError> {
-    if p.n_d < 2 || p.n_d > MAX_TRANSITION_D {
+    let (n_d, n_g0, d_step_mm, g0_step_um) = src.transition_shape(dir);
+    if !(2..=MAX_TRANSITION_D).contains(&n_d) {
         return Err(ConfigError::TableSize(f.n_d));
     }
-    if p.n_g0 < 2 || p.n_g0 > MAX_TRANSITION_G0 {
+    if !(2..=MAX_TRANSITION_G0).contains(&n_g0) {
         return Err(ConfigError::TableSize(f.n_g0));
     }
     // Steps of at least two counts / two Q16.16 units keep the positions' scale below 2^32.
-    let d_step_counts = finite(p.d_step_mm, f.d_step)? * counts_per_mm;
+    let d_step_counts = finite(d_step_mm, f.d_step)? * counts_per_mm;
     if d_step_counts < 2.0 {
         return Err(ConfigError::OutOfRange(f.d_step));
     }
-    let g0_step_bits = finite(p.g0_step_um, f.g0_step)? * 65536.0;
-    if g0_step_bits < 2.0 || p.g0_step_um > MAX_ABS_UM {
+    let g0_step_bits = finite(g0_step_um, f.g0_step)? * 65536.0;
+    if g0_step_bits < 2.0 || g0_step_um > MAX_ABS_UM {
         return Err(ConfigError::OutOfRange(f.g0_step));
     }
     let inv = |step: f64, field| -> Result<u32, ConfigError> {
@@ -382,15 +436,15 @@ fn build_transition(
         Ok(v as u32)
     };
     let mut c = TransitionCoeffs {
-        n_d: p.n_d as u8,
-        n_g0: p.n_g0 as u8,
+        n_d: n_d as u8,
+        n_g0: n_g0 as u8,
         rows_q32: inv(d_step_counts, f.d_step)?,
         cols_q32: inv(g0_step_bits, f.g0_step)?,
         gap_um: [[U11F5::ZERO; MAX_TRANSITION_G0]; MAX_TRANSITION_D],
     };
-    for i in 0..p.n_d {
-        for j in 0..p.n_g0 {
-            let g = finite(p.gap_um[i][j], f.gap)?;
+    for i in 0..n_d {
+        for j in 0..n_g0 {
+            let g = finite(src.gap_um(dir, i, j), f.gap)?;
             c.gap_um[i][j] = U11F5::checked_from_num(g).ok_or(ConfigError::OutOfRange(f.gap))?;
         }
     }
