@@ -295,6 +295,37 @@ fn model3(
     })
 }
 
+/// Least squares of Model 1 (`Linear`) or Model 2 (`Exponential`) over all runs, from `x0`.
+fn fit(
+    params: &mut ModelParams,
+    rig: &Rig,
+    runs: &[Prepared],
+    kind: ModelKind,
+    x0: &[f64],
+    step: &[f64],
+    progress: &mut dyn FnMut(&str, f64),
+) -> Vec<f64> {
+    const MAX_EVALS: usize = 600;
+    let stage = format!("fit {}", kind.as_str());
+    let mut evals = 0usize;
+    nelder_mead(
+        |v| {
+            evals += 1;
+            progress(&stage, evals as f64 / MAX_EVALS as f64);
+            match kind {
+                ModelKind::Exponential => params.model2 = model2(v),
+                _ => params.model1 = model1(v),
+            }
+            sse(params, rig, kind, runs).0
+        },
+        x0,
+        step,
+        1e-9,
+        MAX_EVALS,
+    )
+    .x
+}
+
 /// Calibrates every model and both baselines from `traces`. `progress(stage, fraction)` reports.
 pub fn calibrate(
     traces: &[Trace],
@@ -343,24 +374,19 @@ pub fn calibrate(
     }
     let deadband = best.1;
     params.reversal_deadband_counts = deadband;
-    let max_evals = 600;
-    let mut evals = 0usize;
-    let fit1 = nelder_mead(
-        |v| {
-            evals += 1;
-            progress("fit Model 1", evals as f64 / max_evals as f64);
-            params.model1 = model1(v);
-            sse(&params, rig, ModelKind::Linear, &runs).0
-        },
+    let fit1 = fit(
+        &mut params,
+        rig,
+        &runs,
+        ModelKind::Linear,
         &x1,
         &step1,
-        1e-9,
-        max_evals,
+        progress,
     );
-    params.model1 = model1(&fit1.x);
+    params.model1 = model1(&fit1);
 
     let p2 = Model2Params::PAPER;
-    let f = &fit1.x;
+    let f = &fit1;
     let x2 = [
         f[0],
         f[1],
@@ -372,20 +398,16 @@ pub fn calibrate(
         p2.amplitude_b_mm,
     ];
     let step2 = [2e-4, 0.02, 0.03, 0.02, 0.02, 0.02, 0.03, 0.03];
-    let mut evals = 0usize;
-    let fit2 = nelder_mead(
-        |v| {
-            evals += 1;
-            progress("fit Model 2", evals as f64 / max_evals as f64);
-            params.model2 = model2(v);
-            sse(&params, rig, ModelKind::Exponential, &runs).0
-        },
+    let fit2 = fit(
+        &mut params,
+        rig,
+        &runs,
+        ModelKind::Exponential,
         &x2,
         &step2,
-        1e-9,
-        max_evals,
+        progress,
     );
-    params.model2 = model2(&fit2.x);
+    params.model2 = model2(&fit2);
 
     // Model 3's smoothing, by measurement on the calibration data: sparse (d, g0) cells and the
     // tooth ripple make a lightly smoothed table oscillate between cells.

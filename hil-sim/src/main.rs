@@ -157,7 +157,16 @@ fn calibration(
     }
 }
 
-fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), String> {
+/// Plant, calibration and the scenario's run with Model 3 active: what `evaluate` and `report`
+/// share.
+struct Session {
+    plant: PlantParams,
+    cal: Calibration,
+    trace: hil_sim::run::Trace,
+    progress: Progress,
+}
+
+fn session(scenario: &str, common: &Common) -> Result<Session, String> {
     let scenario = Scenario::load(scenario)?;
     let plant = plant_params(&common.plant)?;
     let mut progress = Progress::new();
@@ -169,6 +178,21 @@ fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), String> {
         ModelKind::Table,
         &mut progress,
     )?;
+    Ok(Session {
+        plant,
+        cal,
+        trace,
+        progress,
+    })
+}
+
+fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), String> {
+    let Session {
+        cal,
+        trace,
+        mut progress,
+        ..
+    } = session(scenario, common)?;
     progress.finish();
     let coeffs = cal.params.build(&Rig::PAPER).map_err(|e| e.to_string())?;
     let est = eval::estimates(&trace, &coeffs, &cal);
@@ -176,12 +200,12 @@ fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), String> {
     if json {
         println!(
             "{}",
-            eval::to_json(&scenario.name, trace.records.len(), &table)
+            eval::to_json(&trace.scenario, trace.records.len(), &table)
         );
     } else {
         print!(
             "{}",
-            report::table_markdown(&scenario.name, trace.records.len(), &table)
+            report::table_markdown(&trace.scenario, trace.records.len(), &table)
         );
     }
     Ok(())
@@ -253,17 +277,12 @@ fn main() -> ExitCode {
             common,
             out,
         } => (|| {
-            let plant = plant_params(&common.plant)?;
-            let mut progress = Progress::new();
-            let cal = calibration(&common, &plant, &mut progress)?;
-            let scenario = Scenario::load(&scenario)?;
-            let trace = common.run(
-                &scenario,
-                &plant,
-                &cal.params,
-                ModelKind::Table,
-                &mut progress,
-            )?;
+            let Session {
+                plant,
+                cal,
+                trace,
+                mut progress,
+            } = session(&scenario, &common)?;
             let how = if common.pil {
                 "firmware under QEMU (PIL)"
             } else {
