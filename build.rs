@@ -3,7 +3,8 @@
 //! the Cortex-M4 and compares bit for bit, so any host/target divergence in the integer and
 //! fixed-point core fails `cargo test-target`.
 //!
-//! The firmware itself does not use the generated file.
+//! It also writes the Table 2 parameters as a calibration blob (`paper_blob.bin`), which the
+//! firmware embeds as its default calibration: it then carries no `f64` parameter tables.
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -107,4 +108,6 @@ fn blob_vectors(out: &mut String) {
     )
     .unwrap();
     writeln!(out, "pub const PAPER_BLOB: [u8; {n}] = {:?};", &buf[..n]).unwrap();
+    let path = PathBuf::from(std::env::var_os("OUT_DIR").unwrap()).join("paper_blob.bin");
+    std::fs::write(path, &buf[..n]).unwrap();
 }

@@ -23,7 +23,7 @@ use belt_drive as _;
 mod app {
     use core::sync::atomic::{AtomicBool, AtomicU16, Ordering};
 
-    use belt_drive::drive::{Command, CommandError, Drive, DriveConfig, Faults, Telemetry};
+    use belt_drive::drive::{Command, CommandError, Drive, DriveConfig, Faults, Models, Telemetry};
     use belt_drive::hardware::{self, ControlIo, LinkRx};
     use belt_drive::outbox::Outbox;
     use belt_drive::stack;
@@ -59,7 +59,12 @@ mod app {
     #[init(local = [endpoint_storage: Endpoint = Endpoint::new()])]
     fn init(cx: init::Context) -> (Shared, Local) {
         stack::paint();
-        let config = DriveConfig::paper_rig();
+        // Table 2 as an embedded blob (made by build.rs): built straight into fixed point.
+        static PAPER_BLOB: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/paper_blob.bin"));
+        let config = DriveConfig {
+            model: Models::Blob(PAPER_BLOB),
+            ..DriveConfig::paper_rig()
+        };
         // The configured rate is a whole number of hertz (the paper rig: 2 kHz).
         let rate_hz = config.rate_hz as u32;
         let board = hardware::init(cx.device, cx.core.SYST, rate_hz);

@@ -144,10 +144,19 @@ impl core::fmt::Display for CommandError {
     }
 }
 
+/// Where the error models' parameters come from.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Models<'a> {
+    /// `f64` parameters (presets, host tools).
+    Params(&'a ModelParams),
+    /// A calibration blob (see [`crate::blob`]), built straight into fixed point: the firmware
+    /// boots from an embedded blob and so carries no `f64` tables (16 KiB) at all.
+    Blob(&'a [u8]),
+}
+
 /// The whole drive in SI units; `Drive::new` checks it and converts it once.
 ///
-/// The model parameters are borrowed: their `f64` tables take 16 KiB, which the firmware keeps in
-/// flash (`ModelParams::PAPER`) rather than copying onto its stack.
+/// The model parameters are borrowed: they are large, and the firmware keeps them in flash.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DriveConfig<'a> {
     /// Drive-train geometry.
@@ -171,7 +180,7 @@ pub struct DriveConfig<'a> {
     /// Position-loop gains (its `rate_hz` is replaced by the drive's).
     pub pid: pid::Config,
     /// Error-model parameters (Table 2 presets or a calibration).
-    pub model: &'a ModelParams,
+    pub model: Models<'a>,
     /// Model in use at start.
     pub initial_model: ModelKind,
 }
@@ -190,7 +199,7 @@ impl DriveConfig<'static> {
             max_following_error_mm: 2.0,
             encoder_max_speed_mm_s: 1000.0,
             pid: pid::Config::PAPER_RIG,
-            model: &ModelParams::PAPER,
+            model: Models::Params(&ModelParams::PAPER),
             initial_model: ModelKind::Linear,
         }
     }
@@ -311,7 +320,13 @@ impl Drive {
             rate_hz,
         };
         let trajectory = Trajectory::new(start.build(&cfg.rig)?, 0);
-        let models = cfg.model.build(&cfg.rig)?;
+        let models = match cfg.model {
+            Models::Params(p) => p.build(&cfg.rig)?,
+            Models::Blob(b) => blob::decode_coeffs(b, &cfg.rig).map_err(|e| match e {
+                BlobError::Invalid(e) => e,
+                _ => ConfigError::OutOfRange("drive.model (calibration blob)"),
+            })?,
+        };
         Ok(Drive {
             rig: cfg.rig,
             rate_hz,

@@ -312,7 +312,7 @@ fn bad_configuration_names_the_field() {
     let mut bad = estimator_core::model::ModelParams::PAPER;
     bad.model1.h_mm = -0.1;
     let mut c = DriveConfig::paper_rig();
-    c.model = &bad;
+    c.model = estimator_core::drive::Models::Params(&bad);
     assert_eq!(Drive::new(&c).unwrap_err().field(), "model1.h_mm");
 }
 

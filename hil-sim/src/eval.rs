@@ -30,7 +30,7 @@ pub const ESTIMATORS: &[&str] = &[
 /// The drive configuration used by simulations: the paper rig with `params` loaded.
 pub fn drive_config(params: &ModelParams, model: ModelKind) -> DriveConfig<'_> {
     DriveConfig {
-        model: params,
+        model: estimator_core::drive::Models::Params(params),
         initial_model: model,
         ..DriveConfig::paper_rig()
     }

@@ -97,7 +97,12 @@ impl Lockstep {
 /// Runs the bench moves with `model`, in lockstep: in-process core and firmware side by side on
 /// one plant (driven by the firmware's current). Stops at the first mismatch.
 pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilError> {
-    let cfg = DriveConfig::paper_rig();
+    // The firmware boots from the Table 2 blob; so does its host twin.
+    let boot_blob = paper_blob()?;
+    let cfg = DriveConfig {
+        model: estimator_core::drive::Models::Blob(&boot_blob),
+        ..DriveConfig::paper_rig()
+    };
     let host = Drive::new(&cfg).map_err(|e| PilError::Link(format!("drive config: {e}")))?;
     let fw = PilController::start(opts)?;
     let plant = Plant::new(&PlantParams::paper_rig(), START_MM, 1);

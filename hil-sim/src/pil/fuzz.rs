@@ -33,8 +33,13 @@ pub struct FuzzReport {
 
 /// Sends `n` bad frames to the firmware.
 pub fn run(opts: &PilOptions, n: u32) -> Result<FuzzReport, PilError> {
-    let mut host =
-        Drive::new(&DriveConfig::paper_rig()).map_err(|e| PilError::Link(e.to_string()))?;
+    // The firmware boots from the Table 2 blob; so does its host twin.
+    let boot_blob = super::bench::paper_blob()?;
+    let cfg = DriveConfig {
+        model: estimator_core::drive::Models::Blob(&boot_blob),
+        ..DriveConfig::paper_rig()
+    };
+    let mut host = Drive::new(&cfg).map_err(|e| PilError::Link(e.to_string()))?;
     let mut fw = PilController::start(opts)?;
     let rest = Sample {
         motor_counter: 1234,
