@@ -269,11 +269,14 @@ impl Drive {
         use ConfigError as E;
         cfg.rig.validate()?;
         let rate_hz = finite(cfg.rate_hz, "drive.rate_hz")?;
+        if !(100.0..=100_000.0).contains(&rate_hz) {
+            return Err(E::OutOfRange("drive.rate_hz"));
+        }
         let cpm = cfg.rig.counts_per_mm();
         let lo = finite(cfg.travel_min_mm, "drive.travel_min_mm")?;
         let hi = finite(cfg.travel_max_mm, "drive.travel_max_mm")?;
         let margin = finite(cfg.travel_margin_mm, "drive.travel_margin_mm")?;
-        if !(hi > lo) {
+        if hi <= lo {
             return Err(E::OutOfRange("drive.travel_max_mm"));
         }
         if margin < 0.0 {
@@ -288,7 +291,7 @@ impl Drive {
         if !(amax > 0.0 && amax * 1000.0 <= u32::MAX as f64) {
             return Err(E::OutOfRange("drive.max_accel_mm_s2"));
         }
-        if !(fe > 0.0) {
+        if fe <= 0.0 {
             return Err(E::OutOfRange("drive.max_following_error_mm"));
         }
         let limits = Limits {

@@ -304,6 +304,9 @@ fn bad_configuration_names_the_field() {
     c.travel_max_mm = f64::NAN;
     assert_eq!(Drive::new(&c).unwrap_err().field(), "drive.travel_max_mm");
     let mut c = DriveConfig::paper_rig();
+    c.rate_hz = 0.0;
+    assert_eq!(Drive::new(&c).unwrap_err().field(), "drive.rate_hz");
+    let mut c = DriveConfig::paper_rig();
     c.max_following_error_mm = -1.0;
     assert_eq!(
         Drive::new(&c).unwrap_err().field(),

@@ -134,7 +134,7 @@ impl BidirTable {
                 hi = hi.max(x);
             }
         }
-        if !(hi > lo) {
+        if hi <= lo {
             return None;
         }
         let step = (hi - lo) / (rows - 1) as f64;

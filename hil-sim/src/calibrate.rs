@@ -182,7 +182,7 @@ fn model3(
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &x| {
             (l.min(x), h.max(x))
         });
-    if !(hi - lo > 2.0 * rig.belt_pitch_mm) {
+    if (hi - lo).is_nan() || hi - lo <= 2.0 * rig.belt_pitch_mm {
         return Err("calibration data covers less than two belt pitches of travel".into());
     }
     let n_bins = (((hi - lo) / rig.belt_pitch_mm).ceil() as usize).clamp(2, MAX_BAND_POINTS);

@@ -38,7 +38,7 @@ fn range(vals: impl Iterator<Item = f64>) -> (f64, f64) {
     let (lo, hi) = vals.fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), v| {
         (l.min(v), h.max(v))
     });
-    if !(hi > lo) {
+    if hi.is_nan() || lo.is_nan() || hi <= lo {
         return (lo - 1.0, lo + 1.0);
     }
     let pad = 0.05 * (hi - lo);
