@@ -89,7 +89,7 @@ impl core::fmt::Display for BlobError {
 #[cfg(feature = "std")]
 impl std::error::Error for BlobError {}
 
-/// CRC-32 (IEEE 802.3, reflected, as zlib), nibble-table: small flash, fast enough for 5 KiB.
+/// CRC-32 (IEEE 802.3, reflected, as zlib), nibble-table: small flash, fast enough for a 3 KiB blob.
 pub fn crc32(chunks: &[&[u8]]) -> u32 {
     const T: [u32; 16] = [
         0x0000_0000,

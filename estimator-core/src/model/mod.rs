@@ -79,10 +79,10 @@
 //! | 3     | 116              | 178..181        | 368..384      |
 //!
 //! Model 3's worst case is a jump to another band segment on a reversal tick (two segment
-//! searches of at most 7 steps and two reciprocals, about 550). The per-tick path calls no
+//! searches of at most 6 steps and two reciprocals, about 550). The per-tick path calls no
 //! runtime library (no software division; multiplies are `UMULL`/`SMULL`/`SMLAL`; two 32/32
-//! `UDIV`s only when Model 3 enters another band segment). `ModelCoeffs` is 5260 bytes (Model 3's
-//! tables 5168), `ModelState` 72 bytes, on the host and on the target alike.
+//! `UDIV`s only when Model 3 enters another band segment). `ModelCoeffs` is 2708 bytes (Model 3's
+//! tables 2608), `ModelState` 72 bytes, on the host and on the target alike.
 
 pub mod fixmath;
 
@@ -273,8 +273,8 @@ impl Default for ModelParams {
     }
 }
 
-/// Fixed-point coefficients of all three models; immutable per tick. 5260 bytes, of which Model
-/// 3's tables take 5168.
+/// Fixed-point coefficients of all three models; immutable per tick. 2708 bytes, of which Model
+/// 3's tables take 2608.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct ModelCoeffs {
     model1: Model1Coeffs,
