@@ -27,7 +27,7 @@ mod app {
     use belt_drive::hardware::{self, ControlIo, LinkRx};
     use belt_drive::outbox::Outbox;
     use belt_drive::stack;
-    use estimator_core::blob::BlobError;
+    use estimator_core::blob::{self, BlobError};
     use estimator_core::link::{answer, Effect, Endpoint, Event};
     use estimator_core::link::{LinkError, Message, Receiver, Reply, Request, WireTelemetry};
 
@@ -263,6 +263,16 @@ mod app {
                     Reply::Ack {
                         of: frame.msg.kind(),
                     }
+                }
+                Effect::Calibrate(len) => {
+                    // Milliseconds of soft-float: decoded here, outside the drive's lock, so the
+                    // control task keeps its ticks; only the swap below holds the lock.
+                    let rig = drive.lock(|d| *d.rig());
+                    let result = blob::decode_coeffs(endpoint.calibration(len), &rig)
+                        .and_then(|c| drive.lock(|d| d.set_models(c)));
+                    let (reply, event) = endpoint.calibration_done(len, result);
+                    log_event(&event);
+                    reply
                 }
                 Effect::Shutdown(code) => {
                     if !hardware::ALLOW_SHUTDOWN {

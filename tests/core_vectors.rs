@@ -51,7 +51,7 @@ fn endpoint_transfer(drive: &mut estimator_core::drive::Drive, blob: &[u8]) -> b
         total_len: blob.len() as u32,
         crc32: crc32(blob),
     };
-    let mut ok = ack(endpoint.handle(&begin, drive).0);
+    let mut ok = ack(endpoint.handle_inline(&begin, drive).0);
     for (i, piece) in blob.chunks(CHUNK_MAX).enumerate() {
         let mut data = [0u8; CHUNK_MAX];
         data[..piece.len()].copy_from_slice(piece);
@@ -60,9 +60,9 @@ fn endpoint_transfer(drive: &mut estimator_core::drive::Drive, blob: &[u8]) -> b
             len: piece.len() as u8,
             data,
         };
-        ok &= ack(endpoint.handle(&chunk, drive).0);
+        ok &= ack(endpoint.handle_inline(&chunk, drive).0);
     }
-    ok && ack(endpoint.handle(&Request::CalCommit, drive).0)
+    ok && ack(endpoint.handle_inline(&Request::CalCommit, drive).0)
 }
 
 /// Decodes the host's blob and encodes it again: the bytes must not change.

@@ -45,7 +45,7 @@ mod tests {
         let n = encode(1, &Request::Enable, &mut wire);
         for &b in &wire[..n] {
             if let Some(Ok(f)) = rx.push::<Request>(b) {
-                let _ = endpoint.handle(&f.msg, &mut drive);
+                let _ = endpoint.handle_inline(&f.msg, &mut drive);
             }
         }
         defmt::assert_eq!(rx.frames_ok, 1);

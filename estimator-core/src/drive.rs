@@ -369,10 +369,25 @@ impl Drive {
         if !self.trajectory.is_done() {
             return Err(BlobError::Busy);
         }
-        // Straight into fixed point: the f64 parameters (16 KiB) never touch the stack.
-        self.models = blob::decode_coeffs(blob, &self.rig)?;
+        // Straight into fixed point: the f64 parameters (8 KiB) never touch the stack.
+        let models = blob::decode_coeffs(blob, &self.rig)?;
+        self.set_models(models)
+    }
+
+    /// Installs coefficients decoded elsewhere (the firmware decodes outside the control task's
+    /// lock, then swaps them in here). Refused while a move is in progress.
+    pub fn set_models(&mut self, models: ModelCoeffs) -> Result<(), BlobError> {
+        if !self.trajectory.is_done() {
+            return Err(BlobError::Busy);
+        }
+        self.models = models;
         self.model_state.settle(self.motor_state.position_counts());
         Ok(())
+    }
+
+    /// The drive-train geometry this drive was built for.
+    pub fn rig(&self) -> &Rig {
+        &self.rig
     }
 
     /// The coefficients of the error models in use.

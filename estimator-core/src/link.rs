@@ -1126,6 +1126,11 @@ pub enum Effect {
     Stream(u16),
     /// QEMU: log the statistics and exit with this status.
     Shutdown(u8),
+    /// A complete, CRC-checked calibration of this many bytes awaits: decode it
+    /// ([`Endpoint::calibration`], [`crate::blob::decode_coeffs`]) outside any lock the control
+    /// task needs, install it with [`Drive::set_models`], then report with
+    /// [`Endpoint::calibration_done`].
+    Calibrate(usize),
 }
 
 /// An event worth a log line, reported by [`Endpoint::handle`] (the core has no logger).
@@ -1177,6 +1182,52 @@ impl Endpoint {
             transfer: None,
             calibrated: false,
             streaming: false,
+        }
+    }
+
+    /// The assembled calibration blob of an [`Effect::Calibrate`] (`len` bytes).
+    pub fn calibration(&self, len: usize) -> &[u8] {
+        &self.blob[..len.min(self.blob.len())]
+    }
+
+    /// Reports the outcome of installing a calibration of `len` bytes.
+    pub fn calibration_done(
+        &mut self,
+        len: usize,
+        result: Result<(), BlobError>,
+    ) -> (Reply, Event) {
+        match result {
+            Ok(()) => {
+                self.calibrated = true;
+                (
+                    Reply::Ack {
+                        of: kind::CAL_COMMIT,
+                    },
+                    Event::CalibrationLoaded { len: len as u32 },
+                )
+            }
+            Err(e) => (
+                Reply::Error {
+                    of: kind::CAL_COMMIT,
+                    reason: LinkError::Calibration,
+                    detail: cal_error::REJECTED | blob_error_code(e),
+                },
+                Event::CalibrationRejected(e),
+            ),
+        }
+    }
+
+    /// [`Endpoint::handle`] with a calibration decoded and installed in line: for hosts and
+    /// tests, where no control task waits on the drive.
+    pub fn handle_inline(&mut self, req: &Request, drive: &mut Drive) -> (Effect, Event) {
+        match self.handle(req, drive) {
+            (Effect::Calibrate(len), _) => {
+                let result = crate::blob::decode_coeffs(self.calibration(len), drive.rig())
+                    .and_then(|c| drive.set_models(c));
+                let (reply, event) = self.calibration_done(len, result);
+                (Effect::Reply(reply), event)
+            }
+            other => other,
         }
     }
 
@@ -1260,19 +1311,9 @@ impl Endpoint {
                     Some((_, want, _, crc)) if crc.finish() != want => cal_error::CRC,
                     Some((total, ..)) => {
                         self.transfer = None;
-                        return match drive.load_calibration(&self.blob[..total]) {
-                            Ok(()) => {
-                                self.calibrated = true;
-                                (ack, Event::CalibrationLoaded { len: total as u32 })
-                            }
-                            Err(e) => (
-                                refuse(
-                                    LinkError::Calibration,
-                                    cal_error::REJECTED | blob_error_code(e),
-                                ),
-                                Event::CalibrationRejected(e),
-                            ),
-                        };
+                        // Decoding takes milliseconds of soft-float: the caller does it outside
+                        // the drive's lock (see `Effect::Calibrate`).
+                        return (Effect::Calibrate(total), Event::None);
                     }
                 };
                 if d == cal_error::CRC {
@@ -1780,7 +1821,7 @@ mod tests {
             velocity_um_s: 50_000,
             accel_um_s2: 500_000,
         };
-        let (e, ev) = ep.handle(&mv, &mut d);
+        let (e, ev) = ep.handle_inline(&mv, &mut d);
         assert_eq!(
             refused(e),
             Some((
@@ -1789,9 +1830,9 @@ mod tests {
             ))
         );
         assert!(matches!(ev, Event::Refused(_, CommandError::NotEnabled)));
-        assert_eq!(ep.handle(&Request::Enable, &mut d).0, ACK_ENABLE);
+        assert_eq!(ep.handle_inline(&Request::Enable, &mut d).0, ACK_ENABLE);
         assert!(d.is_enabled());
-        let (e, ev) = ep.handle(&mv, &mut d);
+        let (e, ev) = ep.handle_inline(&mv, &mut d);
         assert_eq!(e, Effect::Reply(Reply::Ack { of: kind::MOVE }));
         assert!(matches!(ev, Event::Applied(Command::MoveTo { .. })));
         let far = Request::Move {
@@ -1801,7 +1842,7 @@ mod tests {
         };
         let code = command_error_code(CommandError::TargetOutOfTravel);
         assert_eq!(
-            refused(ep.handle(&far, &mut d).0),
+            refused(ep.handle_inline(&far, &mut d).0),
             Some((LinkError::Refused, code))
         );
 
@@ -1813,15 +1854,15 @@ mod tests {
             motor_counter: 3,
             scale_counter: 4,
         });
-        assert_eq!(ep.handle(&s, &mut d).0, tick);
-        assert_eq!(ep.handle(&Request::Status, &mut d).0, Effect::Status);
+        assert_eq!(ep.handle_inline(&s, &mut d).0, tick);
+        assert_eq!(ep.handle_inline(&Request::Status, &mut d).0, Effect::Status);
         assert_eq!(
-            ep.handle(&Request::Telemetry { every_n_ticks: 20 }, &mut d)
+            ep.handle_inline(&Request::Telemetry { every_n_ticks: 20 }, &mut d)
                 .0,
             Effect::Stream(20)
         );
         assert_eq!(
-            ep.handle(&Request::Shutdown { code: 3 }, &mut d).0,
+            ep.handle_inline(&Request::Shutdown { code: 3 }, &mut d).0,
             Effect::Shutdown(3)
         );
 
@@ -1869,11 +1910,11 @@ mod tests {
         let cal = |d: u8| Some((LinkError::Calibration, d));
         // Nothing started.
         assert_eq!(
-            refused(ep.handle(&chunk(0, &blob[..8]), &mut d).0),
+            refused(ep.handle_inline(&chunk(0, &blob[..8]), &mut d).0),
             cal(cal_error::NOT_STARTED)
         );
         assert_eq!(
-            refused(ep.handle(&Request::CalCommit, &mut d).0),
+            refused(ep.handle_inline(&Request::CalCommit, &mut d).0),
             cal(cal_error::NOT_STARTED)
         );
         // Too long for the drive.
@@ -1882,7 +1923,7 @@ mod tests {
             crc32: 0,
         };
         assert_eq!(
-            refused(ep.handle(&huge, &mut d).0),
+            refused(ep.handle_inline(&huge, &mut d).0),
             cal(cal_error::TOO_LONG)
         );
         // A good transfer with one out-of-order chunk refused on the way (and then resent).
@@ -1891,32 +1932,32 @@ mod tests {
             crc32: crc32(&blob),
         };
         assert!(matches!(
-            ep.handle(&begin, &mut d).0,
+            ep.handle_inline(&begin, &mut d).0,
             Effect::Reply(Reply::Ack { .. })
         ));
         assert_eq!(
-            refused(ep.handle(&chunk(64, &blob[64..128]), &mut d).0),
+            refused(ep.handle_inline(&chunk(64, &blob[64..128]), &mut d).0),
             cal(cal_error::OFFSET)
         );
         for (i, piece) in blob.chunks(CHUNK_MAX).enumerate() {
             if i == 2 {
                 // Commit before the end.
                 assert_eq!(
-                    refused(ep.handle(&Request::CalCommit, &mut d).0),
+                    refused(ep.handle_inline(&Request::CalCommit, &mut d).0),
                     cal(cal_error::INCOMPLETE)
                 );
             }
             assert!(matches!(
-                ep.handle(&chunk(i * CHUNK_MAX, piece), &mut d).0,
+                ep.handle_inline(&chunk(i * CHUNK_MAX, piece), &mut d).0,
                 Effect::Reply(Reply::Ack { .. })
             ));
         }
         // Past the announced end.
         assert_eq!(
-            refused(ep.handle(&chunk(blob.len(), &[1]), &mut d).0),
+            refused(ep.handle_inline(&chunk(blob.len(), &[1]), &mut d).0),
             cal(cal_error::TOO_LONG)
         );
-        let (e, ev) = ep.handle(&Request::CalCommit, &mut d);
+        let (e, ev) = ep.handle_inline(&Request::CalCommit, &mut d);
         assert!(matches!(e, Effect::Reply(Reply::Ack { .. })), "{e:?}");
         assert_eq!(
             ev,
@@ -1935,15 +1976,15 @@ mod tests {
             crc32: crc32(&blob[..8]) ^ 1,
         };
         assert!(matches!(
-            ep.handle(&begin, &mut d).0,
+            ep.handle_inline(&begin, &mut d).0,
             Effect::Reply(Reply::Ack { .. })
         ));
         assert!(matches!(
-            ep.handle(&chunk(0, &blob[..8]), &mut d).0,
+            ep.handle_inline(&chunk(0, &blob[..8]), &mut d).0,
             Effect::Reply(Reply::Ack { .. })
         ));
         assert_eq!(
-            refused(ep.handle(&Request::CalCommit, &mut d).0),
+            refused(ep.handle_inline(&Request::CalCommit, &mut d).0),
             cal(cal_error::CRC)
         );
         // A transfer that arrives intact but holds no valid blob: the drive refuses it.
@@ -1952,17 +1993,41 @@ mod tests {
             crc32: crc32(&blob[..8]),
         };
         assert!(matches!(
-            ep.handle(&begin, &mut d).0,
+            ep.handle_inline(&begin, &mut d).0,
             Effect::Reply(Reply::Ack { .. })
         ));
         assert!(matches!(
-            ep.handle(&chunk(0, &blob[..8]), &mut d).0,
+            ep.handle_inline(&chunk(0, &blob[..8]), &mut d).0,
             Effect::Reply(Reply::Ack { .. })
         ));
-        let (e, ev) = ep.handle(&Request::CalCommit, &mut d);
+        let (e, ev) = ep.handle_inline(&Request::CalCommit, &mut d);
         let code = cal_error::REJECTED | blob_error_code(BlobError::Truncated);
         assert_eq!(refused(e), cal(code));
         assert_eq!(ev, Event::CalibrationRejected(BlobError::Truncated));
+
+        // Without the inline helper, a complete transfer is handed back for decoding outside
+        // the drive's lock, with exactly the bytes that arrived; the drive is untouched.
+        let before = d.models().clone();
+        let begin = Request::CalBegin {
+            total_len: blob.len() as u32,
+            crc32: crc32(&blob),
+        };
+        assert!(matches!(
+            ep.handle(&begin, &mut d).0,
+            Effect::Reply(Reply::Ack { .. })
+        ));
+        for (i, piece) in blob.chunks(CHUNK_MAX).enumerate() {
+            assert!(matches!(
+                ep.handle(&chunk(i * CHUNK_MAX, piece), &mut d).0,
+                Effect::Reply(Reply::Ack { .. })
+            ));
+        }
+        assert_eq!(
+            ep.handle(&Request::CalCommit, &mut d).0,
+            Effect::Calibrate(blob.len())
+        );
+        assert_eq!(ep.calibration(blob.len()), &blob[..]);
+        assert_eq!(d.models(), &before);
     }
 
     fn arb_request() -> impl Strategy<Value = Request> {
