@@ -9,20 +9,26 @@ use estimator_core::drive::{Command, Drive, DriveConfig, Sample};
 use estimator_core::model::ModelKind;
 use estimator_core::rig::Rig;
 
+/// A drive homed at 150 mm, enabled, with `kind` selected.
+fn ready(kind: ModelKind) -> Drive {
+    let mut d = Drive::new(&DriveConfig::paper_rig()).expect("paper rig");
+    d.step(Sample::default());
+    let home = Command::Home {
+        position_um: 150_000,
+        scale_um: 0,
+    };
+    d.command(home).expect("home");
+    d.command(Command::Enable).expect("enable");
+    d.command(Command::SelectModel(kind)).expect("model");
+    d
+}
+
 fn main() {
     let cpm = Rig::PAPER.counts_per_mm();
     const TICKS: usize = 400_000;
     println!("Drive::step on the host, {TICKS} ticks per model (moves with reversals)");
     for kind in ModelKind::ALL {
-        let mut d = Drive::new(&DriveConfig::paper_rig()).expect("paper rig");
-        d.step(Sample::default());
-        d.command(Command::Home {
-            position_um: 150_000,
-            scale_um: 0,
-        })
-        .expect("home");
-        d.command(Command::Enable).expect("enable");
-        d.command(Command::SelectModel(kind)).expect("model");
+        let mut d = ready(kind);
         // Ideal motor following the set-point: the per-tick path sees real motion.
         let (mut x, mut v) = (150.0 * cpm, 0.0f64);
         let targets = [200_000, 120_000, 180_000, 90_000, 160_000];
@@ -48,15 +54,7 @@ fn main() {
             outs.push(o);
         }
         // Timed pass: replay the recorded samples through a fresh drive in the same state.
-        let mut d2 = Drive::new(&DriveConfig::paper_rig()).expect("paper rig");
-        d2.step(Sample::default());
-        d2.command(Command::Home {
-            position_um: 150_000,
-            scale_um: 0,
-        })
-        .expect("home");
-        d2.command(Command::Enable).expect("enable");
-        d2.command(Command::SelectModel(kind)).expect("model");
+        let mut d2 = ready(kind);
         let start = Instant::now();
         for (k, s) in samples.iter().enumerate() {
             if k % 40_000 == 0 {

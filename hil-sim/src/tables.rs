@@ -8,6 +8,9 @@
 //! of the band the new edge lies on. G is fitted by regularised linear least squares on a bilinear
 //! grid, with G(0, g0) imposed strongly (g0 less the linear model's fast jump h_g, as eq. 16).
 
+use estimator_core::model::{self, Direction, ModelKind, ModelParams, ModelState};
+use estimator_core::rig::Rig;
+
 /// A stroke between two reversals, found with the drive's own reversal rule.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Stroke {
@@ -23,27 +26,35 @@ pub struct Stroke {
     pub end: usize,
 }
 
-/// Splits a motor-position sequence into strokes with the same rule as the drive's reversal
-/// detector: a reversal is registered once the position has moved more than `deadband_counts`
-/// back from the extreme reached in the current direction; the turning point is that extreme.
-/// The first stroke is taken as forward.
+/// Splits a motor-position sequence into strokes with the drive's own reversal detector
+/// ([`ModelState`]: a reversal is registered once the position has moved more than
+/// `deadband_counts` back from the extreme reached in the current direction; the turning point is
+/// that extreme), so calibration sees exactly the reversals the firmware will register.
+/// The first stroke is forward, as the detector starts.
 pub fn strokes(x_counts: &[i32], deadband_counts: u32) -> Vec<Stroke> {
     let mut out = Vec::new();
-    if x_counts.is_empty() {
+    let Some(&x0) = x_counts.first() else {
         return out;
-    }
-    let db = deadband_counts as i64;
-    let mut dir: i8 = 1;
-    let (mut ext, mut ext_i) = (x_counts[0] as i64, 0usize);
-    let mut start = 0usize;
-    let mut turn = (x_counts[0], 0usize);
+    };
+    let params = ModelParams {
+        reversal_deadband_counts: deadband_counts,
+        ..ModelParams::PAPER
+    };
+    let Ok(coeffs) = params.build(&Rig::PAPER) else {
+        return out;
+    };
+    let mut state = ModelState::new(x0);
+    let dir_of = |s: &ModelState| {
+        if s.direction() == Direction::Forward {
+            1
+        } else {
+            -1
+        }
+    };
+    let (mut dir, mut start, mut turn) = (1i8, 0usize, (x0, 0usize));
     for (i, &x) in x_counts.iter().enumerate() {
-        let x = x as i64;
-        let beyond = if dir > 0 { x > ext } else { x < ext };
-        if beyond {
-            ext = x;
-            ext_i = i;
-        } else if (ext - x) * dir as i64 > db {
+        model::estimate(&coeffs, ModelKind::None, &mut state, x);
+        if dir_of(&state) != dir {
             out.push(Stroke {
                 dir,
                 x_turn_counts: turn.0,
@@ -51,11 +62,13 @@ pub fn strokes(x_counts: &[i32], deadband_counts: u32) -> Vec<Stroke> {
                 start,
                 end: i,
             });
-            dir = -dir;
-            turn = (ext as i32, ext_i);
-            start = i;
-            ext = x;
-            ext_i = i;
+            let x_turn = state.turning_point_counts();
+            // The extreme was reached within this stroke: the last record standing on it.
+            let at = (start..i)
+                .rev()
+                .find(|&k| x_counts[k] == x_turn)
+                .unwrap_or(start);
+            (dir, start, turn) = (-dir, i, (x_turn, at));
         }
     }
     out.push(Stroke {
