@@ -21,7 +21,7 @@ use belt_drive as _;
 #[cfg(target_os = "none")]
 #[rtic::app(device = stm32f4xx_hal::pac, peripherals = true)]
 mod app {
-    use core::sync::atomic::{AtomicBool, AtomicU16, Ordering};
+    use core::sync::atomic::{AtomicU16, Ordering};
 
     use belt_drive::drive::{Command, CommandError, Drive, DriveConfig, Faults, Models, Telemetry};
     use belt_drive::hardware::{self, ControlIo, LinkRx};
@@ -31,12 +31,6 @@ mod app {
     use estimator_core::link::{answer, Effect, Endpoint, Event};
     use estimator_core::link::{LinkError, Message, Receiver, Reply, Request, WireTelemetry};
 
-    /// Board only: ticks without a valid frame before the drive faults (0.5 s at 2 kHz). The host
-    /// keeps the link alive with any frame, e.g. a status request every 100 ms.
-    const LINK_TIMEOUT_TICKS: u32 = 1_000;
-
-    /// Set by `link` on every valid frame, cleared by `control` (link watchdog).
-    static FRAME_SEEN: AtomicBool = AtomicBool::new(false);
     /// Telemetry stream decimation, 0 = off.
     static STREAM_EVERY: AtomicU16 = AtomicU16::new(0);
 
@@ -90,7 +84,7 @@ mod app {
         let receiver = Receiver::new();
         let endpoint: &'static mut Endpoint = cx.local.endpoint_storage;
         let mut outbox = Outbox::new(board.tx);
-        outbox.send(0, &Reply::Status(endpoint.status(&drive, &receiver, 0)));
+        outbox.send(0, &Reply::Status(endpoint.status(&drive, &receiver, 0, 0)));
         (
             Shared { drive, outbox },
             Local {
@@ -117,11 +111,10 @@ mod app {
     /// under QEMU by `tools/bench-target.sh` (which prints the current figures); the whole task,
     /// sampling and reporting included, well under a tenth of a 2 kHz tick (84,000 cycles at
     /// 168 MHz).
-    #[task(binds = TIM7, priority = 3, local = [io, prev, silent_ticks: u32 = 0, since_stream: u16 = 0], shared = [drive, outbox])]
+    #[task(binds = TIM7, priority = 3, local = [io, prev, since_stream: u16 = 0], shared = [drive, outbox])]
     fn control(cx: control::Context) {
         let control::LocalResources {
             io,
-            silent_ticks,
             since_stream,
             prev,
             ..
@@ -157,21 +150,6 @@ mod app {
         );
         log_transitions(prev, &t);
         *prev = t;
-
-        if hardware::LINK_WATCHDOG {
-            if FRAME_SEEN.swap(false, Ordering::Relaxed) {
-                *silent_ticks = 0;
-            } else {
-                *silent_ticks = silent_ticks.saturating_add(1);
-                if *silent_ticks >= LINK_TIMEOUT_TICKS && drive.lock(|d| d.is_enabled()) {
-                    defmt::error!(
-                        "fault: link silent for {=u32} ticks: motor disabled (clear faults and enable over the link)",
-                        *silent_ticks
-                    );
-                    drive.lock(|d| d.raise_fault(Faults::LINK_TIMEOUT));
-                }
-            }
-        }
     }
 
     /// Logs a move's start and end and every change of the fault bits.
@@ -191,12 +169,15 @@ mod app {
                 t.tick
             );
         }
-        if t.faults != prev.faults && !t.faults.is_clear() {
-            defmt::error!(
-                "fault {=u8:#04x} (1 encoder jump, 2 following error, 4 travel, 8 link) at {=i32} counts: zero current",
-                t.faults.0,
-                t.motor_counts
-            );
+        let new = t.faults.0 & !prev.faults.0;
+        for (bit, name) in Faults::NAMES {
+            if new & bit != 0 {
+                defmt::error!(
+                    "fault {=str} at {=i32} counts: zero current, amplifier disabled",
+                    name,
+                    t.motor_counts
+                );
+            }
         }
     }
 
@@ -242,7 +223,6 @@ mod app {
                 }
                 Some(Ok(f)) => f,
             };
-            FRAME_SEEN.store(true, Ordering::Relaxed);
             let (effect, event) = drive.lock(|d| endpoint.handle(&frame.msg, d));
             log_event(&event);
             let reply = match effect {
@@ -255,7 +235,7 @@ mod app {
                 }
                 Effect::Status => {
                     let peak = stack::peak_bytes();
-                    Reply::Status(drive.lock(|d| endpoint.status(d, receiver, peak)))
+                    Reply::Status(drive.lock(|d| endpoint.status(d, receiver, peak, 0)))
                 }
                 Effect::Stream(n) => {
                     defmt::info!("telemetry stream every {=u16} ticks (0 = off)", n);
@@ -386,6 +366,7 @@ mod app {
             CommandError::AccelOutOfRange => "acceleration out of range",
             CommandError::NotEnabled => "drive not enabled (or faulted)",
             CommandError::Busy => "busy (moving)",
+            CommandError::NotHomed => "not homed",
         }
     }
 

@@ -51,8 +51,6 @@ pub struct ControlIo {
     amp_enable: Pin<'B', 0, Output<PushPull>>,
 }
 
-/// The link going silent is a fault on the real board.
-pub const LINK_WATCHDOG: bool = true;
 /// `Shutdown` requests are refused: there is nothing to exit to.
 pub const ALLOW_SHUTDOWN: bool = false;
 
@@ -86,14 +84,14 @@ impl ControlIo {
         (step(), 0)
     }
 
-    /// Sends the tick's current command to the amplifier; a faulted drive also drops the
-    /// amplifier's enable line.
+    /// Sends the tick's current command to the amplifier; the enable line is high only while
+    /// the drive is enabled with no fault latched.
     #[inline(always)]
     pub fn write_current(&mut self, out: &DriveOutput) {
         self.dac
             .dhr12r1()
             .write(|w| unsafe { w.daccdhr().bits(dac_code(out.current_a)) });
-        if out.telemetry.faults.is_clear() {
+        if out.telemetry.amplifier_enabled {
             self.amp_enable.set_high();
         } else {
             self.amp_enable.set_low();
