@@ -226,7 +226,7 @@ fn encoder_jump_faults_to_zero_current_until_cleared() {
 }
 
 #[test]
-fn following_error_fault_when_the_motor_is_stalled() {
+fn stall_fault_when_the_motor_is_seized() {
     let (mut d, m) = homed(50.0);
     d.command(Command::Enable).unwrap();
     d.command(mv(100.0)).unwrap();
@@ -239,10 +239,55 @@ fn following_error_fault_when_the_motor_is_stalled() {
             break;
         }
     }
-    let (k, o) = tripped.expect("following error must trip");
-    assert!(o.telemetry.faults.has(Faults::FOLLOWING_ERROR));
+    let (k, o) = tripped.expect("a seized axis must trip");
+    assert!(
+        o.telemetry.faults.has(Faults::STALL),
+        "{}",
+        o.telemetry.faults
+    );
     assert_eq!(o.current_a.to_bits(), 0);
     assert!(k < 2000, "tripped only after {k} ticks");
+}
+
+#[test]
+fn following_error_fault_when_the_motor_lags() {
+    // Saturation off: at 8 A for 30 ms it would otherwise name this lag first.
+    let mut cfg = DriveConfig::paper_rig();
+    cfg.faults.saturation_time_s = 0.0;
+    let mut d = Drive::new(&cfg).unwrap();
+    let m = Mass::new(50.0);
+    d.step(m.sample());
+    d.command(Command::Home {
+        position_um: 50_000,
+        scale_um: 0,
+    })
+    .unwrap();
+    d.command(Command::Enable).unwrap();
+    d.command(mv(100.0)).unwrap();
+    // The motor moves, but at a third of the set-point's speed (a load it can barely drag):
+    // not a stall, and the lag grows until the following error trips.
+    let mut x = m.x_counts;
+    // The set-point's last two values: the motor follows a third of each step.
+    let mut sp: [Option<f64>; 2] = [None, None];
+    let mut tripped = None;
+    for k in 0..8000 {
+        if let [Some(a), Some(b)] = sp {
+            x += (b - a).max(0.0) / 3.0;
+        }
+        d.link_alive();
+        let o = d.step(Sample {
+            motor_counter: (x.floor() as i64) as u16,
+            scale_counter: 0,
+        });
+        sp = [sp[1], Some(o.telemetry.setpoint_counts as f64)];
+        if !o.telemetry.faults.is_clear() {
+            tripped = Some((k, o));
+            break;
+        }
+    }
+    let (_, o) = tripped.expect("following error must trip");
+    assert_eq!(o.telemetry.faults, Faults(Faults::FOLLOWING_ERROR));
+    assert_eq!(o.current_a.to_bits(), 0);
 }
 
 #[test]

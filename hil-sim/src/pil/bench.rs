@@ -72,6 +72,8 @@ impl Lockstep {
             motor_counter: self.plant.motor_counter(),
             scale_counter: self.plant.scale_counter(),
         };
+        // The firmware's sample frame feeds its link watchdog: so does the twin's.
+        self.host.link_alive();
         let a = self.host.step(s);
         let b = self.fw.step_sample(s)?;
         if a != b && self.first_mismatch.is_none() {

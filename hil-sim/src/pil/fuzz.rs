@@ -64,6 +64,8 @@ pub fn run(opts: &PilOptions, n: u32) -> Result<FuzzReport, PilError> {
         let len = gen::bad_frame(&mut rng, &mut buf);
         fw.send_raw(&buf[..len])?;
         if (i + 1) % FRAMES_PER_TICK == 0 || i + 1 == n {
+            // Each sample frame feeds the firmware's link watchdog: the twin's too.
+            host.link_alive();
             let a = host.step(rest);
             let b = fw.step_sample(rest)?;
             unmoved &= a == b && !b.telemetry.moving;
