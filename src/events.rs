@@ -9,8 +9,9 @@ use heapless::spsc;
 use crate::doorbell::Doorbell;
 use crate::drive::{Faults, Telemetry};
 
-/// Records the queue holds: a burst of faults and tick overruns in one tick is about 4.
-pub const CAPACITY: usize = 32;
+/// Queue slots (one stays free): records are rare (a busy tick queues up to 4), and the logger
+/// runs within a tick or two unless `link` is decoding a calibration; drops are counted.
+pub const CAPACITY: usize = 8;
 /// Ticks between two trace records (10 Hz at 2 kHz); `trace` level only.
 pub const TRACE_EVERY: u16 = 200;
 
@@ -63,7 +64,6 @@ pub enum Event {
         motor_counts: i32,
         setpoint_counts: i32,
         current_bits: i32,
-        instructions: u32,
     },
 }
 
@@ -201,14 +201,12 @@ fn log(e: &Event) {
             motor_counts,
             setpoint_counts,
             current_bits,
-            instructions,
         } => defmt::trace!(
-            "tick {=u32}: x_PE {=i32} set {=i32} I {=i32} (I16F16 bits), {=u32} instr",
+            "tick {=u32}: x_PE {=i32} set {=i32} I {=i32} (I16F16 bits)",
             tick,
             motor_counts,
             setpoint_counts,
-            current_bits,
-            instructions
+            current_bits
         ),
     }
 }

@@ -44,9 +44,10 @@ mod app {
     /// Board only: ticks without a valid frame before the drive faults (0.5 s at 2 kHz). The host
     /// keeps the link alive with any frame, e.g. a status request every 100 ms.
     const LINK_TIMEOUT_TICKS: u32 = 1_000;
-    /// Received bytes waiting for `link`: 11 ms of a saturated 460800 Bd line, longer than a
-    /// calibration decode keeps `link` busy.
-    const RX_QUEUE: usize = 512;
+    /// Received bytes waiting for `link` (one slot stays free): 5.5 ms of a saturated
+    /// 460800 Bd line. The host waits for each reply, so a burst is about one frame; QEMU holds
+    /// bytes back when it is full.
+    const RX_QUEUE: usize = 256;
 
     /// Set by `link` on every valid frame, cleared by `control` (link watchdog).
     static FRAME_SEEN: AtomicBool = AtomicBool::new(false);
@@ -254,7 +255,6 @@ mod app {
                     motor_counts: t.motor_counts,
                     setpoint_counts: t.setpoint_counts,
                     current_bits: t.current_a.to_bits(),
-                    instructions,
                 },
             );
         }
