@@ -114,31 +114,19 @@ pub fn transitions(p: &mut Producer, prev: &Telemetry, t: &Telemetry) {
     }
 }
 
-/// Fault bits as `u16` (the width of the core's fault set).
 #[inline(always)]
 fn bits(f: Faults) -> u16 {
-    f.0 as u16
+    f.0
 }
 
-/// The name of one fault bit.
-fn fault_name(bit: u16) -> &'static str {
-    match bit {
-        b if b == Faults::ENCODER_JUMP as u16 => "encoder_jump",
-        b if b == Faults::FOLLOWING_ERROR as u16 => "following_error",
-        b if b == Faults::TRAVEL_LIMIT as u16 => "travel_limit",
-        b if b == Faults::LINK_TIMEOUT as u16 => "link_timeout",
-        _ => "unknown",
-    }
-}
-
-/// Logs every set bit of `set` by name, one line each.
+/// Logs every set bit of `set` by name (never as a number), one line each.
 fn log_fault_names(set: u16, tick: u32, motor_counts: i32) {
     for i in 0..16 {
         let bit = 1u16 << i;
         if set & bit != 0 {
             defmt::error!(
                 "fault raised: {=str} at {=i32} counts (tick {=u32}): amplifier off, zero current",
-                fault_name(bit),
+                Faults::name(bit),
                 motor_counts,
                 tick
             );

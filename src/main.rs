@@ -41,16 +41,11 @@ mod app {
     use estimator_core::link::{answer, Effect, Endpoint, Event as LinkEvent};
     use estimator_core::link::{LinkError, Message, Receiver, Reply, Request, WireTelemetry};
 
-    /// Board only: ticks without a valid frame before the drive faults (0.5 s at 2 kHz). The host
-    /// keeps the link alive with any frame, e.g. a status request every 100 ms.
-    const LINK_TIMEOUT_TICKS: u32 = 1_000;
     /// Received bytes waiting for `link` (one slot stays free): 5.5 ms of a saturated
     /// 460800 Bd line. The host waits for each reply, so a burst is about one frame; QEMU holds
     /// bytes back when it is full.
     const RX_QUEUE: usize = 256;
 
-    /// Set by `link` on every valid frame, cleared by `control` (link watchdog).
-    static FRAME_SEEN: AtomicBool = AtomicBool::new(false);
     /// Telemetry stream decimation, 0 = off.
     static STREAM_EVERY: AtomicU16 = AtomicU16::new(0);
     /// The board accepts the drive's current limit (set once in `init`); otherwise the drive is
@@ -145,7 +140,10 @@ mod app {
         let receiver = Receiver::new();
         let endpoint: &'static mut Endpoint = cx.local.endpoint_storage;
         let mut outbox = Outbox::new(board.tx);
-        outbox.send(0, &Reply::Status(endpoint.status(&drive, &receiver, 0)));
+        outbox.send(
+            0,
+            &Reply::Status(endpoint.status(&drive, &receiver, 0, cause)),
+        );
 
         let (events_in, events_out) = cx.local.event_queue.split();
         let (bytes_in, bytes_out) = cx.local.rx_queue.split();
@@ -188,7 +186,7 @@ mod app {
     #[task(
         binds = TIM7,
         priority = 3,
-        local = [io, prev, events_in, silent_ticks: u32 = 0, since_stream: u16 = 0, since_trace: u16 = 0, deadline_misses: u32 = 0],
+        local = [io, prev, events_in, since_stream: u16 = 0, since_trace: u16 = 0, deadline_misses: u32 = 0],
         shared = [drive, outbox]
     )]
     fn control(cx: control::Context) {
@@ -196,7 +194,6 @@ mod app {
             io,
             prev,
             events_in,
-            silent_ticks,
             since_stream,
             since_trace,
             deadline_misses,
@@ -214,18 +211,16 @@ mod app {
 
         let (out, amplifier_on, instructions) = drive.lock(|d| {
             // Faults found before the step latch now: this tick already writes zero current.
-            if tick.missed != 0 {
-                report_missed(d, tick.missed);
-            }
+            d.missed_ticks(tick.missed);
             if clock_failed {
-                report_clock_failure(d);
+                d.raise_fault(Faults::CLOCK_FAILURE);
             }
             if !permitted && d.is_enabled() {
                 refused = true;
                 let _ = d.command(Command::Disable);
             }
             let (out, n) = io.measure(|| d.step(tick.sample));
-            let on = permitted && hardware::amplifier_enable(d, &out.telemetry);
+            let on = permitted && out.telemetry.amplifier_enabled;
             (out, on, n)
         });
         io.write_current(&out, amplifier_on);
@@ -260,21 +255,10 @@ mod app {
         }
         *prev = t;
 
-        if hardware::LINK_WATCHDOG {
-            if FRAME_SEEN.swap(false, Ordering::Relaxed) {
-                *silent_ticks = 0;
-            } else {
-                *silent_ticks = silent_ticks.saturating_add(1);
-                if *silent_ticks >= LINK_TIMEOUT_TICKS && drive.lock(|d| d.is_enabled()) {
-                    drive.lock(|d| d.raise_fault(Faults::LINK_TIMEOUT));
-                }
-            }
-        }
-
         // The next update came while this tick ran: an overrun, latched from the next tick.
         let overrun = io.overran();
         if overrun {
-            drive.lock(|d| report_missed(d, 1));
+            drive.lock(|d| d.missed_ticks(1));
         }
         if tick.missed != 0 || overrun {
             *deadline_misses = deadline_misses.saturating_add(tick.missed + overrun as u32);
@@ -291,18 +275,6 @@ mod app {
         }
         // Only a completed tick feeds the watchdog.
         io.feed_watchdog();
-    }
-
-    /// Late or missed ticks (board-measured): the motor goes off.
-    /// Stand-in until the core's fault catalogue (`Drive::missed_ticks`, DEADLINE_MISSED).
-    fn report_missed(d: &mut Drive, _n: u32) {
-        let _ = d.command(Command::Disable);
-    }
-
-    /// The clock security system fired: the motor stays off.
-    /// Stand-in until the core's fault catalogue (CLOCK_FAILURE).
-    fn report_clock_failure(d: &mut Drive) {
-        let _ = d.command(Command::Disable);
     }
 
     /// Defmt lines for the control task's events, outside every interrupt handler.
@@ -349,6 +321,7 @@ mod app {
             bytes_out,
             receiver,
             endpoint,
+            reset_cause,
             ..
         } = cx.local;
         let link::SharedResources {
@@ -384,7 +357,7 @@ mod app {
                     }
                     Some(Ok(f)) => f,
                 };
-                FRAME_SEEN.store(true, Ordering::Relaxed);
+                // `handle` also feeds the core's link watchdog (`Drive::link_alive`).
                 let (effect, event) = drive.lock(|d| endpoint.handle(&frame.msg, d));
                 log_event(&event);
                 let reply = match effect {
@@ -397,7 +370,9 @@ mod app {
                     }
                     Effect::Status => {
                         let peak = stack::peak_bytes();
-                        Reply::Status(drive.lock(|d| endpoint.status(d, receiver, peak)))
+                        Reply::Status(
+                            drive.lock(|d| endpoint.status(d, receiver, peak, *reset_cause)),
+                        )
                     }
                     Effect::Stream(n) => {
                         defmt::info!("telemetry stream every {=u16} ticks (0 = off)", n);
@@ -534,6 +509,7 @@ mod app {
             CommandError::AccelOutOfRange => "acceleration out of range",
             CommandError::NotEnabled => "drive not enabled (or faulted)",
             CommandError::Busy => "busy (moving)",
+            CommandError::NotHomed => "not homed",
         }
     }
 

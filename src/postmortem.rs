@@ -7,36 +7,7 @@ use core::mem::MaybeUninit;
 use core::ptr;
 
 /// Reset-cause bits, as reported in the status reply.
-pub mod reset_cause {
-    /// Low-power management reset (entering Standby/Stop when the option bytes forbid it).
-    pub const LOW_POWER: u8 = 1 << 0;
-    /// Window watchdog.
-    pub const WINDOW_WATCHDOG: u8 = 1 << 1;
-    /// Independent watchdog (e.g. after a halt on panic).
-    pub const INDEPENDENT_WATCHDOG: u8 = 1 << 2;
-    /// Software reset (SYSRESETREQ, e.g. a probe's reset).
-    pub const SOFTWARE: u8 = 1 << 3;
-    /// Power-on / power-down reset.
-    pub const POWER_ON: u8 = 1 << 4;
-    /// NRST pin.
-    pub const PIN: u8 = 1 << 5;
-    /// Brown-out reset.
-    pub const BROWNOUT: u8 = 1 << 6;
-    /// The previous run left a panic / fault record.
-    pub const PANIC_RECORD: u8 = 1 << 7;
-}
-
-/// Reset-cause bits with their names, in bit order.
-const CAUSE_NAMES: [(u8, &str); 8] = [
-    (reset_cause::LOW_POWER, "low-power"),
-    (reset_cause::WINDOW_WATCHDOG, "window watchdog"),
-    (reset_cause::INDEPENDENT_WATCHDOG, "independent watchdog"),
-    (reset_cause::SOFTWARE, "software"),
-    (reset_cause::POWER_ON, "power-on"),
-    (reset_cause::PIN, "pin"),
-    (reset_cause::BROWNOUT, "brownout"),
-    (reset_cause::PANIC_RECORD, "panic record"),
-];
+pub use estimator_core::link::reset_cause;
 
 /// Logs the reset cause by name, one line ("unknown" when no flag is set, e.g. under QEMU).
 pub fn log_reset_cause(bits: u8) {
@@ -44,7 +15,7 @@ pub fn log_reset_cause(bits: u8) {
         defmt::info!("reset cause: unknown");
         return;
     }
-    for (bit, name) in CAUSE_NAMES {
+    for (bit, name) in reset_cause::NAMES {
         if bits & bit != 0 {
             defmt::info!("reset cause: {=str}", name);
         }

@@ -10,6 +10,8 @@
 use fixed::types::I16F16;
 
 use crate::blob::{self, BlobError};
+use crate::fault;
+pub use crate::fault::Faults;
 use crate::model::{self, ModelCoeffs, ModelKind, ModelParams, ModelState};
 use crate::rig::Rig;
 use crate::trajectory::{self, Trajectory};
@@ -23,32 +25,6 @@ pub struct Sample {
     /// Raw 16-bit linear-scale timer counter (x4, 0.5 um), wrapping; only calibration and
     /// evaluation read it, the control law never does.
     pub scale_counter: u16,
-}
-
-/// Fault bits: any set bit forces zero current until `Command::ClearFaults`.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct Faults(pub u8);
-
-impl Faults {
-    /// The encoder moved more in one tick than the maximum speed allows.
-    pub const ENCODER_JUMP: u8 = 1 << 0;
-    /// The following error exceeded its limit.
-    pub const FOLLOWING_ERROR: u8 = 1 << 1;
-    /// The motor position left the configured travel (plus margin).
-    pub const TRAVEL_LIMIT: u8 = 1 << 2;
-    /// The link to the host (or PIL plant) went silent.
-    pub const LINK_TIMEOUT: u8 = 1 << 3;
-    /// No fault.
-    pub const NONE: Faults = Faults(0);
-
-    /// True when no fault bit is set.
-    pub fn is_clear(self) -> bool {
-        self.0 == 0
-    }
-    /// True when `bit` is set.
-    pub fn has(self, bit: u8) -> bool {
-        self.0 & bit != 0
-    }
 }
 
 /// Everything a tick reports, in integer units.
@@ -74,12 +50,18 @@ pub struct Telemetry {
     pub model: ModelKind,
     /// A move is in progress.
     pub moving: bool,
+    /// The amplifier's enable line: high only while the drive is enabled and no fault is
+    /// latched.
+    pub amplifier_enabled: bool,
+    /// The position has been homed since start (moves are refused before).
+    pub homed: bool,
 }
 
 /// Result of one tick.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Output {
-    /// Current command for the amplifier, amperes (zero while faulted or disabled).
+    /// Current command for the amplifier, amperes (zero while faulted or disabled), polarity
+    /// applied: exactly what the board writes.
     pub current_a: I16F16,
     /// What happened this tick.
     pub telemetry: Telemetry,
@@ -130,6 +112,8 @@ pub enum CommandError {
     NotEnabled,
     /// The command needs the drive at rest.
     Busy,
+    /// Moves are refused until the drive is homed.
+    NotHomed,
 }
 
 impl core::fmt::Display for CommandError {
@@ -140,6 +124,7 @@ impl core::fmt::Display for CommandError {
             CommandError::AccelOutOfRange => "acceleration zero or above the configured maximum",
             CommandError::NotEnabled => "drive disabled or faulted",
             CommandError::Busy => "the drive must be at rest (or keep the move's limits)",
+            CommandError::NotHomed => "not homed: home the drive before moving",
         })
     }
 }
@@ -173,8 +158,10 @@ pub struct DriveConfig<'a> {
     pub max_velocity_mm_s: f64,
     /// Steepest acceleration a command may ask for, mm/s^2.
     pub max_accel_mm_s2: f64,
-    /// Following error that trips `FOLLOWING_ERROR`, mm.
-    pub max_following_error_mm: f64,
+    /// Fault detector thresholds.
+    pub faults: fault::Config,
+    /// Wiring polarity of the encoders and the motor.
+    pub polarity: Polarity,
     /// Fastest believable motion between two samples (encoder plausibility), mm/s.
     pub encoder_max_speed_mm_s: f64,
     /// Position-loop gains (its `rate_hz` is replaced by the drive's).
@@ -196,13 +183,36 @@ impl DriveConfig<'static> {
             travel_margin_mm: 5.0,
             max_velocity_mm_s: 250.0,
             max_accel_mm_s2: 5000.0,
-            max_following_error_mm: 2.0,
+            faults: fault::Config::PAPER_RIG,
+            polarity: Polarity::NORMAL,
             encoder_max_speed_mm_s: 1000.0,
             pid: pid::Config::PAPER_RIG,
             model: Models::Params(&ModelParams::PAPER),
             initial_model: ModelKind::Linear,
         }
     }
+}
+
+/// Wiring polarity: which way the counters count and the current pushes. Inverting a counter
+/// negates its raw register before unwrapping; inverting the current negates the command after
+/// the loop, so the loop, the models and the detectors all work in the drive's own frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Polarity {
+    /// The motor encoder counts down for positive carriage travel.
+    pub motor_encoder_inverted: bool,
+    /// The linear scale counts down for positive carriage travel.
+    pub scale_inverted: bool,
+    /// Positive amplifier current moves the carriage towards negative travel.
+    pub current_inverted: bool,
+}
+
+impl Polarity {
+    /// Everything counts and pushes towards positive travel.
+    pub const NORMAL: Polarity = Polarity {
+        motor_encoder_inverted: false,
+        scale_inverted: false,
+        current_inverted: false,
+    };
 }
 
 /// Scale counts per micrometre: the linear scale is 500 lines/mm, x4.
@@ -219,7 +229,6 @@ struct Limits {
     fault_max_counts: i32,
     max_velocity_um_s: u32,
     max_accel_um_s2: u32,
-    max_following_error_counts: i32,
 }
 
 /// The drive: configuration, coefficients and state of one axis.
@@ -240,8 +249,21 @@ pub struct Drive {
     models: ModelCoeffs,
     model_state: ModelState,
     model: ModelKind,
+    monitor: fault::Coeffs,
+    monitor_state: fault::State,
+    polarity: Polarity,
     enabled: bool,
+    homed: bool,
     faults: Faults,
+    /// The previous tick's command in the drive's frame, and whether it sat at the limit.
+    prev_current_a: I16F16,
+    prev_saturated: bool,
+    /// Ticks since the last valid frame (link watchdog).
+    silent_ticks: u32,
+    /// Late or missed ticks reported by the board, since start.
+    missed_ticks: u32,
+    /// Scale samples refused by its plausibility check, since start.
+    scale_glitches: u32,
     tick: u32,
     last: Telemetry,
 }
@@ -284,15 +306,11 @@ impl Drive {
         }
         let vmax = finite(cfg.max_velocity_mm_s, "drive.max_velocity_mm_s")?;
         let amax = finite(cfg.max_accel_mm_s2, "drive.max_accel_mm_s2")?;
-        let fe = finite(cfg.max_following_error_mm, "drive.max_following_error_mm")?;
         if !(vmax > 0.0 && vmax * 1000.0 <= u32::MAX as f64) {
             return Err(E::OutOfRange("drive.max_velocity_mm_s"));
         }
         if !(amax > 0.0 && amax * 1000.0 <= u32::MAX as f64) {
             return Err(E::OutOfRange("drive.max_accel_mm_s2"));
-        }
-        if fe <= 0.0 {
-            return Err(E::OutOfRange("drive.max_following_error_mm"));
         }
         let limits = Limits {
             counts_per_um_q32: (cpm / 1000.0 * 4_294_967_296.0) as i64,
@@ -302,8 +320,8 @@ impl Drive {
             fault_max_counts: to_i32((hi + margin) * cpm, "drive.travel_margin_mm")?,
             max_velocity_um_s: (vmax * 1000.0) as u32,
             max_accel_um_s2: (amax * 1000.0) as u32,
-            max_following_error_counts: to_i32(fe * cpm, "drive.max_following_error_mm")?,
         };
+        let monitor = cfg.faults.build(&cfg.rig, rate_hz, vmax)?;
         let enc = encoder::Config {
             max_speed_mm_s: cfg.encoder_max_speed_mm_s,
             rate_hz,
@@ -345,8 +363,17 @@ impl Drive {
             models,
             model_state: ModelState::new(0),
             model: cfg.initial_model,
+            monitor,
+            monitor_state: fault::State::new(),
+            polarity: cfg.polarity,
             enabled: false,
+            homed: false,
             faults: Faults::NONE,
+            prev_current_a: I16F16::ZERO,
+            prev_saturated: false,
+            silent_ticks: 0,
+            missed_ticks: 0,
+            scale_glitches: 0,
             tick: 0,
             last: Telemetry {
                 model: cfg.initial_model,
@@ -400,17 +427,64 @@ impl Drive {
         self.last
     }
 
-    /// Latches `bits` (e.g. `Faults::LINK_TIMEOUT` from the board's watchdog): zero current from
-    /// the next tick until `ClearFaults` and `Enable`.
-    pub fn raise_fault(&mut self, bits: u8) {
+    /// Latches `bits` (e.g. `Faults::CLOCK_FAILURE` from the board): zero current and a low
+    /// amplifier enable from the next tick until `ClearFaults` and `Enable`.
+    pub fn raise_fault(&mut self, bits: u16) {
+        if bits == 0 {
+            return;
+        }
         self.faults.0 |= bits;
         self.enabled = false;
         self.hold_here();
     }
 
+    /// The board (or a runner) reports `n` control ticks that ran late or never ran. They are
+    /// counted; while the drive is enabled any of them latches `DEADLINE_MISSED`, because the
+    /// loop's timing (and so its gains) no longer holds.
+    pub fn missed_ticks(&mut self, n: u32) {
+        if n == 0 {
+            return;
+        }
+        self.missed_ticks = self.missed_ticks.saturating_add(n);
+        if self.enabled {
+            self.raise_fault(Faults::DEADLINE_MISSED);
+        }
+    }
+
+    /// A valid frame arrived from the host: feeds the link watchdog.
+    pub fn link_alive(&mut self) {
+        self.silent_ticks = 0;
+    }
+
     /// Whether the current output is enabled.
     pub fn is_enabled(&self) -> bool {
         self.enabled
+    }
+
+    /// Whether the drive has been homed since start.
+    pub fn is_homed(&self) -> bool {
+        self.homed
+    }
+
+    /// Latched fault bits.
+    pub fn faults(&self) -> Faults {
+        self.faults
+    }
+
+    /// Late or missed ticks reported since start.
+    pub fn missed_tick_count(&self) -> u32 {
+        self.missed_ticks
+    }
+
+    /// Scale samples refused as implausible since start (a glitch of the temporary calibration
+    /// scale is counted, never a motor fault).
+    pub fn scale_glitch_count(&self) -> u32 {
+        self.scale_glitches
+    }
+
+    /// The fault detectors' thresholds in counts and ticks.
+    pub fn monitor(&self) -> &fault::Coeffs {
+        &self.monitor
     }
 
     /// Micrometres of nominal travel to counts (round to nearest), saturating.
@@ -422,8 +496,10 @@ impl Drive {
         (q >> 32).clamp(i32::MIN as i64, i32::MAX as i64) as i32
     }
 
-    /// Applies a command. A refused command changes nothing.
+    /// Applies a command. A refused command changes nothing; any command, applied or not, shows
+    /// that the host is alive (link watchdog).
     pub fn command(&mut self, cmd: Command) -> Result<(), CommandError> {
+        self.link_alive();
         match cmd {
             Command::MoveTo {
                 target_um,
@@ -432,6 +508,9 @@ impl Drive {
             } => {
                 if !self.enabled {
                     return Err(CommandError::NotEnabled);
+                }
+                if !self.homed {
+                    return Err(CommandError::NotHomed);
                 }
                 let target = self.um_to_counts(target_um);
                 if target < self.limits.target_min_counts || target > self.limits.target_max_counts
@@ -489,41 +568,61 @@ impl Drive {
                     .clamp(i32::MIN as i64, i32::MAX as i64) as i32;
                 self.scale_state.reset(scale);
                 self.model_state.reset(x);
+                self.homed = true;
                 self.hold_here();
             }
         }
         Ok(())
     }
 
-    /// Set-point at the measured position, loop state cleared: enabling never jerks the motor.
+    /// Set-point at the measured position, loop and detector state cleared: enabling never jerks
+    /// the motor, and no detector carries history across a stop.
     fn hold_here(&mut self) {
         self.trajectory.reset(self.motor_state.position_counts());
         self.pid_state.reset();
+        self.monitor_state.reset();
+        self.prev_current_a = I16F16::ZERO;
+        self.prev_saturated = false;
+        self.silent_ticks = 0;
     }
 
     /// One control tick. Integer-only, allocation-free, bounded time; never panics.
     pub fn step(&mut self, sample: Sample) -> Output {
         self.tick = self.tick.wrapping_add(1);
-        let x = match self
-            .motor
-            .update(&mut self.motor_state, sample.motor_counter)
-        {
+        let motor_raw = if self.polarity.motor_encoder_inverted {
+            sample.motor_counter.wrapping_neg()
+        } else {
+            sample.motor_counter
+        };
+        let x = match self.motor.update(&mut self.motor_state, motor_raw) {
             Ok(x) => x,
             Err(_) => {
+                // The position can no longer be trusted: the drive must be homed again.
                 self.faults.0 |= Faults::ENCODER_JUMP;
+                self.homed = false;
                 self.motor_state.position_counts()
             }
         };
-        // The scale only informs calibration; a glitch there keeps the last good reading.
-        let scale = self
-            .scale
-            .update(&mut self.scale_state, sample.scale_counter)
-            .unwrap_or(self.scale_state.position_counts());
+        let scale_raw = if self.polarity.scale_inverted {
+            sample.scale_counter.wrapping_neg()
+        } else {
+            sample.scale_counter
+        };
+        // The scale only informs calibration; a glitch there is counted and keeps the last good
+        // reading.
+        let scale = match self.scale.update(&mut self.scale_state, scale_raw) {
+            Ok(s) => s,
+            Err(_) => {
+                self.scale_glitches = self.scale_glitches.saturating_add(1);
+                self.scale_state.position_counts()
+            }
+        };
         if x < self.limits.fault_min_counts || x > self.limits.fault_max_counts {
             self.faults.0 |= Faults::TRAVEL_LIMIT;
         }
 
         let mut current_a = I16F16::ZERO;
+        let mut saturated = false;
         let mut following_error_counts = 0;
         let mut setpoint_counts = x;
         if self.enabled && self.faults.is_clear() {
@@ -532,21 +631,47 @@ impl Drive {
             following_error_counts = out.following_error_counts.to_bits() >> 8;
             setpoint_counts = (sp.position_counts().to_bits() >> 24)
                 .clamp(i32::MIN as i64, i32::MAX as i64) as i32;
-            if following_error_counts.unsigned_abs() > self.limits.max_following_error_counts as u32
-            {
+            let limit = self
+                .monitor
+                .following_error_limit_counts(sp.velocity_counts_per_tick().to_bits());
+            if following_error_counts.unsigned_abs() > limit as u32 {
                 self.faults.0 |= Faults::FOLLOWING_ERROR;
             } else {
                 current_a = out.current_a;
+                saturated = out.saturated;
+            }
+            self.faults.0 |= fault::check(
+                &self.monitor,
+                &mut self.monitor_state,
+                fault::Inputs {
+                    position_counts: x,
+                    prev_current_a: self.prev_current_a,
+                    prev_saturated: self.prev_saturated,
+                },
+            );
+            let timeout = self.monitor.link_timeout_ticks();
+            self.silent_ticks = self.silent_ticks.saturating_add(1);
+            if timeout != 0 && self.silent_ticks >= timeout {
+                self.faults.0 |= Faults::LINK_TIMEOUT;
             }
         }
         if !self.faults.is_clear() {
             // Safe state: zero current, disabled until the host clears the fault and re-enables.
             self.enabled = false;
             current_a = I16F16::ZERO;
+            saturated = false;
             self.hold_here();
         }
+        self.prev_current_a = current_a;
+        self.prev_saturated = saturated;
 
         let est_error_um = model::estimate(&self.models, self.model, &mut self.model_state, x);
+        // Polarity last: everything above works in the drive's own frame.
+        let command_a = if self.polarity.current_inverted {
+            current_a.saturating_neg()
+        } else {
+            current_a
+        };
         self.last = Telemetry {
             tick: self.tick,
             motor_counts: x,
@@ -554,13 +679,15 @@ impl Drive {
             setpoint_counts,
             following_error_counts,
             est_error_um,
-            current_a,
+            current_a: command_a,
             faults: self.faults,
             model: self.model,
             moving: self.enabled && !self.trajectory.is_done(),
+            amplifier_enabled: self.enabled && self.faults.is_clear(),
+            homed: self.homed,
         };
         Output {
-            current_a,
+            current_a: command_a,
             telemetry: self.last,
         }
     }

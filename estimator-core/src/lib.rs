@@ -21,6 +21,7 @@ pub mod model;
 
 pub mod blob;
 pub mod drive;
+pub mod fault;
 
 pub mod link;
 

@@ -219,32 +219,82 @@ pub struct WireTelemetry {
     pub est_error_um_bits: i32,
     /// Current command, amperes, bits of an `I16F16`.
     pub current_a_bits: i32,
-    /// Fault bits.
-    pub faults: u8,
+    /// Fault bits ([`Faults`] names them).
+    pub faults: u16,
     /// Active model number.
     pub model: u8,
     /// A move is in progress.
     pub moving: bool,
+    /// The amplifier enable line is high.
+    pub amplifier_enabled: bool,
+    /// The drive is homed.
+    pub homed: bool,
 }
 
 /// Wire size of [`WireTelemetry`].
-pub const TELEMETRY_LEN: usize = 31;
+pub const TELEMETRY_LEN: usize = 32;
 
-/// Snapshot of the drive and the link (24 bytes).
+/// Bits of the last telemetry byte.
+mod telemetry_flags {
+    pub const MOVING: u8 = 1 << 0;
+    pub const AMPLIFIER_ENABLED: u8 = 1 << 1;
+    pub const HOMED: u8 = 1 << 2;
+    pub const ALL: u8 = MOVING | AMPLIFIER_ENABLED | HOMED;
+}
+
+/// Bits of [`WireStatus::reset_cause`]: why the microcontroller last started (RCC_CSR on the
+/// STM32F405; 0 where the board cannot tell, e.g. under QEMU).
+pub mod reset_cause {
+    /// Low-power management reset.
+    pub const LOW_POWER: u8 = 1 << 0;
+    /// Window watchdog.
+    pub const WINDOW_WATCHDOG: u8 = 1 << 1;
+    /// Independent watchdog: the control loop stopped completing ticks.
+    pub const INDEPENDENT_WATCHDOG: u8 = 1 << 2;
+    /// Software reset (SYSRESETREQ).
+    pub const SOFTWARE: u8 = 1 << 3;
+    /// Power-on / power-down reset.
+    pub const POWER_ON: u8 = 1 << 4;
+    /// The NRST pin.
+    pub const PIN: u8 = 1 << 5;
+    /// Brown-out reset.
+    pub const BROWNOUT: u8 = 1 << 6;
+    /// The previous run left a panic or HardFault record.
+    pub const PANIC_RECORD: u8 = 1 << 7;
+    /// Every bit with its name.
+    pub const NAMES: [(u8, &str); 8] = [
+        (LOW_POWER, "low_power"),
+        (WINDOW_WATCHDOG, "window_watchdog"),
+        (INDEPENDENT_WATCHDOG, "independent_watchdog"),
+        (SOFTWARE, "software"),
+        (POWER_ON, "power_on"),
+        (PIN, "pin"),
+        (BROWNOUT, "brownout"),
+        (PANIC_RECORD, "panic_record"),
+    ];
+}
+
+/// Snapshot of the drive and the link ([`STATUS_LEN`] bytes).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct WireStatus {
     /// Control ticks since start.
     pub tick: u32,
     /// Unwrapped motor position, counts.
     pub motor_counts: i32,
-    /// Fault bits.
-    pub faults: u8,
+    /// Fault bits ([`Faults`] names them).
+    pub faults: u16,
     /// Active model number.
     pub model: u8,
     /// [`status_flags`] bits.
     pub flags: u8,
     /// Code of the last [`LinkError`] (0 = none yet).
     pub last_error: u8,
+    /// [`reset_cause`] bits of this boot.
+    pub reset_cause: u8,
+    /// Late or missed control ticks since boot.
+    pub missed_ticks: u32,
+    /// Linear-scale samples refused as implausible since boot.
+    pub scale_glitches: u32,
     /// Frames accepted.
     pub frames_ok: u32,
     /// Frames rejected.
@@ -263,9 +313,16 @@ pub mod status_flags {
     pub const CALIBRATED: u8 = 1 << 2;
     /// Telemetry streaming is on.
     pub const STREAMING: u8 = 1 << 3;
+    /// The drive is homed (moves are refused before).
+    pub const HOMED: u8 = 1 << 4;
+    /// The amplifier enable line is high.
+    pub const AMPLIFIER_ENABLED: u8 = 1 << 5;
     /// All defined bits.
-    pub const ALL: u8 = MOVING | ENABLED | CALIBRATED | STREAMING;
+    pub const ALL: u8 = MOVING | ENABLED | CALIBRATED | STREAMING | HOMED | AMPLIFIER_ENABLED;
 }
+
+/// Wire size of [`WireStatus`].
+pub const STATUS_LEN: usize = 34;
 
 /// Drive -> host messages.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -362,13 +419,6 @@ impl<'a> Reader<'a> {
     fn i32(&mut self) -> i32 {
         i32::from_le_bytes(self.bytes())
     }
-    fn flag(&mut self) -> Result<bool, LinkError> {
-        match self.u8() {
-            0 => Ok(false),
-            1 => Ok(true),
-            _ => Err(LinkError::OutOfRange),
-        }
-    }
 }
 
 struct Writer<'a> {
@@ -417,9 +467,19 @@ impl WireTelemetry {
         w.i32(self.following_error_counts);
         w.i32(self.est_error_um_bits);
         w.i32(self.current_a_bits);
-        w.u8(self.faults);
+        w.u16(self.faults);
         w.u8(self.model);
-        w.u8(self.moving as u8);
+        let mut flags = 0;
+        if self.moving {
+            flags |= telemetry_flags::MOVING;
+        }
+        if self.amplifier_enabled {
+            flags |= telemetry_flags::AMPLIFIER_ENABLED;
+        }
+        if self.homed {
+            flags |= telemetry_flags::HOMED;
+        }
+        w.u8(flags);
     }
     fn read(r: &mut Reader<'_>) -> Result<Self, LinkError> {
         Ok(WireTelemetry {
@@ -430,9 +490,21 @@ impl WireTelemetry {
             following_error_counts: r.i32(),
             est_error_um_bits: r.i32(),
             current_a_bits: r.i32(),
-            faults: r.u8(),
+            faults: r.u16(),
             model: r.u8(),
-            moving: r.flag()?,
+            moving: false,
+            amplifier_enabled: false,
+            homed: false,
+        })
+        .and_then(|mut t| {
+            let flags = r.u8();
+            if flags & !telemetry_flags::ALL != 0 {
+                return Err(LinkError::OutOfRange);
+            }
+            t.moving = flags & telemetry_flags::MOVING != 0;
+            t.amplifier_enabled = flags & telemetry_flags::AMPLIFIER_ENABLED != 0;
+            t.homed = flags & telemetry_flags::HOMED != 0;
+            Ok(t)
         })
     }
 }
@@ -606,10 +678,13 @@ impl Message for Reply {
             Reply::Status(s) => {
                 w.u32(s.tick);
                 w.i32(s.motor_counts);
-                w.u8(s.faults);
+                w.u16(s.faults);
                 w.u8(s.model);
                 w.u8(s.flags);
                 w.u8(s.last_error);
+                w.u8(s.reset_cause);
+                w.u32(s.missed_ticks);
+                w.u32(s.scale_glitches);
                 w.u32(s.frames_ok);
                 w.u32(s.frames_bad);
                 w.u32(s.stack_peak_bytes);
@@ -644,14 +719,17 @@ impl Message for Reply {
                 }
             }
             kind::STATUS_REPLY => {
-                let mut r = expect_len(payload, 24)?;
+                let mut r = expect_len(payload, STATUS_LEN)?;
                 let s = WireStatus {
                     tick: r.u32(),
                     motor_counts: r.i32(),
-                    faults: r.u8(),
+                    faults: r.u16(),
                     model: r.u8(),
                     flags: r.u8(),
                     last_error: r.u8(),
+                    reset_cause: r.u8(),
+                    missed_ticks: r.u32(),
+                    scale_glitches: r.u32(),
                     frames_ok: r.u32(),
                     frames_bad: r.u32(),
                     stack_peak_bytes: r.u32(),
@@ -947,6 +1025,7 @@ pub fn command_error_code(e: CommandError) -> u8 {
         CommandError::AccelOutOfRange => 3,
         CommandError::NotEnabled => 4,
         CommandError::Busy => 6,
+        CommandError::NotHomed => 7,
     }
 }
 
@@ -958,6 +1037,7 @@ pub fn command_error_from_code(code: u8) -> Option<CommandError> {
         3 => CommandError::AccelOutOfRange,
         4 => CommandError::NotEnabled,
         6 => CommandError::Busy,
+        7 => CommandError::NotHomed,
         _ => return None,
     })
 }
@@ -1064,6 +1144,8 @@ impl From<&Telemetry> for WireTelemetry {
             faults: t.faults.0,
             model: t.model as u8,
             moving: t.moving,
+            amplifier_enabled: t.amplifier_enabled,
+            homed: t.homed,
         }
     }
 }
@@ -1082,6 +1164,8 @@ impl TryFrom<WireTelemetry> for Telemetry {
             faults: Faults(w.faults),
             model: ModelKind::from_u8(w.model).ok_or(LinkError::OutOfRange)?,
             moving: w.moving,
+            amplifier_enabled: w.amplifier_enabled,
+            homed: w.homed,
         })
     }
 }
@@ -1235,6 +1319,8 @@ impl Endpoint {
     /// still do (send a reply, run a tick, ...) comes back as an [`Effect`], and anything worth
     /// logging as an [`Event`].
     pub fn handle(&mut self, req: &Request, drive: &mut Drive) -> (Effect, Event) {
+        // Any valid frame keeps the link watchdog fed.
+        drive.link_alive();
         let k = req.kind();
         let ack = Effect::Reply(Reply::Ack { of: k });
         let refuse = |reason: LinkError, detail: u8| {
@@ -1330,7 +1416,13 @@ impl Endpoint {
     }
 
     /// The status reply: the drive's latest telemetry and state, and the link counters.
-    pub fn status(&self, drive: &Drive, rx: &Receiver, stack_peak_bytes: u32) -> WireStatus {
+    pub fn status(
+        &self,
+        drive: &Drive,
+        rx: &Receiver,
+        stack_peak_bytes: u32,
+        reset_cause: u8,
+    ) -> WireStatus {
         let last = drive.telemetry();
         let mut flags = 0;
         if last.moving {
@@ -1345,6 +1437,12 @@ impl Endpoint {
         if self.streaming {
             flags |= status_flags::STREAMING;
         }
+        if drive.is_homed() {
+            flags |= status_flags::HOMED;
+        }
+        if last.amplifier_enabled {
+            flags |= status_flags::AMPLIFIER_ENABLED;
+        }
         WireStatus {
             tick: last.tick,
             motor_counts: last.motor_counts,
@@ -1352,6 +1450,9 @@ impl Endpoint {
             model: last.model as u8,
             flags,
             last_error: rx.last_error.map_or(0, |e| e as u8),
+            reset_cause,
+            missed_ticks: drive.missed_tick_count(),
+            scale_glitches: drive.scale_glitch_count(),
             frames_ok: rx.frames_ok,
             frames_bad: rx.frames_bad,
             stack_peak_bytes,
@@ -1383,9 +1484,11 @@ mod tests {
             following_error_counts: i32::MAX,
             est_error_um_bits: -(3 << 16) - 0x8000,
             current_a_bits: 0x0001_8000,
-            faults: 0b1010,
+            faults: 0b10_0000_1010,
             model: 3,
             moving: true,
+            amplifier_enabled: false,
+            homed: true,
         }
     }
 
@@ -1460,10 +1563,13 @@ mod tests {
             Reply::Status(WireStatus {
                 tick: 1,
                 motor_counts: -2,
-                faults: 4,
+                faults: 0x0204,
                 model: 2,
                 flags: status_flags::ALL,
                 last_error: LinkError::NotSupported as u8,
+                reset_cause: reset_cause::INDEPENDENT_WATCHDOG | reset_cause::PANIC_RECORD,
+                missed_ticks: 7,
+                scale_glitches: 70_000,
                 frames_ok: u32::MAX,
                 frames_bad: 0,
                 stack_peak_bytes: 1500,
@@ -1568,7 +1674,7 @@ mod tests {
             (Reply::Ack { of: 1 }.write_payload(&mut [0; MAX_PAYLOAD]), 1),
             (
                 Reply::Status(WireStatus::default()).write_payload(&mut [0; MAX_PAYLOAD]),
-                24,
+                34,
             ),
             (
                 Reply::Telemetry(telemetry()).write_payload(&mut [0; MAX_PAYLOAD]),
@@ -1581,7 +1687,7 @@ mod tests {
                     step_instructions: 0,
                 }
                 .write_payload(&mut [0; MAX_PAYLOAD]),
-                39,
+                40,
             ),
         ];
         for (got, want) in sizes {
@@ -1705,7 +1811,7 @@ mod tests {
         // A reply kind of the right length, but with a bad flag byte.
         let mut body = vec![kind::TELEMETRY_FRAME, 1];
         body.extend([0u8; TELEMETRY_LEN - 1]);
-        body.push(2);
+        body.push(0x80);
         let mut rx = Receiver::new();
         let got = feed::<Reply>(&mut rx, &frame_with_crc(&body));
         assert_eq!(got[0].unwrap_err().error, LinkError::OutOfRange);
@@ -1833,6 +1939,23 @@ mod tests {
         assert_eq!(ep.handle_inline(&Request::Enable, &mut d).0, ACK_ENABLE);
         assert!(d.is_enabled());
         let (e, ev) = ep.handle_inline(&mv, &mut d);
+        assert_eq!(
+            refused(e),
+            Some((
+                LinkError::Refused,
+                command_error_code(CommandError::NotHomed)
+            ))
+        );
+        assert!(matches!(ev, Event::Refused(_, CommandError::NotHomed)));
+        let home = Request::Home {
+            position_um: 0,
+            scale_um: 0,
+        };
+        assert_eq!(
+            ep.handle_inline(&home, &mut d).0,
+            Effect::Reply(Reply::Ack { of: kind::HOME })
+        );
+        let (e, ev) = ep.handle_inline(&mv, &mut d);
         assert_eq!(e, Effect::Reply(Reply::Ack { of: kind::MOVE }));
         assert!(matches!(ev, Event::Applied(Command::MoveTo { .. })));
         let far = Request::Move {
@@ -1869,7 +1992,7 @@ mod tests {
         let _ = d.step(Sample::default());
         let mut rx = Receiver::new();
         rx.reject(LinkError::Crc);
-        let st = ep.status(&d, &rx, 1234);
+        let st = ep.status(&d, &rx, 1234, 0);
         assert_eq!(st.flags & status_flags::ENABLED, status_flags::ENABLED);
         assert_eq!(st.flags & status_flags::STREAMING, status_flags::STREAMING);
         assert_eq!(st.flags & status_flags::CALIBRATED, 0);
@@ -1966,7 +2089,7 @@ mod tests {
             }
         );
         assert_ne!(
-            ep.status(&d, &Receiver::new(), 0).flags & status_flags::CALIBRATED,
+            ep.status(&d, &Receiver::new(), 0, 0).flags & status_flags::CALIBRATED,
             0
         );
 

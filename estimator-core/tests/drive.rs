@@ -47,6 +47,8 @@ fn homed(x_mm: f64) -> (Drive, Mass) {
 fn run(d: &mut Drive, m: &mut Mass, ticks: usize) -> Vec<estimator_core::drive::Output> {
     (0..ticks)
         .map(|_| {
+            // A host is connected: it keeps the link watchdog fed.
+            d.link_alive();
             let o = d.step(m.sample());
             m.step(o.current_a.to_num::<f64>(), 1.0 / 2000.0);
             o
@@ -307,10 +309,10 @@ fn bad_configuration_names_the_field() {
     c.rate_hz = 0.0;
     assert_eq!(Drive::new(&c).unwrap_err().field(), "drive.rate_hz");
     let mut c = DriveConfig::paper_rig();
-    c.max_following_error_mm = -1.0;
+    c.faults.following_error_at_rest_mm = -1.0;
     assert_eq!(
         Drive::new(&c).unwrap_err().field(),
-        "drive.max_following_error_mm"
+        "faults.following_error_at_rest_mm"
     );
     let mut bad = estimator_core::model::ModelParams::PAPER;
     bad.model1.h_mm = -0.1;

@@ -17,7 +17,7 @@ pub enum ControlError {
 impl std::fmt::Display for ControlError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            ControlError::Refused(e) => write!(f, "command refused: {e:?}"),
+            ControlError::Refused(e) => write!(f, "command refused: {e}"),
             ControlError::Link(e) => write!(f, "link to the firmware failed: {e}"),
         }
     }
@@ -31,6 +31,18 @@ pub trait Controller {
     fn command(&mut self, cmd: Command) -> Result<(), ControlError>;
     /// Runs one control tick on `sample`.
     fn step(&mut self, sample: Sample) -> Result<Output, ControlError>;
+    /// What a host does periodically to show it is alive (feeds the drive's link watchdog).
+    /// Under PIL every sample frame already does, so the default does nothing.
+    fn keepalive(&mut self) -> Result<(), ControlError> {
+        Ok(())
+    }
+    /// Reports `n` control ticks that ran late (fault injection); only where the runner owns
+    /// the tick timing.
+    fn missed_ticks(&mut self, _n: u32) -> Result<(), ControlError> {
+        Err(ControlError::Link(
+            "late ticks cannot be injected here: the plant paces the firmware".into(),
+        ))
+    }
 }
 
 /// The core running in this process: the reference for every PIL comparison.
@@ -42,5 +54,13 @@ impl Controller for InProcess {
     }
     fn step(&mut self, sample: Sample) -> Result<Output, ControlError> {
         Ok(self.0.step(sample))
+    }
+    fn keepalive(&mut self) -> Result<(), ControlError> {
+        self.0.link_alive();
+        Ok(())
+    }
+    fn missed_ticks(&mut self, n: u32) -> Result<(), ControlError> {
+        self.0.missed_ticks(n);
+        Ok(())
     }
 }

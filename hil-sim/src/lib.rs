@@ -10,6 +10,7 @@ pub mod calfile;
 pub mod calibrate;
 pub mod controller;
 pub mod eval;
+pub mod faults;
 pub mod fit;
 pub mod params;
 pub mod pil;

@@ -123,6 +123,27 @@ enum Cmd {
         #[arg(long, default_value = "-")]
         out: String,
     },
+    /// Fault-injection campaign: inject each fault class into the simulated plant, sensors or
+    /// link and check that the drive detects it, stops the current and latches; then run every
+    /// scenario preset without injection and count false trips. Exits non-zero on any miss.
+    Faults {
+        /// Plant parameters (TOML); default: `paper-rig`.
+        #[arg(long)]
+        plant: Option<PathBuf>,
+        /// Noise seed of the runs.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Also run the classes that apply with the firmware under QEMU and require the same
+        /// result.
+        #[arg(long)]
+        pil: bool,
+        /// Firmware ELF for --pil (default: target/thumbv7em-none-eabihf/release/belt-drive).
+        #[arg(long)]
+        elf: Option<PathBuf>,
+        /// Print one JSON object instead of the table.
+        #[arg(long)]
+        json: bool,
+    },
     /// Calibrate, run the scenario, and write report.md with PNG figures (Figs. 11, 18-24).
     Report {
         /// Scenario file, or a preset name.
@@ -233,6 +254,113 @@ fn run_csv(scenario: &str, common: &Common, model: &str, out: &str) -> Result<()
     report::write_csv(&mut w, &trace).map_err(|e| format!("{out}: {e}"))
 }
 
+fn faults_campaign(
+    plant: &Option<PathBuf>,
+    seed: u64,
+    pil: bool,
+    elf: &Option<PathBuf>,
+    json: bool,
+) -> Result<(), String> {
+    use hil_sim::faults::{self, Injection};
+    let plant = plant_params(plant)?;
+    let mut progress = Progress::new();
+    let mut results = Vec::new();
+    for (k, inj) in Injection::ALL.iter().enumerate() {
+        progress.stage("fault injection", k as f64 / Injection::ALL.len() as f64);
+        results.push(faults::run_class_in_process(*inj, &plant, seed)?);
+    }
+    let mut pil_same = Vec::new();
+    if pil {
+        let elf = elf.clone().unwrap_or_else(|| PilOptions::default_elf(None));
+        if !elf.exists() {
+            return Err(format!(
+                "{}: no firmware ELF; build it with `cargo fw-qemu`",
+                elf.display()
+            ));
+        }
+        let applicable: Vec<_> = results
+            .iter()
+            .filter(|r| r.injection.applies_to_pil())
+            .collect();
+        for (k, host) in applicable.iter().enumerate() {
+            progress.stage(
+                "fault injection, firmware under QEMU",
+                k as f64 / applicable.len() as f64,
+            );
+            let mut opts = PilOptions::new(&elf);
+            opts.min_level = "warn";
+            let mut c =
+                hil_sim::pil::PilController::start(&opts).map_err(|e| format!("PIL: {e}"))?;
+            let r = faults::run_class(host.injection, &plant, &Rig::PAPER, &mut c, seed)
+                .map_err(|e| format!("PIL {}: {e}", host.injection.name()))?;
+            let status = c.shutdown(0).map_err(|e| format!("PIL: {e}"))?;
+            if status != 0 {
+                return Err(format!("PIL: QEMU exited with status {status}"));
+            }
+            pil_same.push((host.injection, Some(r == **host)));
+            if r != **host {
+                eprintln!(
+                    "PIL {} differs: host {:?}, firmware {:?}",
+                    host.injection.name(),
+                    host,
+                    r
+                );
+            }
+        }
+    }
+    let (checked, trips, what) = faults::false_trips(&plant, &mut |s, f| progress.stage(s, f))?;
+    progress.finish();
+    for w in &what {
+        eprintln!("false trip: {w}");
+    }
+    if json {
+        println!("{}", faults::to_json(&results, &pil_same, trips, checked));
+    } else {
+        println!("| class | expected (any) | raised | detected | latency (ticks) | current after (A) | latched | PIL |");
+        println!("|---|---|---|---|---:|---:|---|---|");
+        for r in &results {
+            let p = pil_same.iter().find(|(i, _)| *i == r.injection);
+            println!(
+                "| {} | {} | {} | {} | {} | {} | {} | {} |",
+                r.injection.name(),
+                estimator_core::drive::Faults(r.injection.expected()),
+                r.faults,
+                r.detected,
+                r.latency_ticks,
+                r.current_after_a,
+                r.latched,
+                match (r.injection.applies_to_pil(), p) {
+                    (false, _) => "n/a",
+                    (true, Some((_, Some(true)))) => "same",
+                    (true, Some(_)) => "differs",
+                    (true, None) => "not run",
+                }
+            );
+        }
+        println!(
+            "
+false trips: {trips} on {checked} scenario presets"
+        );
+    }
+    let failed: Vec<_> = results
+        .iter()
+        .filter(|r| !r.passed())
+        .map(|r| r.injection.name())
+        .collect();
+    let differs = pil_same.iter().any(|(_, s)| *s != Some(true));
+    if !failed.is_empty() || trips != 0 || differs {
+        return Err(format!(
+            "fault campaign failed: classes {failed:?}, {trips} false trips{}",
+            if differs {
+                ", PIL differs from the host"
+            } else {
+                ""
+            }
+        ));
+    }
+    Ok(())
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.cmd {
@@ -272,6 +400,13 @@ fn main() -> ExitCode {
             model,
             out,
         } => run_csv(&scenario, &common, &model, &out),
+        Cmd::Faults {
+            plant,
+            seed,
+            pil,
+            elf,
+            json,
+        } => faults_campaign(&plant, seed, pil, &elf, json),
         Cmd::Report {
             scenario,
             common,

@@ -573,6 +573,18 @@ impl Plant {
         self.scale_counts = (reading * self.c.scale_counts_per_m).floor() as i64;
     }
 
+    /// Fault injection: moves the end stops, millimetres of carriage travel (a jam is a stop
+    /// just ahead of the carriage). The physics is unchanged; only where the stops stand.
+    pub fn set_end_stops_mm(&mut self, min_mm: f64, max_mm: f64) {
+        self.c.travel_min = min_mm * 1e-3;
+        self.c.travel_max = max_mm * 1e-3;
+    }
+
+    /// The amplifier's current limit, amperes.
+    pub fn current_limit_a(&self) -> f64 {
+        self.c.i_limit
+    }
+
     /// Raw motor encoder timer register (x4 quadrature, wraps at 16 bits).
     pub fn motor_counter(&self) -> u16 {
         self.motor_counts() as u16

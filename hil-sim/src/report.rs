@@ -72,7 +72,7 @@ pub fn write_csv(w: &mut dyn Write, trace: &Trace) -> std::io::Result<()> {
             r.out.current_a.to_num::<f64>(),
             t.est_error_um.to_num::<f64>(),
             t.model.as_str(),
-            t.faults.0
+            t.faults
         )?;
     }
     Ok(())

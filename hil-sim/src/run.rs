@@ -1,6 +1,6 @@
 //! Closed-loop scenario runs: plant <-> controller, one record per control tick.
 
-use estimator_core::drive::{Command, Output, Sample};
+use estimator_core::drive::{Command, Faults, Output, Sample};
 use estimator_core::rig::Rig;
 
 use crate::controller::{ControlError, Controller};
@@ -76,8 +76,8 @@ pub enum RunError {
     Control(ControlError),
     /// The drive latched a fault.
     Fault {
-        /// Fault bits (see `estimator_core::drive::Faults`).
-        bits: u8,
+        /// The latched faults.
+        faults: Faults,
         /// Simulated time of the fault, seconds.
         t_s: f64,
     },
@@ -89,8 +89,8 @@ impl std::fmt::Display for RunError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             RunError::Control(e) => write!(f, "{e}"),
-            RunError::Fault { bits, t_s } => {
-                write!(f, "drive fault 0x{bits:02x} at t = {t_s:.4} s")
+            RunError::Fault { faults, t_s } => {
+                write!(f, "drive fault {faults} at t = {t_s:.4} s")
             }
             RunError::Timeout(t) => {
                 write!(f, "scenario still moving after {t:.1} s of simulated time")
@@ -106,6 +106,9 @@ impl From<ControlError> for RunError {
         RunError::Control(e)
     }
 }
+
+/// Ticks between two keep-alives of the simulated host (100 ms at 2 kHz).
+pub const KEEPALIVE_TICKS: u64 = 200;
 
 /// Rough upper bound of a scenario's duration, for the time-out.
 fn budget_s(s: &Scenario) -> f64 {
@@ -181,11 +184,15 @@ pub fn run(
             break;
         }
 
+        // A host polls its drive: the link watchdog stays fed (every 100 ms).
+        if tick.is_multiple_of(KEEPALIVE_TICKS) {
+            controller.keepalive()?;
+        }
         let out = controller.step(sample(&plant))?;
         let tel = out.telemetry;
         if !tel.faults.is_clear() {
             return Err(RunError::Fault {
-                bits: tel.faults.0,
+                faults: tel.faults,
                 t_s: t,
             });
         }

@@ -47,14 +47,8 @@ pub struct Board {
     pub sysclk_hz: u32,
     /// The crystal did not start (or the PLL did not lock): running from the internal RC.
     pub clock_fallback: bool,
-    /// Why the chip last reset: [`crate::postmortem::reset_cause`] bits, 0 = unknown.
+    /// Why the chip last reset: `estimator_core::link::reset_cause` bits, 0 = unknown.
     pub reset_cause: u8,
-}
-
-/// The amplifier-enable rule: high only while the drive is enabled and no fault is latched.
-#[inline(always)]
-pub fn amplifier_enable(drive: &crate::drive::Drive, t: &crate::drive::Telemetry) -> bool {
-    drive.is_enabled() && t.faults.is_clear()
 }
 
 /// Sets up the link USART (USART2 on both boards) at register level: clock, PA2 (TX) and PA3

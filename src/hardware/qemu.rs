@@ -41,8 +41,6 @@ pub struct ControlIo {
     counter: pac::TIM2,
 }
 
-/// The plant paces the ticks: silence just means no ticks.
-pub const LINK_WATCHDOG: bool = false;
 /// `Shutdown` ends the emulator (end of a PIL run).
 pub const ALLOW_SHUTDOWN: bool = true;
 

@@ -71,8 +71,6 @@ const IWDG_KEY_START: u16 = 0xCCCC;
 const IWDG_KEY_UNLOCK: u16 = 0x5555;
 const IWDG_KEY_FEED: u16 = 0xAAAA;
 
-/// The link going silent is a fault on the real board.
-pub const LINK_WATCHDOG: bool = true;
 /// `Shutdown` requests are refused: there is nothing to exit to.
 pub const ALLOW_SHUTDOWN: bool = false;
 

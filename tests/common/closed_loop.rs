@@ -84,6 +84,8 @@ pub fn closed_loop(model: estimator_core::model::ModelKind) -> RunDigest {
             next_move += 1;
             rest_ticks = 0;
         }
+        // A host is connected: it keeps the link watchdog fed.
+        drive.link_alive();
         let out = drive.step(sample(pos));
         let t = out.telemetry;
         let mut bytes = [0u8; MAX_PAYLOAD];

@@ -1,0 +1,559 @@
+//! The fault catalogue: what latches the drive into its safe state (zero current, amplifier
+//! disabled), each detector with a threshold in SI units.
+//!
+//! The detectors follow what trusted drives check (ODrive, moteus, VESC, LinuxCNC, Klipper; see
+//! `shared/ANCHORS.md`): following error scaled by speed (LinuxCNC `MIN_FERROR`/`FERROR`),
+//! effort without response (stall or a lost encoder), motion against the effort (wires reversed,
+//! ODrive's spinout), overspeed, the amplifier held at its limit, a silent link and late ticks.
+//!
+//! [`Monitor`] is per-tick integer code like the rest of the core: `Config -> build() ->
+//! Coeffs`, state in [`State`]. It sees the motor position measured this tick and the current
+//! commanded on the previous tick (the current that produced this tick's motion).
+
+use fixed::types::I16F16;
+
+use crate::rig::Rig;
+use crate::ConfigError;
+
+/// Latched fault bits: any set bit forces zero current and a low amplifier enable until
+/// `Command::ClearFaults` and `Command::Enable`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Faults(pub u16);
+
+impl Faults {
+    /// The encoder moved more in one tick than the plausibility limit allows (count glitch,
+    /// noise on an unplugged cable).
+    pub const ENCODER_JUMP: u16 = 1 << 0;
+    /// The following error exceeded its speed-dependent limit.
+    pub const FOLLOWING_ERROR: u16 = 1 << 1;
+    /// The motor position left the configured travel (plus margin).
+    pub const TRAVEL_LIMIT: u16 = 1 << 2;
+    /// The link to the host went silent.
+    pub const LINK_TIMEOUT: u16 = 1 << 3;
+    /// Current above the stall threshold with no encoder motion: a jammed carriage, a stalled
+    /// motor, or a lost encoder (line cut, counter stuck).
+    pub const STALL: u16 = 1 << 4;
+    /// Sustained acceleration against the sign of the current: motor wires or encoder reversed,
+    /// or an external force driving the axis.
+    pub const RUNAWAY: u16 = 1 << 5;
+    /// The motor ran faster than the configured maximum velocity by more than a margin.
+    pub const OVERSPEED: u16 = 1 << 6;
+    /// The current command sat at the drive's limit for too long (move beyond the amplifier).
+    pub const CURRENT_SATURATION: u16 = 1 << 7;
+    /// A control tick ran late or was missed (reported by the board or the runner).
+    pub const DEADLINE_MISSED: u16 = 1 << 8;
+    /// The clock security system saw the crystal fail (board only).
+    pub const CLOCK_FAILURE: u16 = 1 << 9;
+    /// No fault.
+    pub const NONE: Faults = Faults(0);
+    /// Every defined bit.
+    pub const ALL: u16 = (1 << 10) - 1;
+
+    /// Every bit with its name, in bit order. The names are what logs, status replies and
+    /// `hil-sim` print.
+    pub const NAMES: [(u16, &'static str); 10] = [
+        (Self::ENCODER_JUMP, "encoder_jump"),
+        (Self::FOLLOWING_ERROR, "following_error"),
+        (Self::TRAVEL_LIMIT, "travel_limit"),
+        (Self::LINK_TIMEOUT, "link_timeout"),
+        (Self::STALL, "stall"),
+        (Self::RUNAWAY, "runaway"),
+        (Self::OVERSPEED, "overspeed"),
+        (Self::CURRENT_SATURATION, "current_saturation"),
+        (Self::DEADLINE_MISSED, "deadline_missed"),
+        (Self::CLOCK_FAILURE, "clock_failure"),
+    ];
+
+    /// True when no fault bit is set.
+    pub fn is_clear(self) -> bool {
+        self.0 == 0
+    }
+
+    /// True when `bit` is set.
+    pub fn has(self, bit: u16) -> bool {
+        self.0 & bit != 0
+    }
+
+    /// The name of a single fault bit (`"unknown"` for anything else).
+    pub fn name(bit: u16) -> &'static str {
+        match Self::NAMES.iter().find(|(b, _)| *b == bit) {
+            Some((_, n)) => n,
+            None => "unknown",
+        }
+    }
+
+    /// The bit of a fault name, if it is one.
+    pub fn from_name(name: &str) -> Option<u16> {
+        Self::NAMES
+            .iter()
+            .find(|(_, n)| *n == name)
+            .map(|(b, _)| *b)
+    }
+
+    /// The names of the set bits, in bit order.
+    pub fn names(self) -> impl Iterator<Item = &'static str> {
+        Self::NAMES
+            .into_iter()
+            .filter(move |(b, _)| self.0 & b != 0)
+            .map(|(_, n)| n)
+    }
+
+    /// The lowest set bit, if any.
+    pub fn first(self) -> Option<u16> {
+        if self.0 == 0 {
+            None
+        } else {
+            Some(self.0 & self.0.wrapping_neg())
+        }
+    }
+}
+
+impl core::fmt::Display for Faults {
+    /// `none`, or the names joined by `+` (`stall+following_error`); unknown bits as hex.
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        if self.0 == 0 {
+            return f.write_str("none");
+        }
+        let mut first = true;
+        for n in self.names() {
+            if !first {
+                f.write_str("+")?;
+            }
+            f.write_str(n)?;
+            first = false;
+        }
+        let unknown = self.0 & !Self::ALL;
+        if unknown != 0 {
+            if !first {
+                f.write_str("+")?;
+            }
+            write!(f, "unknown(0x{unknown:04x})")?;
+        }
+        Ok(())
+    }
+}
+
+/// Detector thresholds in SI units. A time of zero switches its detector off.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Config {
+    /// Following-error limit at rest, mm (LinuxCNC `MIN_FERROR`).
+    pub following_error_at_rest_mm: f64,
+    /// Following-error limit at the configured maximum velocity, mm (LinuxCNC `FERROR`); the
+    /// limit grows linearly with the set-point speed in between.
+    pub following_error_at_max_velocity_mm: f64,
+    /// Stall: current magnitude at or above this, amperes...
+    pub stall_current_a: f64,
+    /// ... while the motor moves less than this, mm ...
+    pub stall_motion_mm: f64,
+    /// ... for this long, seconds.
+    pub stall_time_s: f64,
+    /// Runaway: current magnitude at or above this, amperes...
+    pub runaway_current_a: f64,
+    /// ... while the motor moves against it at or above this speed, not decelerating, mm/s ...
+    pub runaway_speed_mm_s: f64,
+    /// ... for this long, seconds.
+    pub runaway_time_s: f64,
+    /// Overspeed: measured speed above this multiple of the configured maximum velocity ...
+    pub overspeed_ratio: f64,
+    /// ... for this long, seconds.
+    pub overspeed_time_s: f64,
+    /// The current command at the drive's limit for this long (net of unsaturated ticks),
+    /// seconds.
+    pub saturation_time_s: f64,
+    /// No valid frame from the host for this long while enabled, seconds; 0 = no link watchdog
+    /// (a host keeps it alive with any frame, e.g. a status request every 100 ms).
+    pub link_timeout_s: f64,
+}
+
+impl Config {
+    /// Thresholds for the paper's rig, with margins over what every scenario preset of
+    /// `hil-sim` needs (`hil-sim faults` counts false trips on them; the presets lag by at most
+    /// 0.05 mm and draw at most 5.5 A):
+    /// - following error 1 mm at rest to 3 mm at 250 mm/s: twenty times the worst lag, so that
+    ///   the detectors below, which name the cause, speak first (measured by `hil-sim faults`:
+    ///   at 0.5-1.5 mm the following error pre-empts stall, runaway and saturation);
+    /// - stall: 2 A with less than 20 µm of motion for 15 ms (2 A accelerates the free stage,
+    ///   67 kg with the rotor reflected, by about 300 µm in that time);
+    /// - runaway: 1.5 A against a motion of ≥ 5 mm/s that is not slowing, for 15 ms;
+    /// - overspeed: 1.2 × the maximum velocity (ODrive's margin) for 2 ms;
+    /// - saturation: 30 ms at the 8 A limit;
+    /// - link: 0.5 s of silence (Klipper's figure).
+    pub const PAPER_RIG: Config = Config {
+        following_error_at_rest_mm: 1.0,
+        following_error_at_max_velocity_mm: 3.0,
+        stall_current_a: 2.0,
+        stall_motion_mm: 0.02,
+        stall_time_s: 0.015,
+        runaway_current_a: 1.5,
+        runaway_speed_mm_s: 5.0,
+        runaway_time_s: 0.015,
+        overspeed_ratio: 1.2,
+        overspeed_time_s: 0.002,
+        saturation_time_s: 0.03,
+        link_timeout_s: 0.5,
+    };
+
+    /// Converts the thresholds into per-tick integers for a drive whose maximum velocity is
+    /// `max_velocity_mm_s`, ticking at `rate_hz`.
+    pub fn build(
+        &self,
+        rig: &Rig,
+        rate_hz: f64,
+        max_velocity_mm_s: f64,
+    ) -> Result<Coeffs, ConfigError> {
+        use ConfigError as E;
+        let cpm = rig.counts_per_mm();
+        let fin = |v: f64, f: &'static str| {
+            if v.is_finite() {
+                Ok(v)
+            } else {
+                Err(E::NotFinite(f))
+            }
+        };
+        let rest = fin(
+            self.following_error_at_rest_mm,
+            "faults.following_error_at_rest_mm",
+        )?;
+        let at_max = fin(
+            self.following_error_at_max_velocity_mm,
+            "faults.following_error_at_max_velocity_mm",
+        )?;
+        if !(rest > 0.0 && rest * cpm <= 1e9) {
+            return Err(E::OutOfRange("faults.following_error_at_rest_mm"));
+        }
+        if !(at_max >= rest && at_max * cpm <= 1e9) {
+            return Err(E::OutOfRange("faults.following_error_at_max_velocity_mm"));
+        }
+        // Extra counts of allowed error per count/tick of set-point speed, Q16.
+        let vmax_counts_per_tick = max_velocity_mm_s * cpm / rate_hz;
+        let slope = (at_max - rest) * cpm / vmax_counts_per_tick;
+        let ticks = |s: f64, f: &'static str| -> Result<u16, ConfigError> {
+            let s = fin(s, f)?;
+            let t = s * rate_hz;
+            if !(s >= 0.0 && t <= u16::MAX as f64) {
+                return Err(E::OutOfRange(f));
+            }
+            // Round to nearest; a non-zero time is at least one tick.
+            let n = (t + 0.5) as u16;
+            Ok(if s > 0.0 { n.max(1) } else { 0 })
+        };
+        let amps = |a: f64, f: &'static str| -> Result<i32, ConfigError> {
+            let a = fin(a, f)?;
+            if !(a > 0.0 && a < 32_000.0) {
+                return Err(E::OutOfRange(f));
+            }
+            Ok((a * 65_536.0) as i32)
+        };
+        // Speeds as counts per WINDOW ticks.
+        let per_window = |mm_s: f64, f: &'static str| -> Result<i32, ConfigError> {
+            let c = mm_s * cpm / rate_hz * WINDOW as f64;
+            if !(c > 0.0 && c < 1e9) {
+                return Err(E::OutOfRange(f));
+            }
+            Ok(c as i32)
+        };
+        let ratio = fin(self.overspeed_ratio, "faults.overspeed_ratio")?;
+        if !(1.0..=10.0).contains(&ratio) {
+            return Err(E::OutOfRange("faults.overspeed_ratio"));
+        }
+        let link = fin(self.link_timeout_s, "faults.link_timeout_s")?;
+        let link_ticks = link * rate_hz;
+        if !(link >= 0.0 && link_ticks <= u32::MAX as f64 / 2.0) {
+            return Err(E::OutOfRange("faults.link_timeout_s"));
+        }
+        let motion = fin(self.stall_motion_mm, "faults.stall_motion_mm")?;
+        if !(motion >= 0.0 && motion * cpm <= 1e9) {
+            return Err(E::OutOfRange("faults.stall_motion_mm"));
+        }
+        Ok(Coeffs {
+            fe_rest_counts: (rest * cpm) as i32,
+            fe_slope_q16: (slope * 65_536.0) as i64,
+            stall_current: amps(self.stall_current_a, "faults.stall_current_a")?,
+            stall_motion_counts: (motion * cpm) as i32,
+            stall_ticks: ticks(self.stall_time_s, "faults.stall_time_s")?,
+            runaway_current: amps(self.runaway_current_a, "faults.runaway_current_a")?,
+            runaway_window_counts: per_window(
+                fin(self.runaway_speed_mm_s, "faults.runaway_speed_mm_s")?,
+                "faults.runaway_speed_mm_s",
+            )?,
+            runaway_ticks: ticks(self.runaway_time_s, "faults.runaway_time_s")?,
+            overspeed_window_counts: per_window(
+                max_velocity_mm_s * ratio,
+                "faults.overspeed_ratio",
+            )?,
+            overspeed_ticks: ticks(self.overspeed_time_s, "faults.overspeed_time_s")?,
+            saturation_ticks: ticks(self.saturation_time_s, "faults.saturation_time_s")?,
+            link_timeout_ticks: if link > 0.0 {
+                (link_ticks as u32).max(1)
+            } else {
+                0
+            },
+        })
+    }
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self::PAPER_RIG
+    }
+}
+
+/// Ticks over which speed (and acceleration, over two halves) is measured: 4 ms at 2 kHz, long
+/// enough that one count of quantisation is under 0.2 mm/s on the paper rig.
+pub const WINDOW: usize = 8;
+
+/// Second differences within this many counts count as no acceleration (quantisation).
+const ACCEL_DEAD_BAND: i32 = 2;
+
+/// The detectors' thresholds in counts and ticks.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Coeffs {
+    fe_rest_counts: i32,
+    fe_slope_q16: i64,
+    stall_current: i32,
+    stall_motion_counts: i32,
+    stall_ticks: u16,
+    runaway_current: i32,
+    runaway_window_counts: i32,
+    runaway_ticks: u16,
+    overspeed_window_counts: i32,
+    overspeed_ticks: u16,
+    saturation_ticks: u16,
+    link_timeout_ticks: u32,
+}
+
+impl Coeffs {
+    /// The following-error limit, counts, at a set-point speed of `speed_f24` (counts per tick,
+    /// I40F24 bits, any sign).
+    #[inline]
+    pub fn following_error_limit_counts(&self, speed_f24: i64) -> i32 {
+        let v_q8 = (speed_f24.unsigned_abs() >> 16).min(1 << 40) as i64;
+        let extra = (v_q8 * self.fe_slope_q16) >> 24;
+        (self.fe_rest_counts as i64 + extra).min(i32::MAX as i64) as i32
+    }
+
+    /// Ticks of silence before `LINK_TIMEOUT` (0 = off).
+    pub fn link_timeout_ticks(&self) -> u32 {
+        self.link_timeout_ticks
+    }
+}
+
+/// What the detectors see each tick.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Inputs {
+    /// Motor position measured this tick, counts.
+    pub position_counts: i32,
+    /// Current commanded on the previous tick (the drive's frame, before polarity), amperes.
+    pub prev_current_a: I16F16,
+    /// The previous tick's command sat at the limit.
+    pub prev_saturated: bool,
+}
+
+/// The detectors' memory.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct State {
+    history: [i32; WINDOW],
+    filled: u8,
+    next: u8,
+    stall_anchor: i32,
+    stall_ticks: u16,
+    runaway_ticks: u16,
+    overspeed_ticks: u16,
+    saturation_ticks: u16,
+}
+
+impl Default for State {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl State {
+    /// Fresh state: no history (speed detectors wait for a full window).
+    pub const fn new() -> Self {
+        State {
+            history: [0; WINDOW],
+            filled: 0,
+            next: 0,
+            stall_anchor: 0,
+            stall_ticks: 0,
+            runaway_ticks: 0,
+            overspeed_ticks: 0,
+            saturation_ticks: 0,
+        }
+    }
+
+    /// Forgets everything (enable, homing, a cleared fault).
+    pub fn reset(&mut self) {
+        *self = Self::new();
+    }
+
+    /// Measured speed over the last window, counts per [`WINDOW`] ticks (0 until it is full).
+    pub fn window_speed_counts(&self, position_counts: i32) -> i32 {
+        if (self.filled as usize) < WINDOW {
+            0
+        } else {
+            position_counts.saturating_sub(self.history[self.next as usize])
+        }
+    }
+}
+
+/// Runs the detectors for one tick and returns the fault bits they raise (0 = none).
+///
+/// Integer only, a dozen comparisons: bounded and branch-light.
+#[inline]
+pub fn check(c: &Coeffs, s: &mut State, input: Inputs) -> u16 {
+    let x = input.position_counts;
+    let i = input.prev_current_a.to_bits();
+    let i_abs = i.unsigned_abs();
+    let mut raised = 0;
+    if s.filled == 0 {
+        s.stall_anchor = x;
+    }
+
+    // Stall / encoder loss: effort without response.
+    if c.stall_ticks != 0 && i_abs >= c.stall_current as u32 {
+        if x.abs_diff(s.stall_anchor) > c.stall_motion_counts as u32 {
+            s.stall_anchor = x;
+            s.stall_ticks = 0;
+        } else {
+            s.stall_ticks = s.stall_ticks.saturating_add(1);
+            if s.stall_ticks >= c.stall_ticks {
+                raised |= Faults::STALL;
+            }
+        }
+    } else {
+        s.stall_anchor = x;
+        s.stall_ticks = 0;
+    }
+
+    // Amplifier at its limit: up while saturated, down while not (chatter does not hide it).
+    if c.saturation_ticks != 0 {
+        if input.prev_saturated {
+            s.saturation_ticks = s.saturation_ticks.saturating_add(1);
+            if s.saturation_ticks >= c.saturation_ticks {
+                raised |= Faults::CURRENT_SATURATION;
+            }
+        } else {
+            s.saturation_ticks = s.saturation_ticks.saturating_sub(1);
+        }
+    }
+
+    // Speed and acceleration over the window: v = x - x[-W], a = x - 2 x[-W/2] + x[-W].
+    let slot = s.next as usize;
+    if s.filled as usize >= WINDOW {
+        let oldest = s.history[slot];
+        let mid = s.history[(slot + WINDOW / 2) % WINDOW];
+        let v = x.saturating_sub(oldest);
+        let a = x
+            .saturating_sub(mid)
+            .saturating_sub(mid.saturating_sub(oldest));
+
+        if c.overspeed_ticks != 0 && v.unsigned_abs() > c.overspeed_window_counts as u32 {
+            s.overspeed_ticks = s.overspeed_ticks.saturating_add(1);
+            if s.overspeed_ticks >= c.overspeed_ticks {
+                raised |= Faults::OVERSPEED;
+            }
+        } else {
+            s.overspeed_ticks = 0;
+        }
+
+        // Runaway: moving against the current and not slowing down. Braking (motion against the
+        // current while decelerating) is normal and excluded.
+        let against = (v > 0 && i < 0) || (v < 0 && i > 0);
+        // Slowing by more than the counts' quantisation (two counts over half windows).
+        let not_slowing = (v > 0 && a >= -ACCEL_DEAD_BAND) || (v < 0 && a <= ACCEL_DEAD_BAND);
+        if c.runaway_ticks != 0
+            && against
+            && not_slowing
+            && i_abs >= c.runaway_current as u32
+            && v.unsigned_abs() >= c.runaway_window_counts as u32
+        {
+            s.runaway_ticks = s.runaway_ticks.saturating_add(1);
+            if s.runaway_ticks >= c.runaway_ticks {
+                raised |= Faults::RUNAWAY;
+            }
+        } else {
+            s.runaway_ticks = 0;
+        }
+    } else {
+        s.filled += 1;
+    }
+    s.history[slot] = x;
+    s.next = ((slot + 1) % WINDOW) as u8;
+    raised
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_round_trip_and_display() {
+        for (bit, name) in Faults::NAMES {
+            assert_eq!(Faults::name(bit), name);
+            assert_eq!(Faults::from_name(name), Some(bit));
+        }
+        assert_eq!(Faults::name(0), "unknown");
+        assert_eq!(Faults::name(Faults::STALL | Faults::RUNAWAY), "unknown");
+        let f = Faults(Faults::STALL | Faults::FOLLOWING_ERROR);
+        assert_eq!(format!("{f}"), "following_error+stall");
+        assert_eq!(format!("{}", Faults::NONE), "none");
+        assert_eq!(format!("{}", Faults(1 << 15)), "unknown(0x8000)");
+        assert_eq!(f.first(), Some(Faults::FOLLOWING_ERROR));
+        // Every bit has exactly one name.
+        let mut all = 0;
+        for (bit, _) in Faults::NAMES {
+            assert_eq!(bit.count_ones(), 1);
+            assert_eq!(all & bit, 0);
+            all |= bit;
+        }
+        assert_eq!(all, Faults::ALL);
+    }
+
+    #[test]
+    fn build_refuses_bad_values_by_name() {
+        let rig = Rig::PAPER;
+        let bad = [
+            (
+                Config {
+                    stall_current_a: f64::NAN,
+                    ..Config::PAPER_RIG
+                },
+                "faults.stall_current_a",
+            ),
+            (
+                Config {
+                    following_error_at_max_velocity_mm: 0.5,
+                    ..Config::PAPER_RIG
+                },
+                "faults.following_error_at_max_velocity_mm",
+            ),
+            (
+                Config {
+                    overspeed_ratio: 0.9,
+                    ..Config::PAPER_RIG
+                },
+                "faults.overspeed_ratio",
+            ),
+            (
+                Config {
+                    stall_time_s: -1.0,
+                    ..Config::PAPER_RIG
+                },
+                "faults.stall_time_s",
+            ),
+            (
+                Config {
+                    link_timeout_s: f64::INFINITY,
+                    ..Config::PAPER_RIG
+                },
+                "faults.link_timeout_s",
+            ),
+        ];
+        for (cfg, field) in bad {
+            assert_eq!(cfg.build(&rig, 2000.0, 250.0).unwrap_err().field(), field);
+        }
+        assert!(Config::PAPER_RIG.build(&rig, 2000.0, 250.0).is_ok());
+    }
+}
