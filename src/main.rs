@@ -41,10 +41,11 @@ mod app {
     use estimator_core::link::{answer, Effect, Endpoint, Event as LinkEvent};
     use estimator_core::link::{LinkError, Message, Receiver, Reply, Request, WireTelemetry};
 
-    /// Received bytes waiting for `link` (one slot stays free): 5.5 ms of a saturated
-    /// 460800 Bd line. The host waits for each reply, so a burst is about one frame; QEMU holds
-    /// bytes back when it is full.
-    const RX_QUEUE: usize = 256;
+    /// Received bytes waiting for `link` (one slot stays free): more than one largest frame
+    /// (77 bytes) plus a status request, 2.7 ms of a saturated 460800 Bd line. Hosts wait for
+    /// each reply, so the only long wait, a calibration decode, sees no traffic; QEMU holds bytes
+    /// back when the queue is full. Sized for the 8 KiB static RAM budget.
+    const RX_QUEUE: usize = 128;
 
     /// Telemetry stream decimation, 0 = off.
     static STREAM_EVERY: AtomicU16 = AtomicU16::new(0);
