@@ -5,9 +5,14 @@
 //!
 //! | task      | trigger                       | priority | does                                  |
 //! |-----------|-------------------------------|----------|---------------------------------------|
-//! | `control` | TIM7 (board: timer at the control rate; QEMU: pended per PIL sample) | 3 | sample, `Drive::step`, current out |
-//! | `link`    | USART2 (RXNE / TXE)           | 2        | frame decoding, commands, replies     |
+//! | `control` | TIM7 (board: timer at the control rate; QEMU: pended per PIL sample) | 3 | sample, `Drive::step`, current out, events queued |
+//! | `usart2`  | USART2 (RXNE / TXE)           | 2        | received bytes into a queue, transmit queue drained |
+//! | `link`    | software (bytes queued)       | 1        | frame decoding, commands, replies, calibration decode |
+//! | `logger`  | software (events queued)      | 1        | defmt lines for the control task's events |
 //! | `idle`    | -                             | 0        | `wfi`                                 |
+//!
+//! Nothing in `control` formats or logs, and nothing in `usart2` decodes: each hands small
+//! records to a lock-free queue (heapless spsc) for a priority-1 task.
 #![cfg_attr(target_os = "none", no_std, no_main)]
 
 #[cfg(not(target_os = "none"))]
@@ -19,20 +24,38 @@ fn main() {
 use belt_drive as _;
 
 #[cfg(target_os = "none")]
-#[rtic::app(device = stm32f4xx_hal::pac, peripherals = true)]
+#[rtic::app(device = stm32f4xx_hal::pac, peripherals = true, dispatchers = [SDIO])]
 mod app {
-    use core::sync::atomic::{AtomicU16, Ordering};
+    use core::sync::atomic::{AtomicBool, AtomicU16, Ordering};
 
+    use heapless::spsc;
+
+    use belt_drive::doorbell::Doorbell;
     use belt_drive::drive::{Command, CommandError, Drive, DriveConfig, Faults, Models, Telemetry};
+    use belt_drive::events::{self, Event};
     use belt_drive::hardware::{self, ControlIo, LinkRx};
     use belt_drive::outbox::Outbox;
+    use belt_drive::postmortem::{self, reset_cause};
     use belt_drive::stack;
     use estimator_core::blob::{self, BlobError};
-    use estimator_core::link::{answer, Effect, Endpoint, Event};
+    use estimator_core::link::{answer, Effect, Endpoint, Event as LinkEvent};
     use estimator_core::link::{LinkError, Message, Receiver, Reply, Request, WireTelemetry};
+
+    /// Received bytes waiting for `link` (one slot stays free): more than one largest frame
+    /// (77 bytes) plus a status request, 2.7 ms of a saturated 460800 Bd line. Hosts wait for
+    /// each reply, so the only long wait, a calibration decode, sees no traffic; QEMU holds bytes
+    /// back when the queue is full. Sized for the 8 KiB static RAM budget.
+    const RX_QUEUE: usize = 128;
 
     /// Telemetry stream decimation, 0 = off.
     static STREAM_EVERY: AtomicU16 = AtomicU16::new(0);
+    /// The board accepts the drive's current limit (set once in `init`); otherwise the drive is
+    /// kept disabled and the amplifier off.
+    static AMP_PERMITTED: AtomicBool = AtomicBool::new(false);
+    /// Rung by `usart2` when bytes were queued.
+    static RX_BELL: Doorbell = Doorbell::new();
+    /// `usart2` found the byte queue full and turned RXNE off; `link` turns it back on.
+    static RX_PAUSED: AtomicBool = AtomicBool::new(false);
 
     #[shared]
     struct Shared {
@@ -43,15 +66,26 @@ mod app {
     #[local]
     struct Local {
         io: ControlIo,
+        events_in: events::Producer,
+        events_out: events::Consumer,
         rx: LinkRx,
+        bytes_in: spsc::Producer<'static, u8>,
+        bytes_out: spsc::Consumer<'static, u8>,
         receiver: Receiver,
         endpoint: &'static mut Endpoint,
-        /// The previous tick's telemetry (for move start/end and fault logs).
+        /// The previous tick's telemetry (for move start/end and fault events).
         prev: Telemetry,
+        /// Reset-cause bits for the status reply.
+        reset_cause: u8,
     }
 
-    #[init(local = [endpoint_storage: Endpoint = Endpoint::new()])]
+    #[init(local = [
+        endpoint_storage: Endpoint = Endpoint::new(),
+        event_queue: events::Queue = events::Queue::new(),
+        rx_queue: spsc::Queue<u8, RX_QUEUE> = spsc::Queue::new(),
+    ])]
     fn init(cx: init::Context) -> (Shared, Local) {
+        // The amplifier enable and the DAC pin are already safe (board: `__pre_init`).
         stack::paint();
         // Table 2 as an embedded blob (made by build.rs): built straight into fixed point.
         static PAPER_BLOB: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/paper_blob.bin"));
@@ -61,19 +95,42 @@ mod app {
         };
         // The configured rate is a whole number of hertz (the paper rig: 2 kHz).
         let rate_hz = config.rate_hz as u32;
-        let board = hardware::init(cx.device, cx.core.SYST, rate_hz);
+        let mut board = hardware::init(cx.device, cx.core, rate_hz);
         defmt::info!(
-            "belt-drive {=str} on {=str}: sysclk {=u32} Hz, control tick {=u32} Hz",
+            "belt-drive {=str} on {=str}: sysclk {=u32} Hz{=str}, control tick {=u32} Hz",
             env!("CARGO_PKG_VERSION"),
             hardware::NAME,
             board.sysclk_hz,
+            if board.clock_fallback {
+                " (internal RC fallback)"
+            } else {
+                ""
+            },
             rate_hz
         );
+        let mut cause = board.reset_cause;
+        if postmortem::take_and_log() {
+            cause |= reset_cause::PANIC_RECORD;
+        }
+        postmortem::log_reset_cause(cause);
+
         let drive = match Drive::new(&config) {
             Ok(d) => d,
             // The built-in configuration is tested on the host: this cannot happen in a release.
             Err(e) => defmt::panic!("drive configuration refused: {=str}", e.field()),
         };
+        // A current limit beyond the amplifier's linear range would wind the integrator up
+        // against the DAC buffer's rail: refused (the drive stays disabled), never a panic.
+        let limit_ma = config.pid.max_current_a * 1000.0;
+        let permitted = limit_ma <= hardware::MAX_LINEAR_CURRENT_MA as f64;
+        AMP_PERMITTED.store(permitted, Ordering::Relaxed);
+        if !permitted {
+            defmt::error!(
+                "drive current limit {=i32} mA exceeds the amplifier's linear range +-{=i32} mA: the drive stays disabled",
+                limit_ma as i32,
+                hardware::MAX_LINEAR_CURRENT_MA
+            );
+        }
         defmt::info!(
             "drive disabled, model {=str} (paper Table 2 parameters), no calibration blob loaded: waiting for the link",
             drive.telemetry().model.as_str()
@@ -84,15 +141,31 @@ mod app {
         let receiver = Receiver::new();
         let endpoint: &'static mut Endpoint = cx.local.endpoint_storage;
         let mut outbox = Outbox::new(board.tx);
-        outbox.send(0, &Reply::Status(endpoint.status(&drive, &receiver, 0, 0)));
+        outbox.send(
+            0,
+            &Reply::Status(endpoint.status(&drive, &receiver, 0, cause)),
+        );
+
+        let (events_in, events_out) = cx.local.event_queue.split();
+        let (bytes_in, bytes_out) = cx.local.rx_queue.split();
+        if link::spawn().is_err() || logger::spawn().is_err() {
+            defmt::error!("software tasks already running");
+        }
+        // Last: the control tick starts from a clean count and the watchdog starts guarding it.
+        board.control.start();
         (
             Shared { drive, outbox },
             Local {
                 io: board.control,
+                events_in,
+                events_out,
                 rx: board.rx,
+                bytes_in,
+                bytes_out,
                 receiver,
                 endpoint,
                 prev: Telemetry::default(),
+                reset_cause: cause,
             },
         )
     }
@@ -105,18 +178,26 @@ mod app {
         }
     }
 
-    /// One control tick: sample the counters, `Drive::step`, write the current.
+    /// One control tick: sample the counters, `Drive::step`, write the current, queue events.
     ///
     /// Budget: `Drive::step` at most 400 instructions per tick with Model 3, counted exactly
     /// under QEMU by `tools/bench-target.sh` (which prints the current figures); the whole task,
     /// sampling and reporting included, well under a tenth of a 2 kHz tick (84,000 cycles at
-    /// 168 MHz).
-    #[task(binds = TIM7, priority = 3, local = [io, prev, since_stream: u16 = 0], shared = [drive, outbox])]
+    /// 168 MHz). No logging here: events go to the `logger` task through a lock-free queue.
+    #[task(
+        binds = TIM7,
+        priority = 3,
+        local = [io, prev, events_in, since_stream: u16 = 0, since_trace: u16 = 0, deadline_misses: u32 = 0],
+        shared = [drive, outbox]
+    )]
     fn control(cx: control::Context) {
         let control::LocalResources {
             io,
-            since_stream,
             prev,
+            events_in,
+            since_stream,
+            since_trace,
+            deadline_misses,
             ..
         } = cx.local;
         let control::SharedResources {
@@ -125,9 +206,25 @@ mod app {
             ..
         } = cx.shared;
         let Some(tick) = io.begin_tick() else { return };
+        let clock_failed = hardware::clock_failed();
+        let permitted = AMP_PERMITTED.load(Ordering::Relaxed);
+        let mut refused = false;
 
-        let (out, instructions) = drive.lock(|d| io.measure(|| d.step(tick.sample)));
-        io.write_current(&out);
+        let (out, amplifier_on, instructions) = drive.lock(|d| {
+            // Faults found before the step latch now: this tick already writes zero current.
+            d.missed_ticks(tick.missed);
+            if clock_failed {
+                d.raise_fault(Faults::CLOCK_FAILURE);
+            }
+            if !permitted && d.is_enabled() {
+                refused = true;
+                let _ = d.command(Command::Disable);
+            }
+            let (out, n) = io.measure(|| d.step(tick.sample));
+            let on = permitted && out.telemetry.amplifier_enabled;
+            (out, on, n)
+        });
+        io.write_current(&out, amplifier_on);
 
         // Everything below is reporting; the motor already has its current.
         let t = out.telemetry;
@@ -140,55 +237,92 @@ mod app {
             *since_stream = 0;
             outbox.lock(|o| o.send(0, &Reply::Telemetry(WireTelemetry::from(&t))));
         }
-        defmt::trace!(
-            "tick {=u32}: x_PE {=i32} set {=i32} I {=i32} (I16F16 bits), {=u32} instr",
-            t.tick,
-            t.motor_counts,
-            t.setpoint_counts,
-            t.current_a.to_bits(),
-            instructions
-        );
-        log_transitions(prev, &t);
+        events::transitions(events_in, prev, &t);
+        if refused {
+            events::push(events_in, Event::EnableRefused { tick: t.tick });
+        }
+        *since_trace += 1;
+        if *since_trace >= events::TRACE_EVERY {
+            *since_trace = 0;
+            events::push(
+                events_in,
+                Event::Trace {
+                    tick: t.tick,
+                    motor_counts: t.motor_counts,
+                    setpoint_counts: t.setpoint_counts,
+                    current_bits: t.current_a.to_bits(),
+                },
+            );
+        }
         *prev = t;
+
+        // The next update came while this tick ran: an overrun, latched from the next tick.
+        let overrun = io.overran();
+        if overrun {
+            drive.lock(|d| d.missed_ticks(1));
+        }
+        if tick.missed != 0 || overrun {
+            *deadline_misses = deadline_misses.saturating_add(tick.missed + overrun as u32);
+            events::push(
+                events_in,
+                Event::Deadline {
+                    tick: t.tick,
+                    latency_us: tick.latency_us,
+                    missed: tick.missed,
+                    overrun,
+                    total: *deadline_misses,
+                },
+            );
+        }
+        // Only a completed tick feeds the watchdog.
+        io.feed_watchdog();
     }
 
-    /// Logs a move's start and end and every change of the fault bits.
-    fn log_transitions(prev: &Telemetry, t: &Telemetry) {
-        if t.moving && !prev.moving {
-            defmt::info!(
-                "move start at {=i32} counts (tick {=u32})",
-                t.motor_counts,
-                t.tick
-            );
+    /// Defmt lines for the control task's events, outside every interrupt handler.
+    #[task(priority = 1, local = [events_out])]
+    async fn logger(cx: logger::Context) {
+        loop {
+            events::drain(cx.local.events_out);
+            events::BELL.wait().await;
         }
-        if !t.moving && prev.moving {
-            defmt::info!(
-                "move end at {=i32} counts, following error {=i32} counts (tick {=u32})",
-                t.motor_counts,
-                t.following_error_counts,
-                t.tick
-            );
-        }
-        let new = t.faults.0 & !prev.faults.0;
-        for (bit, name) in Faults::NAMES {
-            if new & bit != 0 {
-                defmt::error!(
-                    "fault {=str} at {=i32} counts: zero current, amplifier disabled",
-                    name,
-                    t.motor_counts
-                );
+    }
+
+    /// USART2: moves received bytes into the queue for `link` (a byte arrives every 21.7 us at
+    /// 460800 Bd: nothing slower may run here) and drains the transmit queue on TXE.
+    #[task(binds = USART2, priority = 2, local = [rx, bytes_in], shared = [outbox])]
+    fn usart2(cx: usart2::Context) {
+        let usart2::LocalResources { rx, bytes_in, .. } = cx.local;
+        let mut outbox = cx.shared.outbox;
+        let mut queued = false;
+        while bytes_in.ready() {
+            match rx.read() {
+                Some(b) => {
+                    let _ = bytes_in.enqueue(b);
+                    queued = true;
+                }
+                None => break,
             }
         }
+        if !bytes_in.ready() {
+            // Full: no more bytes until `link` has drained the queue.
+            RX_PAUSED.store(true, Ordering::Relaxed);
+            outbox.lock(|o| o.set_rx_interrupt(false));
+            queued = true;
+        }
+        if queued {
+            RX_BELL.ring();
+        }
+        outbox.lock(|o| o.pump());
     }
 
-    /// The link: bytes in, frames decoded, commands applied, replies queued; also drains the
-    /// transmit queue on TXE.
-    #[task(binds = USART2, priority = 2, local = [rx, receiver, endpoint], shared = [drive, outbox])]
-    fn link(cx: link::Context) {
+    /// The link: frames decoded from the byte queue, commands applied, replies queued.
+    #[task(priority = 1, local = [bytes_out, receiver, endpoint, reset_cause], shared = [drive, outbox])]
+    async fn link(cx: link::Context) {
         let link::LocalResources {
-            rx,
+            bytes_out,
             receiver,
             endpoint,
+            reset_cause,
             ..
         } = cx.local;
         let link::SharedResources {
@@ -196,93 +330,103 @@ mod app {
             mut outbox,
             ..
         } = cx.shared;
-        while let Some(byte) = rx.read() {
-            let frame = match receiver.push::<Request>(byte) {
-                None => continue,
-                Some(Err(r)) => {
-                    // Every rejection is counted and answered; the log keeps the first few and
-                    // then one line per thousand, so that a flood cannot starve the log.
-                    let bad = receiver.frames_bad;
-                    if bad <= 10 || bad % 1000 == 0 {
-                        defmt::warn!(
-                            "link: frame rejected: {=str} (kind {=u8:#04x}), {=u32} bad so far",
-                            error_name(r.error),
-                            r.kind,
-                            bad
-                        );
-                    } else {
-                        defmt::debug!("link: frame rejected: {=str}", error_name(r.error));
-                    }
-                    let reply = Reply::Error {
-                        of: r.kind,
-                        reason: r.error,
-                        detail: 0,
-                    };
-                    outbox.lock(|o| o.send(r.seq, &reply));
-                    continue;
-                }
-                Some(Ok(f)) => f,
-            };
-            let (effect, event) = drive.lock(|d| endpoint.handle(&frame.msg, d));
-            log_event(&event);
-            let reply = match effect {
-                Effect::Reply(r) => r,
-                Effect::Tick(sample) => {
-                    if hardware::pil_deliver(frame.seq, sample) {
-                        continue; // `control` answers.
-                    }
-                    not_supported(&frame.msg)
-                }
-                Effect::Status => {
-                    let peak = stack::peak_bytes();
-                    Reply::Status(drive.lock(|d| endpoint.status(d, receiver, peak, 0)))
-                }
-                Effect::Stream(n) => {
-                    defmt::info!("telemetry stream every {=u16} ticks (0 = off)", n);
-                    STREAM_EVERY.store(n, Ordering::Relaxed);
-                    Reply::Ack {
-                        of: frame.msg.kind(),
-                    }
-                }
-                Effect::Calibrate(len) => {
-                    // Milliseconds of soft-float: decoded here, outside the drive's lock, so the
-                    // control task keeps its ticks; only the swap below holds the lock.
-                    let rig = drive.lock(|d| *d.rig());
-                    let result = blob::decode_coeffs(endpoint.calibration(len), &rig)
-                        .and_then(|c| drive.lock(|d| d.set_models(c)));
-                    let (reply, event) = endpoint.calibration_done(len, result);
-                    log_event(&event);
-                    reply
-                }
-                Effect::Shutdown(code) => {
-                    if !hardware::ALLOW_SHUTDOWN {
-                        not_supported(&frame.msg)
-                    } else {
-                        let t = drive.lock(|d| d.telemetry());
-                        defmt::info!(
-                            "shutdown {=u8}: {=u32} ticks, frames ok {=u32} bad {=u32}, stack peak {=u32} bytes",
-                            code,
-                            t.tick,
-                            receiver.frames_ok,
-                            receiver.frames_bad,
-                            stack::peak_bytes()
-                        );
-                        outbox.lock(|o| {
-                            o.send(
-                                frame.seq,
-                                &Reply::Ack {
-                                    of: frame.msg.kind(),
-                                },
+        loop {
+            while let Some(byte) = bytes_out.dequeue() {
+                let frame = match receiver.push::<Request>(byte) {
+                    None => continue,
+                    Some(Err(r)) => {
+                        // Every rejection is counted and answered; the log keeps the first few
+                        // and then one line per thousand, so that a flood cannot starve the log.
+                        let bad = receiver.frames_bad;
+                        if bad <= 10 || bad % 1000 == 0 {
+                            defmt::warn!(
+                                "link: frame rejected: {=str} (kind {=u8:#04x}), {=u32} bad so far",
+                                error_name(r.error),
+                                r.kind,
+                                bad
                             );
-                            o.flush()
-                        });
-                        hardware::halt(code as i32)
+                        } else {
+                            defmt::debug!("link: frame rejected: {=str}", error_name(r.error));
+                        }
+                        let reply = Reply::Error {
+                            of: r.kind,
+                            reason: r.error,
+                            detail: 0,
+                        };
+                        outbox.lock(|o| o.send(r.seq, &reply));
+                        continue;
                     }
-                }
-            };
-            outbox.lock(|o| o.send(frame.seq, &reply));
+                    Some(Ok(f)) => f,
+                };
+                // `handle` also feeds the core's link watchdog (`Drive::link_alive`).
+                let (effect, event) = drive.lock(|d| endpoint.handle(&frame.msg, d));
+                log_event(&event);
+                let reply = match effect {
+                    Effect::Reply(r) => r,
+                    Effect::Tick(sample) => {
+                        if hardware::pil_deliver(frame.seq, sample) {
+                            continue; // `control` answers.
+                        }
+                        not_supported(&frame.msg)
+                    }
+                    Effect::Status => {
+                        let peak = stack::peak_bytes();
+                        Reply::Status(
+                            drive.lock(|d| endpoint.status(d, receiver, peak, *reset_cause)),
+                        )
+                    }
+                    Effect::Stream(n) => {
+                        defmt::info!("telemetry stream every {=u16} ticks (0 = off)", n);
+                        STREAM_EVERY.store(n, Ordering::Relaxed);
+                        Reply::Ack {
+                            of: frame.msg.kind(),
+                        }
+                    }
+                    Effect::Calibrate(len) => {
+                        // Milliseconds of soft-float: decoded here, outside the drive's lock, so
+                        // the control task keeps its ticks; only the swap below holds the lock.
+                        let rig = drive.lock(|d| *d.rig());
+                        let result = blob::decode_coeffs(endpoint.calibration(len), &rig)
+                            .and_then(|c| drive.lock(|d| d.set_models(c)));
+                        let (reply, event) = endpoint.calibration_done(len, result);
+                        log_event(&event);
+                        reply
+                    }
+                    Effect::Shutdown(code) => {
+                        if !hardware::ALLOW_SHUTDOWN {
+                            not_supported(&frame.msg)
+                        } else {
+                            let t = drive.lock(|d| d.telemetry());
+                            defmt::info!(
+                                "shutdown {=u8}: {=u32} ticks, frames ok {=u32} bad {=u32}, stack peak {=u32} bytes",
+                                code,
+                                t.tick,
+                                receiver.frames_ok,
+                                receiver.frames_bad,
+                                stack::peak_bytes()
+                            );
+                            outbox.lock(|o| {
+                                o.send(
+                                    frame.seq,
+                                    &Reply::Ack {
+                                        of: frame.msg.kind(),
+                                    },
+                                );
+                                o.flush()
+                            });
+                            hardware::halt(code as i32)
+                        }
+                    }
+                };
+                outbox.lock(|o| o.send(frame.seq, &reply));
+            }
+            if RX_PAUSED.swap(false, Ordering::Relaxed) {
+                // The queue is empty again: take bytes again (and look at once).
+                outbox.lock(|o| o.set_rx_interrupt(true));
+                continue;
+            }
+            RX_BELL.wait().await;
         }
-        outbox.lock(|o| o.pump());
     }
 
     fn not_supported(req: &Request) -> Reply {
@@ -297,10 +441,10 @@ mod app {
         }
     }
 
-    fn log_event(e: &Event) {
+    fn log_event(e: &LinkEvent) {
         match *e {
-            Event::None => {}
-            Event::Applied(Command::MoveTo {
+            LinkEvent::None => {}
+            LinkEvent::Applied(Command::MoveTo {
                 target_um,
                 velocity_um_s,
                 accel_um_s2,
@@ -310,10 +454,10 @@ mod app {
                 velocity_um_s,
                 accel_um_s2
             ),
-            Event::Applied(Command::SelectModel(m)) => {
+            LinkEvent::Applied(Command::SelectModel(m)) => {
                 defmt::info!("model selected: {=str}", m.as_str())
             }
-            Event::Applied(Command::Home {
+            LinkEvent::Applied(Command::Home {
                 position_um,
                 scale_um,
             }) => {
@@ -323,22 +467,22 @@ mod app {
                     scale_um
                 )
             }
-            Event::Applied(c) => defmt::info!("command: {=str}", command_name(&c)),
-            Event::Refused(c, why) => defmt::warn!(
+            LinkEvent::Applied(c) => defmt::info!("command: {=str}", command_name(&c)),
+            LinkEvent::Refused(c, why) => defmt::warn!(
                 "command {=str} refused: {=str}",
                 command_name(&c),
                 command_error_name(why)
             ),
-            Event::CalibrationBegun { total_len } => {
+            LinkEvent::CalibrationBegun { total_len } => {
                 defmt::info!("calibration transfer: {=u32} bytes announced", total_len)
             }
-            Event::CalibrationRefused(detail) => {
+            LinkEvent::CalibrationRefused(detail) => {
                 defmt::warn!("calibration transfer step refused (detail {=u8})", detail)
             }
-            Event::CalibrationLoaded { len } => {
+            LinkEvent::CalibrationLoaded { len } => {
                 defmt::info!("calibration loaded ({=u32} bytes): Model 3 available", len)
             }
-            Event::CalibrationRejected(e) => {
+            LinkEvent::CalibrationRejected(e) => {
                 defmt::error!(
                     "calibration rejected: {=str}; previous tables kept",
                     blob_error_name(e)

@@ -62,6 +62,11 @@ impl Outbox {
         }
     }
 
+    /// Turns the link's receive interrupt on or off (the transmit half owns CR1).
+    pub fn set_rx_interrupt(&mut self, on: bool) {
+        self.tx.set_rx_interrupt(on);
+    }
+
     /// Sends everything now, waiting for the USART (shutdown only).
     pub fn flush(&mut self) {
         while self.len > 0 {

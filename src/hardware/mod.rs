@@ -1,17 +1,19 @@
 //! The two boards the firmware runs on, behind one interface (embassy's driver split).
 //!
 //! Each board module provides:
-//! - `NAME`, `init(device, syst, control_rate_hz) -> Board`;
-//! - `ControlIo` (owned by the `control` task): `begin_tick()` samples the counters (board) or
-//!   takes the PIL sample (QEMU), `write_current()` drives the amplifier (board only),
-//!   `step_counter()` reads the instruction counter (QEMU only);
-//! - `Uart` (shared by the tasks that send): byte-level access to the link's USART;
-//! - `pil_deliver()` (QEMU: hand a PIL sample to `control`; board: refused),
-//! - `emergency_stop()`, `halt(code)`, `timestamp_ms()`.
+//! - `NAME`, `MAX_LINEAR_CURRENT_MA`, `init(device, core, control_rate_hz) -> Board`;
+//! - `ControlIo` (owned by the `control` task): `begin_tick()` samples the counters and
+//!   measures the tick's lateness (board) or takes the PIL sample (QEMU), `measure()`,
+//!   `write_current()` drives the amplifier (board only), `overran()`, `feed_watchdog()` and
+//!   `start()` (tick timer and watchdog; board only);
+//! - `pil_deliver()` (QEMU: hand a PIL sample to `control`; board: refused), `clock_failed()`,
+//! - `emergency_stop()`, `halt(code)`; here: `timestamp_ms()` and the link USART halves.
 //!
 //! The control-tick interrupt is `TIM7` on both: on the board TIM7 (a basic timer) fires at the
 //! control rate; under QEMU, whose TIM7 is not modelled, the link task pends it when a PIL sample
 //! arrives, so the plant paces the firmware.
+
+pub mod gpio;
 
 #[cfg(not(feature = "qemu"))]
 mod stm32f405;
@@ -43,12 +45,40 @@ pub struct Board {
     pub tx: LinkTx,
     /// Core clock, Hz.
     pub sysclk_hz: u32,
+    /// The crystal did not start (or the PLL did not lock): running from the internal RC.
+    pub clock_fallback: bool,
+    /// Why the chip last reset: `estimator_core::link::reset_cause` bits, 0 = unknown.
+    pub reset_cause: u8,
 }
 
-/// Splits the link USART (USART2 on both boards) into its receive and transmit halves and
-/// turns on the receive interrupt.
-fn link_usart(usart: pac::USART2) -> (LinkRx, LinkTx) {
-    usart.cr1().modify(|_, w| w.rxneie().set_bit());
+/// Sets up the link USART (USART2 on both boards) at register level: clock, PA2 (TX) and PA3
+/// (RX, pulled up so an unplugged cable idles instead of framing noise) on AF7, 8N1 at `baud`
+/// from `pclk1_hz`, receive interrupt on; split into its receive and transmit halves.
+fn link_usart(usart: pac::USART2, pclk1_hz: u32, baud: u32) -> (LinkRx, LinkTx) {
+    // SAFETY: a read-modify-write of RCC during init, before any task runs.
+    let rcc = unsafe { &*pac::RCC::ptr() };
+    rcc.apb1enr().modify(|_, w| w.usart2en().set_bit());
+    // Erratum ES0182 2.1.13: read back before the first access to the USART.
+    let _ = rcc.apb1enr().read();
+    cortex_m::asm::dsb();
+    gpio::enable_ports();
+    gpio::GPIOA.alternate(2, 7, gpio::Pull::None);
+    gpio::GPIOA.alternate(3, 7, gpio::Pull::Up);
+    // Oversampling by 16: BRR = PCLK / baud (mantissa and fraction together), rounded.
+    let brr = ((pclk1_hz + baud / 2) / baud.max(1)).clamp(16, 0xFFFF) as u16;
+    usart.brr().write(|w| unsafe { w.bits(brr) });
+    usart.cr2().write(|w| unsafe { w.bits(0) });
+    usart.cr3().write(|w| unsafe { w.bits(0) });
+    usart.cr1().write(|w| {
+        w.ue()
+            .set_bit()
+            .te()
+            .set_bit()
+            .re()
+            .set_bit()
+            .rxneie()
+            .set_bit()
+    });
     (LinkRx { _owned: () }, LinkTx { usart })
 }
 
@@ -102,5 +132,12 @@ impl LinkTx {
     #[inline]
     pub fn set_tx_interrupt(&mut self, on: bool) {
         self.usart.cr1().modify(|_, w| w.txeie().bit(on));
+    }
+
+    /// Turns the RXNE interrupt on or off (off while the receive queue is full: QEMU then holds
+    /// the next byte back; the real board loses it to an overrun, seen as a bad frame).
+    #[inline]
+    pub fn set_rx_interrupt(&mut self, on: bool) {
+        self.usart.cr1().modify(|_, w| w.rxneie().bit(on));
     }
 }

@@ -13,12 +13,7 @@
 
 use core::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 
-use stm32f4xx_hal::{
-    pac,
-    prelude::*,
-    rcc::{Config, RccExt},
-    serial::{self, Serial},
-};
+use stm32f4xx_hal::pac;
 
 use super::{link_usart, Board, Mono};
 use crate::drive::{Output as DriveOutput, Sample};
@@ -29,6 +24,11 @@ pub const NAME: &str = "QEMU netduinoplus2 (STM32F405RG model, HSI, 168 MHz virt
 const QEMU_CORE_HZ: u32 = 168_000_000;
 /// Fixed cost of the two counter reads around the measured region.
 pub const COUNTER_OVERHEAD: u32 = 5;
+/// Link baud rate (QEMU ignores BRR; kept equal to the board's).
+const BAUD: u32 = 460_800;
+/// The real board's limit (see `stm32f405.rs`), so that a configuration accepted in PIL is
+/// accepted on the board.
+pub const MAX_LINEAR_CURRENT_MA: i32 = 8_787;
 
 /// The mailbox from the link task (a PIL sample arrived) to the control task; `PENDING` is
 /// released last and taken first.
@@ -50,6 +50,10 @@ pub struct Tick {
     pub sample: Sample,
     /// Sequence number of the PIL sample, echoed in the answer.
     pub reply_seq: Option<u8>,
+    /// Late or skipped ticks: none, the plant paces the ticks.
+    pub missed: u32,
+    /// Tick latency: not measured (QEMU's TIM7 is not modelled).
+    pub latency_us: u16,
 }
 
 impl ControlIo {
@@ -66,6 +70,8 @@ impl ControlIo {
                 scale_counter: (raw >> 16) as u16,
             },
             reply_seq: Some(SEQ.load(Ordering::Relaxed) as u8),
+            missed: 0,
+            latency_us: 0,
         })
     }
 
@@ -83,7 +89,26 @@ impl ControlIo {
 
     /// No amplifier under QEMU: the current travels back in the PIL answer.
     #[inline(always)]
-    pub fn write_current(&mut self, _out: &DriveOutput) {}
+    pub fn write_current(&mut self, _out: &DriveOutput, _amplifier_on: bool) {}
+
+    /// No overrun: the plant waits for every answer.
+    #[inline(always)]
+    pub fn overran(&self) -> bool {
+        false
+    }
+
+    /// No watchdog (QEMU does not model the IWDG).
+    #[inline(always)]
+    pub fn feed_watchdog(&mut self) {}
+
+    /// Nothing to start: the plant paces the ticks, and QEMU models no IWDG.
+    pub fn start(&mut self) {}
+}
+
+/// QEMU's clock cannot fail.
+#[inline(always)]
+pub fn clock_failed() -> bool {
+    false
 }
 
 /// Hands a PIL sample to the control task and pends its interrupt; true (always, here).
@@ -98,14 +123,10 @@ pub fn pil_deliver(seq: u8, sample: Sample) -> bool {
     true
 }
 
-/// HSI clocks, SysTick monotonic at 168 MHz, TIM2 instruction counter, USART2.
-pub fn init(
-    dp: pac::Peripherals,
-    syst: cortex_m::peripheral::SYST,
-    _control_rate_hz: u32,
-) -> Board {
-    let mut rcc = dp.RCC.freeze(Config::hsi());
-    Mono::start(syst, QEMU_CORE_HZ);
+/// Reset clocks (HSI: QEMU ignores RCC), SysTick monotonic at 168 MHz, TIM2 instruction
+/// counter, USART2.
+pub fn init(dp: pac::Peripherals, core: cortex_m::Peripherals, _control_rate_hz: u32) -> Board {
+    Mono::start(core.SYST, QEMU_CORE_HZ);
 
     // TIM2 as an instruction counter: PSC = 0, ARR = 0, no interrupt.
     // SAFETY: one RCC bit during init (QEMU ignores it; kept for honesty).
@@ -119,23 +140,17 @@ pub fn init(
     counter.arr().write(|w| unsafe { w.bits(0) });
     counter.cr1().write(|w| w.cen().set_bit());
 
-    let gpioa = dp.GPIOA.split(&mut rcc);
-    let usart = Serial::<_, u8>::new(
-        dp.USART2,
-        (gpioa.pa2, gpioa.pa3),
-        serial::Config::default().baudrate(460_800.bps()),
-        &mut rcc,
-    )
-    .unwrap_or_else(|_| defmt::panic!("USART2 config"))
-    .release()
-    .0;
-    let (rx, tx) = link_usart(usart);
+    // The HSI frequency: what the board's BRR would be without the PLL.
+    let (rx, tx) = link_usart(dp.USART2, 16_000_000, BAUD);
 
     Board {
         control: ControlIo { counter },
         rx,
         tx,
         sysclk_hz: QEMU_CORE_HZ,
+        clock_fallback: false,
+        // QEMU reads RCC as 0: unknown.
+        reset_cause: 0,
     }
 }
 
