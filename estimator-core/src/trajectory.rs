@@ -390,15 +390,16 @@ impl Setpoint {
     }
 }
 
-/// [`Trajectory::set_coeffs`] refused: the profile is moving.
+/// [`Trajectory::set_coeffs`] refused: braking from the present speed at the new deceleration
+/// would take longer than the profile's arithmetic allows (over 2^31 counts).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct NotAtRest;
+pub struct CannotBrake;
 
 /// The profile generator: limits plus state.
 ///
 /// Unlike the encoder and the PID, limits and state live together: the state carries a
-/// decomposition of the speed in units of the deceleration, which is only valid for the limits
-/// it was built with, so limits can change only at rest ([`Trajectory::set_coeffs`]).
+/// decomposition of the speed in units of the deceleration, rebuilt (one division) whenever the
+/// limits change ([`Trajectory::set_coeffs`]), also in mid-move.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Trajectory {
     coeffs: Coeffs,
@@ -450,14 +451,27 @@ impl Trajectory {
         };
     }
 
-    /// Replaces the limits; only at zero velocity.
-    pub fn set_coeffs(&mut self, coeffs: Coeffs) -> Result<(), NotAtRest> {
-        if self.velocity != 0 {
-            return Err(NotAtRest);
-        }
+    /// Replaces the limits, at rest or in mid-move (a feed override, a blended retarget).
+    /// Position and velocity carry over unchanged, so the set-point never steps; a speed above
+    /// the new velocity limit is braked down to it at the new deceleration. One division: call
+    /// it when a command arrives, not every tick.
+    pub fn set_coeffs(&mut self, coeffs: Coeffs) -> Result<(), CannotBrake> {
+        let speed = self.velocity.unsigned_abs();
+        let d = coeffs.decel as u64;
+        let (n, r) = if speed == 0 {
+            (0, coeffs.decel)
+        } else {
+            // speed = (n - 1) d + r, 0 < r <= d.
+            let n = speed.div_ceil(d);
+            let run_out = n as u128 * (n as u128 - 1) / 2 * d as u128 + n as u128 * d as u128;
+            if run_out > MAX_RUN_OUT_BITS {
+                return Err(CannotBrake);
+            }
+            (n as u32, (speed - (n - 1) * d) as u32)
+        };
         self.coeffs = coeffs;
-        self.n = 0;
-        self.r = coeffs.decel;
+        self.n = n;
+        self.r = r;
         Ok(())
     }
 
@@ -487,10 +501,20 @@ impl Trajectory {
     }
 
     /// The fastest admissible speed after `speed`: one acceleration faster, capped at the
-    /// velocity limit; with its decomposition.
+    /// velocity limit; with its decomposition. Above the limit (after the limits were lowered in
+    /// mid-move) it brakes towards the limit, by at most one deceleration per tick.
     #[inline(always)]
     fn faster(&self, speed: u64) -> (u64, u32, u32) {
         let c = &self.coeffs;
+        if speed > c.velocity {
+            let d = c.decel as u64;
+            return if speed.wrapping_sub(c.velocity) > d {
+                // n >= 2 here: speed > d.
+                (speed.wrapping_sub(d), self.n.wrapping_sub(1), self.r)
+            } else {
+                (c.velocity, c.velocity_n, c.velocity_r)
+            };
+        }
         let up = speed.wrapping_add(c.accel as u64);
         if up >= c.velocity {
             (c.velocity, c.velocity_n, c.velocity_r)
@@ -563,7 +587,9 @@ impl Trajectory {
             to_go
         };
         let speed = v.unsigned_abs();
-        let (w, n, r) = if ahead >= self.coeffs.velocity_run_out as i64 {
+        let (w, n, r) = if speed <= self.coeffs.velocity
+            && ahead >= self.coeffs.velocity_run_out as i64
+        {
             // Far away: no speed up to the limit can need braking yet.
             self.faster(speed)
         } else {
@@ -848,14 +874,72 @@ mod tests {
         assert_eq!(t.position_counts(), i32::MIN);
     }
 
+    /// New limits in mid-move (faster, slower, with a target behind): position and velocity
+    /// continue without a step, each tick changes the speed by at most the larger of the old and
+    /// new acceleration limits, a speed above the new limit only falls, and the profile lands
+    /// exactly on the new target.
     #[test]
-    fn coeffs_change_only_at_rest() {
+    fn limits_change_in_mid_move_without_a_step() {
+        let slow = coeffs(20.0, 0.5, 0.5);
+        let fast = coeffs(60.0, 2.0, 1.5);
+        let cases = [
+            (slow, fast, 200, 60_000i32),
+            (fast, slow, 200, 60_000),
+            (fast, slow, 200, -20_000),
+            (slow, fast, 100, -5_000),
+            (fast, coeffs(10.0, 0.2, 0.1), 150, 40_000),
+            (fast, slow, 60, 100),
+        ];
+        for (k, &(c0, c1, at, target)) in cases.iter().enumerate() {
+            let mut t = Trajectory::new(c0, 0);
+            t.set_target(50_000);
+            let mut prev = t.tick();
+            for _ in 1..at {
+                prev = t.tick();
+            }
+            t.set_coeffs(c1).unwrap();
+            t.set_target(target);
+            let dv_max = [c0.accel, c0.decel, c1.accel, c1.decel]
+                .into_iter()
+                .max()
+                .unwrap() as i64;
+            let vmax = c1.velocity as i64;
+            let mut over = bits(prev.velocity_counts_per_tick()).abs() > vmax;
+            for tick in 0..2_000_000 {
+                let s = t.tick();
+                let (v0, v1) = (
+                    bits(prev.velocity_counts_per_tick()),
+                    bits(s.velocity_counts_per_tick()),
+                );
+                assert_eq!(
+                    bits(s.position_counts()) - bits(prev.position_counts()),
+                    v1,
+                    "case {k} tick {tick}"
+                );
+                assert!((v1 - v0).abs() <= dv_max, "case {k} tick {tick}: {v0} -> {v1}");
+                assert!(v0.signum() * v1.signum() >= 0, "case {k}: sign flip without rest");
+                if over {
+                    assert!(v1.abs() <= v0.abs(), "case {k} tick {tick}: speeds up above the limit");
+                    over = v1.abs() > vmax;
+                } else {
+                    assert!(v1.abs() <= vmax, "case {k} tick {tick}");
+                }
+                prev = s;
+                if s.is_done() {
+                    break;
+                }
+            }
+            assert!(prev.is_done(), "case {k} never arrived");
+            assert_eq!(t.position_counts(), target, "case {k}");
+        }
+    }
+
+    #[test]
+    fn coeffs_change_at_rest() {
         let mut t = Trajectory::new(Coeffs::default(), 0);
         t.set_target(10_000);
-        t.tick();
-        let fast = coeffs(200.0, 1.0, 1.0);
-        assert_eq!(t.set_coeffs(fast), Err(NotAtRest));
         run(&mut t, 100_000);
+        let fast = coeffs(200.0, 1.0, 1.0);
         assert_eq!(t.set_coeffs(fast), Ok(()));
         t.set_target(0);
         // 10000 counts at 1 count/tick² never reaches 200 counts/tick: a 2 x 100 tick triangle.
