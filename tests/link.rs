@@ -76,9 +76,11 @@ mod tests {
             following_error_counts: 3,
             est_error_um_bits: -65536,
             current_a_bits: 32768,
-            faults: 2,
+            faults: 0x0212,
             model: 3,
             moving: true,
+            amplifier_enabled: false,
+            homed: true,
         };
         let replies = [
             Reply::Ack { of: kind::STOP },

@@ -237,12 +237,12 @@ impl Config {
             let n = (t + 0.5) as u16;
             Ok(if s > 0.0 { n.max(1) } else { 0 })
         };
-        let amps = |a: f64, f: &'static str| -> Result<i32, ConfigError> {
+        let amps = |a: f64, f: &'static str| -> Result<u32, ConfigError> {
             let a = fin(a, f)?;
             if !(a > 0.0 && a < 32_000.0) {
                 return Err(E::OutOfRange(f));
             }
-            Ok((a * 65_536.0) as i32)
+            Ok((a * 65_536.0) as u32)
         };
         // Speeds as counts per WINDOW ticks.
         let per_window = |mm_s: f64, f: &'static str| -> Result<i32, ConfigError> {
@@ -265,24 +265,35 @@ impl Config {
         if !(motion >= 0.0 && motion * cpm <= 1e9) {
             return Err(E::OutOfRange("faults.stall_motion_mm"));
         }
+        // A detector switched off gets a threshold it can never reach: no per-tick check of
+        // "is it on".
+        let ticks_or_never = |t: u16| if t == 0 { u32::MAX } else { t as u32 };
         Ok(Coeffs {
-            fe_rest_counts: (rest * cpm) as i32,
-            fe_slope_q16: (slope * 65_536.0) as i64,
+            fe_rest_counts: (rest * cpm) as u32,
+            // Q8, capped at 2^16 (256 extra counts per count/tick): the product with a Q4 speed
+            // of at most 2^15 then fits a u32.
+            fe_slope_q8: (slope * 256.0).clamp(0.0, 65_536.0) as u32,
             stall_current: amps(self.stall_current_a, "faults.stall_current_a")?,
-            stall_motion_counts: (motion * cpm) as i32,
-            stall_ticks: ticks(self.stall_time_s, "faults.stall_time_s")?,
+            stall_motion_counts: (motion * cpm) as u32,
+            stall_ticks: ticks_or_never(ticks(self.stall_time_s, "faults.stall_time_s")?),
             runaway_current: amps(self.runaway_current_a, "faults.runaway_current_a")?,
             runaway_window_counts: per_window(
                 fin(self.runaway_speed_mm_s, "faults.runaway_speed_mm_s")?,
                 "faults.runaway_speed_mm_s",
-            )?,
-            runaway_ticks: ticks(self.runaway_time_s, "faults.runaway_time_s")?,
+            )? as u32,
+            runaway_ticks: ticks_or_never(ticks(self.runaway_time_s, "faults.runaway_time_s")?),
             overspeed_window_counts: per_window(
                 max_velocity_mm_s * ratio,
                 "faults.overspeed_ratio",
-            )?,
-            overspeed_ticks: ticks(self.overspeed_time_s, "faults.overspeed_time_s")?,
-            saturation_ticks: ticks(self.saturation_time_s, "faults.saturation_time_s")?,
+            )? as u32,
+            overspeed_ticks: ticks_or_never(ticks(
+                self.overspeed_time_s,
+                "faults.overspeed_time_s",
+            )?),
+            saturation_ticks: ticks_or_never(ticks(
+                self.saturation_time_s,
+                "faults.saturation_time_s",
+            )?),
             link_timeout_ticks: if link > 0.0 {
                 (link_ticks as u32).max(1)
             } else {
@@ -301,35 +312,36 @@ impl Default for Config {
 /// Ticks over which speed (and acceleration, over two halves) is measured: 4 ms at 2 kHz, long
 /// enough that one count of quantisation is under 0.2 mm/s on the paper rig.
 pub const WINDOW: usize = 8;
+const MASK: usize = WINDOW - 1;
 
 /// Second differences within this many counts count as no acceleration (quantisation).
 const ACCEL_DEAD_BAND: i32 = 2;
 
-/// The detectors' thresholds in counts and ticks.
+/// The detectors' thresholds in counts and ticks (`u32::MAX` ticks: switched off).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Coeffs {
-    fe_rest_counts: i32,
-    fe_slope_q16: i64,
-    stall_current: i32,
-    stall_motion_counts: i32,
-    stall_ticks: u16,
-    runaway_current: i32,
-    runaway_window_counts: i32,
-    runaway_ticks: u16,
-    overspeed_window_counts: i32,
-    overspeed_ticks: u16,
-    saturation_ticks: u16,
+    fe_rest_counts: u32,
+    fe_slope_q8: u32,
+    stall_current: u32,
+    stall_motion_counts: u32,
+    stall_ticks: u32,
+    runaway_current: u32,
+    runaway_window_counts: u32,
+    runaway_ticks: u32,
+    overspeed_window_counts: u32,
+    overspeed_ticks: u32,
+    saturation_ticks: u32,
     link_timeout_ticks: u32,
 }
 
 impl Coeffs {
     /// The following-error limit, counts, at a set-point speed of `speed_f24` (counts per tick,
-    /// I40F24 bits, any sign).
+    /// I40F24 bits, any sign). 32-bit arithmetic: the speed to 1/16 count per tick.
     #[inline]
-    pub fn following_error_limit_counts(&self, speed_f24: i64) -> i32 {
-        let v_q8 = (speed_f24.unsigned_abs() >> 16).min(1 << 40) as i64;
-        let extra = (v_q8 * self.fe_slope_q16) >> 24;
-        (self.fe_rest_counts as i64 + extra).min(i32::MAX as i64) as i32
+    pub fn following_error_limit_counts(&self, speed_f24: i64) -> u32 {
+        let v_q4 = (speed_f24.unsigned_abs() >> 20).min(1 << 15) as u32;
+        self.fe_rest_counts
+            .saturating_add(v_q4.wrapping_mul(self.fe_slope_q8) >> 12)
     }
 
     /// Ticks of silence before `LINK_TIMEOUT` (0 = off).
@@ -352,14 +364,15 @@ pub struct Inputs {
 /// The detectors' memory.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct State {
+    /// The last [`WINDOW`] positions; all set to the first position after a reset.
     history: [i32; WINDOW],
-    filled: u8,
-    next: u8,
+    next: usize,
+    primed: bool,
     stall_anchor: i32,
-    stall_ticks: u16,
-    runaway_ticks: u16,
-    overspeed_ticks: u16,
-    saturation_ticks: u16,
+    stall_ticks: u32,
+    runaway_ticks: u32,
+    overspeed_ticks: u32,
+    saturation_ticks: u32,
 }
 
 impl Default for State {
@@ -369,12 +382,12 @@ impl Default for State {
 }
 
 impl State {
-    /// Fresh state: no history (speed detectors wait for a full window).
+    /// Fresh state: the first tick fills the window with its position (no motion yet).
     pub const fn new() -> Self {
         State {
             history: [0; WINDOW],
-            filled: 0,
             next: 0,
+            primed: false,
             stall_anchor: 0,
             stall_ticks: 0,
             runaway_ticks: 0,
@@ -387,40 +400,28 @@ impl State {
     pub fn reset(&mut self) {
         *self = Self::new();
     }
-
-    /// Measured speed over the last window, counts per [`WINDOW`] ticks (0 until it is full).
-    pub fn window_speed_counts(&self, position_counts: i32) -> i32 {
-        if (self.filled as usize) < WINDOW {
-            0
-        } else {
-            position_counts.saturating_sub(self.history[self.next as usize])
-        }
-    }
 }
 
 /// Runs the detectors for one tick and returns the fault bits they raise (0 = none).
 ///
-/// Integer only, a dozen comparisons: bounded and branch-light.
+/// Integer only: about forty instructions when nothing is near a threshold.
 #[inline]
 pub fn check(c: &Coeffs, s: &mut State, input: Inputs) -> u16 {
     let x = input.position_counts;
+    if !s.primed {
+        s.history = [x; WINDOW];
+        s.stall_anchor = x;
+        s.primed = true;
+    }
     let i = input.prev_current_a.to_bits();
     let i_abs = i.unsigned_abs();
     let mut raised = 0;
-    if s.filled == 0 {
-        s.stall_anchor = x;
-    }
 
     // Stall / encoder loss: effort without response.
-    if c.stall_ticks != 0 && i_abs >= c.stall_current as u32 {
-        if x.abs_diff(s.stall_anchor) > c.stall_motion_counts as u32 {
-            s.stall_anchor = x;
-            s.stall_ticks = 0;
-        } else {
-            s.stall_ticks = s.stall_ticks.saturating_add(1);
-            if s.stall_ticks >= c.stall_ticks {
-                raised |= Faults::STALL;
-            }
+    if i_abs >= c.stall_current && x.abs_diff(s.stall_anchor) <= c.stall_motion_counts {
+        s.stall_ticks = s.stall_ticks.saturating_add(1);
+        if s.stall_ticks >= c.stall_ticks {
+            raised |= Faults::STALL;
         }
     } else {
         s.stall_anchor = x;
@@ -428,59 +429,54 @@ pub fn check(c: &Coeffs, s: &mut State, input: Inputs) -> u16 {
     }
 
     // Amplifier at its limit: up while saturated, down while not (chatter does not hide it).
-    if c.saturation_ticks != 0 {
-        if input.prev_saturated {
-            s.saturation_ticks = s.saturation_ticks.saturating_add(1);
-            if s.saturation_ticks >= c.saturation_ticks {
-                raised |= Faults::CURRENT_SATURATION;
-            }
-        } else {
-            s.saturation_ticks = s.saturation_ticks.saturating_sub(1);
-        }
-    }
-
-    // Speed and acceleration over the window: v = x - x[-W], a = x - 2 x[-W/2] + x[-W].
-    let slot = s.next as usize;
-    if s.filled as usize >= WINDOW {
-        let oldest = s.history[slot];
-        let mid = s.history[(slot + WINDOW / 2) % WINDOW];
-        let v = x.saturating_sub(oldest);
-        let a = x
-            .saturating_sub(mid)
-            .saturating_sub(mid.saturating_sub(oldest));
-
-        if c.overspeed_ticks != 0 && v.unsigned_abs() > c.overspeed_window_counts as u32 {
-            s.overspeed_ticks = s.overspeed_ticks.saturating_add(1);
-            if s.overspeed_ticks >= c.overspeed_ticks {
-                raised |= Faults::OVERSPEED;
-            }
-        } else {
-            s.overspeed_ticks = 0;
-        }
-
-        // Runaway: moving against the current and not slowing down. Braking (motion against the
-        // current while decelerating) is normal and excluded.
-        let against = (v > 0 && i < 0) || (v < 0 && i > 0);
-        // Slowing by more than the counts' quantisation (two counts over half windows).
-        let not_slowing = (v > 0 && a >= -ACCEL_DEAD_BAND) || (v < 0 && a <= ACCEL_DEAD_BAND);
-        if c.runaway_ticks != 0
-            && against
-            && not_slowing
-            && i_abs >= c.runaway_current as u32
-            && v.unsigned_abs() >= c.runaway_window_counts as u32
-        {
-            s.runaway_ticks = s.runaway_ticks.saturating_add(1);
-            if s.runaway_ticks >= c.runaway_ticks {
-                raised |= Faults::RUNAWAY;
-            }
-        } else {
-            s.runaway_ticks = 0;
+    if input.prev_saturated {
+        s.saturation_ticks = s.saturation_ticks.saturating_add(1);
+        if s.saturation_ticks >= c.saturation_ticks {
+            raised |= Faults::CURRENT_SATURATION;
         }
     } else {
-        s.filled += 1;
+        s.saturation_ticks = s.saturation_ticks.saturating_sub(1);
     }
+
+    // Speed over the window: v = x - x[-W].
+    let slot = s.next & MASK;
+    let oldest = s.history[slot];
+    let v = x.wrapping_sub(oldest);
+    let speed = v.unsigned_abs();
+
+    if speed > c.overspeed_window_counts {
+        s.overspeed_ticks = s.overspeed_ticks.saturating_add(1);
+        if s.overspeed_ticks >= c.overspeed_ticks {
+            raised |= Faults::OVERSPEED;
+        }
+    } else {
+        s.overspeed_ticks = 0;
+    }
+
+    // Runaway: moving against the current and not slowing down (a = x - 2 x[-W/2] + x[-W]).
+    // Braking, motion against the current while decelerating, is normal and excluded.
+    let mut runaway = false;
+    if i_abs >= c.runaway_current && speed >= c.runaway_window_counts && (v ^ i) < 0 {
+        let mid = s.history[(slot + WINDOW / 2) & MASK];
+        let a = x.wrapping_sub(mid).wrapping_sub(mid.wrapping_sub(oldest));
+        // Slowing by more than the counts' quantisation (two counts over half windows).
+        runaway = if v > 0 {
+            a >= -ACCEL_DEAD_BAND
+        } else {
+            a <= ACCEL_DEAD_BAND
+        };
+    }
+    if runaway {
+        s.runaway_ticks = s.runaway_ticks.saturating_add(1);
+        if s.runaway_ticks >= c.runaway_ticks {
+            raised |= Faults::RUNAWAY;
+        }
+    } else {
+        s.runaway_ticks = 0;
+    }
+
     s.history[slot] = x;
-    s.next = ((slot + 1) % WINDOW) as u8;
+    s.next = (slot + 1) & MASK;
     raised
 }
 
