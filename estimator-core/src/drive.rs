@@ -7,7 +7,7 @@
 //! Order inside a tick (sampling first, as ODrive's `sampling_cb`): unwrap the motor counter,
 //! advance the trajectory, run the PID, run the error model, check faults, saturate.
 
-use fixed::types::I16F16;
+use fixed::types::{I16F16, I40F24};
 
 use crate::blob::{self, BlobError};
 use crate::fault;
@@ -123,7 +123,7 @@ impl core::fmt::Display for CommandError {
             CommandError::VelocityOutOfRange => "velocity zero or above the configured maximum",
             CommandError::AccelOutOfRange => "acceleration zero or above the configured maximum",
             CommandError::NotEnabled => "drive disabled or faulted",
-            CommandError::Busy => "the drive must be at rest (or keep the move's limits)",
+            CommandError::Busy => "the drive must be at rest",
             CommandError::NotHomed => "not homed: home the drive before moving",
         })
     }
@@ -229,6 +229,8 @@ struct Limits {
     fault_max_counts: i32,
     max_velocity_um_s: u32,
     max_accel_um_s2: u32,
+    velocity_bits_per_um_s_q32: u64,
+    accel_bits_per_um_s2_q32: u64,
 }
 
 /// The drive: configuration, coefficients and state of one axis.
@@ -326,6 +328,11 @@ impl Drive {
             fault_max_counts: to_i32((hi + margin) * cpm, "drive.travel_margin_mm")?,
             max_velocity_um_s: (vmax * 1000.0) as u32,
             max_accel_um_s2: (amax * 1000.0) as u32,
+            // Profile grid (I40F24 counts per tick, per tick²) per um/s and um/s², Q32: a move's
+            // limits are built from them in integers when its command arrives.
+            velocity_bits_per_um_s_q32: (cpm / 1000.0 / rate_hz * 72_057_594_037_927_936.0) as u64,
+            accel_bits_per_um_s2_q32: (cpm / 1000.0 / (rate_hz * rate_hz)
+                * 72_057_594_037_927_936.0) as u64,
         };
         let monitor = cfg.faults.build(&cfg.rig, rate_hz, vmax)?;
         let enc = encoder::Config {
@@ -502,6 +509,24 @@ impl Drive {
         (q >> 32).clamp(i32::MIN as i64, i32::MAX as i64) as i32
     }
 
+    /// A move's profile limits on the counts grid, from integer um/s and um/s² (rounded down).
+    fn move_coeffs(
+        &self,
+        velocity_um_s: u32,
+        accel_um_s2: u32,
+    ) -> Result<trajectory::Coeffs, CommandError> {
+        let grid = |x: u32, per_q32: u64| {
+            let bits = (x as u128 * per_q32 as u128) >> 32;
+            I40F24::from_bits(bits.min(i64::MAX as u128) as i64)
+        };
+        let v = grid(velocity_um_s, self.limits.velocity_bits_per_um_s_q32);
+        let a = grid(accel_um_s2, self.limits.accel_bits_per_um_s2_q32);
+        trajectory::Coeffs::new(v, a, a).map_err(|e| match e.field() {
+            "trajectory.velocity_mm_s" => CommandError::VelocityOutOfRange,
+            _ => CommandError::AccelOutOfRange,
+        })
+    }
+
     /// Applies a command. A refused command changes nothing; any command, applied or not, shows
     /// that the host is alive (link watchdog).
     pub fn command(&mut self, cmd: Command) -> Result<(), CommandError> {
@@ -530,20 +555,12 @@ impl Drive {
                     return Err(CommandError::AccelOutOfRange);
                 }
                 if (velocity_um_s, accel_um_s2) != self.move_limits {
-                    // New limits only at rest: the profile's state is tied to its deceleration.
-                    let cfg = trajectory::Config {
-                        velocity_mm_s: velocity_um_s as f64 / 1000.0,
-                        acceleration_mm_s2: accel_um_s2 as f64 / 1000.0,
-                        deceleration_mm_s2: accel_um_s2 as f64 / 1000.0,
-                        rate_hz: self.rate_hz,
-                    };
-                    let coeffs = cfg.build(&self.rig).map_err(|e| match e.field() {
-                        "trajectory.velocity_mm_s" => CommandError::VelocityOutOfRange,
-                        _ => CommandError::AccelOutOfRange,
-                    })?;
+                    // New limits, also in mid-move (feed override, blending): integers only,
+                    // so nothing of f64 runs while the control task waits for the lock.
+                    let coeffs = self.move_coeffs(velocity_um_s, accel_um_s2)?;
                     self.trajectory
                         .set_coeffs(coeffs)
-                        .map_err(|_| CommandError::Busy)?;
+                        .map_err(|_| CommandError::AccelOutOfRange)?;
                     self.move_limits = (velocity_um_s, accel_um_s2);
                 }
                 self.trajectory.set_target(target);

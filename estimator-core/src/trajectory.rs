@@ -587,14 +587,13 @@ impl Trajectory {
             to_go
         };
         let speed = v.unsigned_abs();
-        let (w, n, r) = if speed <= self.coeffs.velocity
-            && ahead >= self.coeffs.velocity_run_out as i64
-        {
-            // Far away: no speed up to the limit can need braking yet.
-            self.faster(speed)
-        } else {
-            self.near(speed, ahead)
-        };
+        let (w, n, r) =
+            if speed <= self.coeffs.velocity && ahead >= self.coeffs.velocity_run_out as i64 {
+                // Far away: no speed up to the limit can need braking yet.
+                self.faster(speed)
+            } else {
+                self.near(speed, ahead)
+            };
         let velocity = if backwards {
             (w as i64).wrapping_neg()
         } else {
@@ -916,10 +915,19 @@ mod tests {
                     v1,
                     "case {k} tick {tick}"
                 );
-                assert!((v1 - v0).abs() <= dv_max, "case {k} tick {tick}: {v0} -> {v1}");
-                assert!(v0.signum() * v1.signum() >= 0, "case {k}: sign flip without rest");
+                assert!(
+                    (v1 - v0).abs() <= dv_max,
+                    "case {k} tick {tick}: {v0} -> {v1}"
+                );
+                assert!(
+                    v0.signum() * v1.signum() >= 0,
+                    "case {k}: sign flip without rest"
+                );
                 if over {
-                    assert!(v1.abs() <= v0.abs(), "case {k} tick {tick}: speeds up above the limit");
+                    assert!(
+                        v1.abs() <= v0.abs(),
+                        "case {k} tick {tick}: speeds up above the limit"
+                    );
                     over = v1.abs() > vmax;
                 } else {
                     assert!(v1.abs() <= vmax, "case {k} tick {tick}");

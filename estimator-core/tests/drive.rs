@@ -166,36 +166,79 @@ fn refused_commands_change_nothing() {
     assert!(!after.moving);
 }
 
+/// Retargets in mid-move, with the same limits and with new ones (slower, faster, and one that
+/// reverses): all accepted, and the set-point's position and velocity stay continuous.
 #[test]
-fn new_limits_mid_move_are_refused_same_limits_retarget() {
-    let (mut d, mut m) = homed(50.0);
-    d.command(Command::Enable).unwrap();
-    d.command(mv(200.0)).unwrap();
-    run(&mut d, &mut m, 400);
-    let other = Command::MoveTo {
-        target_um: 100_000,
-        velocity_um_s: 40_000,
-        accel_um_s2: 1_000_000,
-    };
-    assert_eq!(d.command(other), Err(CommandError::Busy));
-    // Same limits: an abrupt reversal is accepted and the set-point velocity never steps.
-    d.command(mv(60.0)).unwrap();
-    let outs = run(&mut d, &mut m, 2000 * 4);
-    let sp: Vec<i64> = outs
-        .iter()
-        .map(|o| o.telemetry.setpoint_counts as i64)
-        .collect();
-    let max_dv = sp
-        .windows(3)
-        .map(|w| ((w[2] - w[1]) - (w[1] - w[0])).abs())
-        .max()
-        .unwrap();
-    // 1000 mm/s^2 at 2 kHz is 0.47 counts/tick^2; whole-count rounding adds at most 2.
-    assert!(
-        max_dv <= 3,
-        "set-point velocity stepped by {max_dv} counts/tick"
-    );
-    assert_eq!(*sp.last().unwrap(), (60.0 * m.cpm).round() as i64);
+fn retargets_with_new_limits_mid_move_are_continuous() {
+    let cases = [
+        // (second command, ticks before it, final target mm)
+        (mv(60.0), 400, 60.0),
+        (
+            Command::MoveTo {
+                target_um: 150_000,
+                velocity_um_s: 20_000,
+                accel_um_s2: 300_000,
+            },
+            400,
+            150.0,
+        ),
+        (
+            Command::MoveTo {
+                target_um: 40_000,
+                velocity_um_s: 150_000,
+                accel_um_s2: 3_000_000,
+            },
+            300,
+            40.0,
+        ),
+        (
+            Command::MoveTo {
+                target_um: 230_000,
+                velocity_um_s: 200_000,
+                accel_um_s2: 2_500_000,
+            },
+            200,
+            230.0,
+        ),
+    ];
+    for (k, (second, after, final_mm)) in cases.into_iter().enumerate() {
+        let (mut d, mut m) = homed(50.0);
+        d.command(Command::Enable).unwrap();
+        d.command(mv(200.0)).unwrap();
+        let mut outs = run(&mut d, &mut m, after);
+        d.command(second)
+            .unwrap_or_else(|e| panic!("case {k}: {e}"));
+        outs.extend(run(&mut d, &mut m, 2000 * 6));
+        let sp: Vec<i64> = outs
+            .iter()
+            .map(|o| o.telemetry.setpoint_counts as i64)
+            .collect();
+        let max_step = sp.windows(2).map(|w| (w[1] - w[0]).abs()).max().unwrap();
+        let max_dv = sp
+            .windows(3)
+            .map(|w| ((w[2] - w[1]) - (w[1] - w[0])).abs())
+            .max()
+            .unwrap();
+        // Fastest case: 200 mm/s is 187 counts/tick; 3000 mm/s^2 is 1.4 counts/tick^2, and
+        // whole-count rounding adds at most 2.
+        assert!(
+            max_step <= 188,
+            "case {k}: position stepped by {max_step} counts"
+        );
+        assert!(
+            max_dv <= 4,
+            "case {k}: velocity stepped by {max_dv} counts/tick"
+        );
+        assert_eq!(
+            *sp.last().unwrap(),
+            (final_mm * m.cpm).round() as i64,
+            "case {k}"
+        );
+        assert!(
+            outs.iter().all(|o| o.telemetry.faults.is_clear()),
+            "case {k}"
+        );
+    }
 }
 
 #[test]
