@@ -454,6 +454,16 @@ mod app {
                 velocity_um_s,
                 accel_um_s2
             ),
+            LinkEvent::Applied(Command::MoveCarriageTo {
+                target_um,
+                velocity_um_s,
+                accel_um_s2,
+            }) => defmt::info!(
+                "move carriage to {=i32} um at {=u32} um/s, {=u32} um/s^2",
+                target_um,
+                velocity_um_s,
+                accel_um_s2
+            ),
             LinkEvent::Applied(Command::SelectModel(m)) => {
                 defmt::info!("model selected: {=str}", m.as_str())
             }
@@ -494,6 +504,7 @@ mod app {
     fn command_name(c: &Command) -> &'static str {
         match c {
             Command::MoveTo { .. } => "move",
+            Command::MoveCarriageTo { .. } => "move carriage",
             Command::Stop => "stop",
             Command::Enable => "enable",
             Command::Disable => "disable",

@@ -79,6 +79,17 @@ pub enum Command {
         /// Acceleration and deceleration, micrometres per second squared (> 0).
         accel_um_s2: u32,
     },
+    /// Move the carriage to `target_um` of carriage travel (as the linear scale would read it):
+    /// the motor's target is the active model's inverse along the planned path, so the carriage,
+    /// not the motor, arrives there. With no model active it is a motor move.
+    MoveCarriageTo {
+        /// Carriage target, micrometres of travel from the home position.
+        target_um: i32,
+        /// Cruise speed of the motor, micrometres per second (> 0).
+        velocity_um_s: u32,
+        /// Acceleration and deceleration of the motor, micrometres per second squared (> 0).
+        accel_um_s2: u32,
+    },
     /// Decelerate to rest at the configured acceleration.
     Stop,
     /// Enable the current output (the drive starts disabled).
@@ -509,6 +520,91 @@ impl Drive {
         (q >> 32).clamp(i32::MIN as i64, i32::MAX as i64) as i32
     }
 
+    /// Checks and starts a move; `carriage`: `target_um` is where the carriage must arrive. All
+    /// work happens on a copy of the profile, committed only when every check passed.
+    fn start_move(
+        &mut self,
+        target_um: i32,
+        velocity_um_s: u32,
+        accel_um_s2: u32,
+        carriage: bool,
+    ) -> Result<(), CommandError> {
+        if !self.enabled {
+            return Err(CommandError::NotEnabled);
+        }
+        if !self.homed {
+            return Err(CommandError::NotHomed);
+        }
+        let target = self.um_to_counts(target_um);
+        if target < self.limits.target_min_counts || target > self.limits.target_max_counts {
+            return Err(CommandError::TargetOutOfTravel);
+        }
+        if velocity_um_s == 0 || velocity_um_s > self.limits.max_velocity_um_s {
+            return Err(CommandError::VelocityOutOfRange);
+        }
+        if accel_um_s2 == 0 || accel_um_s2 > self.limits.max_accel_um_s2 {
+            return Err(CommandError::AccelOutOfRange);
+        }
+        let mut profile = self.trajectory;
+        if (velocity_um_s, accel_um_s2) != self.move_limits {
+            // New limits, also in mid-move (feed override, blending): integers only, so nothing
+            // of f64 runs while the control task waits for the lock.
+            let coeffs = self.move_coeffs(velocity_um_s, accel_um_s2)?;
+            profile
+                .set_coeffs(coeffs)
+                .map_err(|_| CommandError::AccelOutOfRange)?;
+        }
+        let motor_target = if carriage {
+            let m = self.motor_target_for(target, &profile);
+            // The motor may stand outside the carriage's travel by the error, not beyond the
+            // fault limits.
+            if m < self.limits.fault_min_counts || m > self.limits.fault_max_counts {
+                return Err(CommandError::TargetOutOfTravel);
+            }
+            m
+        } else {
+            target
+        };
+        profile.set_target(motor_target);
+        self.trajectory = profile;
+        self.move_limits = (velocity_um_s, accel_um_s2);
+        Ok(())
+    }
+
+    /// The motor position at which the active model puts the carriage on `carriage_counts`,
+    /// following the planned path: from the present state, through the stopping point if the
+    /// target lies behind it (where the motor will turn), to the target. The model's error
+    /// changes by about 0.1 % of the travel along a band edge, so three fixed-point iterations of
+    /// `m = c - y(m)` settle to the count. Bounded: at most six model evaluations, on a copy of
+    /// the model's state.
+    fn motor_target_for(&self, carriage_counts: i32, profile: &Trajectory) -> i32 {
+        if self.model == ModelKind::None {
+            return carriage_counts;
+        }
+        let here = (profile.position_counts().to_bits() >> 24) as i32;
+        let stop = profile.stopping_point_counts();
+        let moving_up = stop >= here;
+        let mut m = carriage_counts;
+        for _ in 0..3 {
+            let mut state = self.model_state.clone();
+            // The motor turns at the stopping point when the target lies behind it.
+            if stop != here && (m >= stop) != moving_up {
+                model::estimate(&self.models, self.model, &mut state, stop);
+            }
+            let y_um = model::estimate(&self.models, self.model, &mut state, m);
+            m = carriage_counts.saturating_sub(self.um_q16_to_counts(y_um.to_bits()));
+        }
+        m
+    }
+
+    /// Micrometres (I16F16 bits) of nominal travel to counts, rounded to nearest, saturating.
+    fn um_q16_to_counts(&self, um_q16: i32) -> i32 {
+        let q48 = (um_q16 as i64)
+            .saturating_mul(self.limits.counts_per_um_q32)
+            .saturating_add(1 << 47);
+        (q48 >> 48).clamp(i32::MIN as i64, i32::MAX as i64) as i32
+    }
+
     /// A move's profile limits on the counts grid, from integer um/s and um/s² (rounded down).
     fn move_coeffs(
         &self,
@@ -536,35 +632,12 @@ impl Drive {
                 target_um,
                 velocity_um_s,
                 accel_um_s2,
-            } => {
-                if !self.enabled {
-                    return Err(CommandError::NotEnabled);
-                }
-                if !self.homed {
-                    return Err(CommandError::NotHomed);
-                }
-                let target = self.um_to_counts(target_um);
-                if target < self.limits.target_min_counts || target > self.limits.target_max_counts
-                {
-                    return Err(CommandError::TargetOutOfTravel);
-                }
-                if velocity_um_s == 0 || velocity_um_s > self.limits.max_velocity_um_s {
-                    return Err(CommandError::VelocityOutOfRange);
-                }
-                if accel_um_s2 == 0 || accel_um_s2 > self.limits.max_accel_um_s2 {
-                    return Err(CommandError::AccelOutOfRange);
-                }
-                if (velocity_um_s, accel_um_s2) != self.move_limits {
-                    // New limits, also in mid-move (feed override, blending): integers only,
-                    // so nothing of f64 runs while the control task waits for the lock.
-                    let coeffs = self.move_coeffs(velocity_um_s, accel_um_s2)?;
-                    self.trajectory
-                        .set_coeffs(coeffs)
-                        .map_err(|_| CommandError::AccelOutOfRange)?;
-                    self.move_limits = (velocity_um_s, accel_um_s2);
-                }
-                self.trajectory.set_target(target);
-            }
+            } => self.start_move(target_um, velocity_um_s, accel_um_s2, false)?,
+            Command::MoveCarriageTo {
+                target_um,
+                velocity_um_s,
+                accel_um_s2,
+            } => self.start_move(target_um, velocity_um_s, accel_um_s2, true)?,
             Command::Stop => self.trajectory.stop(),
             Command::Enable => {
                 if !self.faults.is_clear() {

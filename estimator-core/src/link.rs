@@ -68,6 +68,8 @@ pub mod kind {
     pub const SHUTDOWN: u8 = 0x0d;
     /// [`super::Request::Home`]
     pub const HOME: u8 = 0x0e;
+    /// [`super::Request::MoveCarriage`]
+    pub const MOVE_CARRIAGE: u8 = 0x0f;
 
     /// [`super::Reply::Ack`]
     pub const ACK: u8 = 0x80;
@@ -138,6 +140,16 @@ pub enum Request {
     /// Move to `target_um` (payload 12 bytes).
     Move {
         /// Target, micrometres of nominal travel.
+        target_um: i32,
+        /// Cruise speed, micrometres per second; must be > 0.
+        velocity_um_s: u32,
+        /// Acceleration, micrometres per second squared; must be > 0.
+        accel_um_s2: u32,
+    },
+    /// Move the carriage to `target_um` (payload 12, as [`Request::Move`]): the drive places
+    /// the carriage with its active model.
+    MoveCarriage {
+        /// Carriage target, micrometres of travel.
         target_um: i32,
         /// Cruise speed, micrometres per second; must be > 0.
         velocity_um_s: u32,
@@ -513,6 +525,7 @@ impl Message for Request {
     fn kind(&self) -> u8 {
         match self {
             Request::Move { .. } => kind::MOVE,
+            Request::MoveCarriage { .. } => kind::MOVE_CARRIAGE,
             Request::Stop => kind::STOP,
             Request::Enable => kind::ENABLE,
             Request::Disable => kind::DISABLE,
@@ -533,6 +546,11 @@ impl Message for Request {
         let mut w = Writer::new(out);
         match *self {
             Request::Move {
+                target_um,
+                velocity_um_s,
+                accel_um_s2,
+            }
+            | Request::MoveCarriage {
                 target_um,
                 velocity_um_s,
                 accel_um_s2,
@@ -582,16 +600,24 @@ impl Message for Request {
 
     fn parse(k: u8, payload: &[u8]) -> Result<Self, LinkError> {
         Ok(match k {
-            kind::MOVE => {
+            kind::MOVE | kind::MOVE_CARRIAGE => {
                 let mut r = expect_len(payload, 12)?;
                 let (target_um, velocity_um_s, accel_um_s2) = (r.i32(), r.u32(), r.u32());
                 if velocity_um_s == 0 || accel_um_s2 == 0 {
                     return Err(LinkError::OutOfRange);
                 }
-                Request::Move {
-                    target_um,
-                    velocity_um_s,
-                    accel_um_s2,
+                if k == kind::MOVE {
+                    Request::Move {
+                        target_um,
+                        velocity_um_s,
+                        accel_um_s2,
+                    }
+                } else {
+                    Request::MoveCarriage {
+                        target_um,
+                        velocity_um_s,
+                        accel_um_s2,
+                    }
                 }
             }
             kind::STOP => expect_len(payload, 0).map(|_| Request::Stop)?,
@@ -1087,6 +1113,15 @@ pub fn to_command(req: &Request) -> Option<Command> {
             velocity_um_s,
             accel_um_s2,
         },
+        Request::MoveCarriage {
+            target_um,
+            velocity_um_s,
+            accel_um_s2,
+        } => Command::MoveCarriageTo {
+            target_um,
+            velocity_um_s,
+            accel_um_s2,
+        },
         Request::Stop => Command::Stop,
         Request::Enable => Command::Enable,
         Request::Disable => Command::Disable,
@@ -1112,6 +1147,15 @@ pub fn from_command(cmd: &Command) -> Request {
             velocity_um_s,
             accel_um_s2,
         } => Request::Move {
+            target_um,
+            velocity_um_s,
+            accel_um_s2,
+        },
+        Command::MoveCarriageTo {
+            target_um,
+            velocity_um_s,
+            accel_um_s2,
+        } => Request::MoveCarriage {
             target_um,
             velocity_um_s,
             accel_um_s2,
@@ -1507,6 +1551,11 @@ mod tests {
                 target_um: i32::MAX,
                 velocity_um_s: u32::MAX,
                 accel_um_s2: u32::MAX,
+            },
+            Request::MoveCarriage {
+                target_um: -7,
+                velocity_um_s: 3,
+                accel_um_s2: 0x00ff_0000,
             },
             Request::Stop,
             Request::Enable,
@@ -2159,6 +2208,13 @@ mod tests {
                 target_um: t,
                 velocity_um_s: v,
                 accel_um_s2: a
+            }),
+            (any::<i32>(), 1..=u32::MAX, 1..=u32::MAX).prop_map(|(t, v, a)| {
+                Request::MoveCarriage {
+                    target_um: t,
+                    velocity_um_s: v,
+                    accel_um_s2: a,
+                }
             }),
             Just(Request::Stop),
             Just(Request::Enable),

@@ -451,6 +451,18 @@ impl Trajectory {
         };
     }
 
+    /// Where the profile would come to rest braking from now at the deceleration limit, whole
+    /// counts (the present position at rest).
+    pub fn stopping_point_counts(&self) -> i32 {
+        let run_out = run_out_bits(self.coeffs.decel, self.n.saturating_sub(1), self.r) as i64;
+        let stop = if self.velocity >= 0 {
+            self.position.wrapping_add(run_out)
+        } else {
+            self.position.wrapping_sub(run_out)
+        };
+        (stop >> FRAC_BITS).clamp(i32::MIN as i64, i32::MAX as i64) as i32
+    }
+
     /// Replaces the limits, at rest or in mid-move (a feed override, a blended retarget).
     /// Position and velocity carry over unchanged, so the set-point never steps; a speed above
     /// the new velocity limit is braked down to it at the new deceleration. One division: call

@@ -479,3 +479,67 @@ fn raised_fault_latches_zero_current() {
     d.command(Command::Enable).unwrap();
     assert!(run(&mut d, &mut m, 1)[0].telemetry.faults.is_clear());
 }
+
+/// Carriage-space moves: the drive puts the estimated carriage (motor + model error) on the
+/// target, from both sides and after a turn in mid-move; with no model it is a motor move.
+#[test]
+fn carriage_moves_put_the_estimated_carriage_on_target() {
+    for model in [
+        ModelKind::Linear,
+        ModelKind::Exponential,
+        ModelKind::Table,
+        ModelKind::None,
+    ] {
+        // Table 2 with a calibrated dead band (160 counts, as `hil-sim calibrate` finds): with
+        // Table 2's 2 counts, the motor's settling wiggle counts as a reversal.
+        let params = estimator_core::model::ModelParams {
+            reversal_deadband_counts: 160,
+            ..estimator_core::model::ModelParams::PAPER
+        };
+        let cfg = DriveConfig {
+            model: estimator_core::drive::Models::Params(&params),
+            ..DriveConfig::paper_rig()
+        };
+        let mut d = Drive::new(&cfg).unwrap();
+        let mut m = Mass::new(50.0);
+        d.step(m.sample());
+        d.command(Command::Home {
+            position_um: 50_000,
+            scale_um: 0,
+        })
+        .unwrap();
+        d.command(Command::Enable).unwrap();
+        d.command(Command::SelectModel(model)).unwrap();
+        let carriage = |target_mm: f64| Command::MoveCarriageTo {
+            target_um: (target_mm * 1000.0) as i32,
+            velocity_um_s: 80_000,
+            accel_um_s2: 1_000_000,
+        };
+        let check = |d: &mut Drive, m: &mut Mass, target_mm: f64| {
+            let t = run(d, m, 2000 * 4).last().unwrap().telemetry;
+            assert!(!t.moving);
+            let est_counts = t.est_error_um.to_num::<f64>() / 1000.0 * m.cpm;
+            let carriage_counts = t.motor_counts as f64 + est_counts;
+            let target = target_mm * m.cpm;
+            assert!(
+                (carriage_counts - target).abs() <= 3.0,
+                "{model:?} to {target_mm} mm: carriage estimate {carriage_counts:.1} counts, target {target:.1}"
+            );
+            if model == ModelKind::None {
+                assert_eq!(est_counts, 0.0);
+            }
+        };
+        d.command(carriage(120.0)).unwrap();
+        check(&mut d, &mut m, 120.0);
+        d.command(carriage(60.0)).unwrap();
+        check(&mut d, &mut m, 60.0);
+        // Turn in mid-move: the motor stops beyond 100 mm and comes back to 90.
+        d.command(carriage(140.0)).unwrap();
+        run(&mut d, &mut m, 1200);
+        d.command(carriage(90.0)).unwrap();
+        check(&mut d, &mut m, 90.0);
+        // A move shorter than the reversal dead band still lands.
+        d.command(carriage(90.05)).unwrap();
+        check(&mut d, &mut m, 90.05);
+    }
+}

@@ -14,6 +14,7 @@ pub mod faults;
 pub mod fit;
 pub mod params;
 pub mod pil;
+pub mod placement;
 pub mod plant;
 pub mod plot;
 pub mod progress;

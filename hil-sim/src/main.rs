@@ -218,16 +218,59 @@ fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), String> {
     let coeffs = cal.params.build(&Rig::PAPER).map_err(|e| e.to_string())?;
     let est = eval::estimates(&trace, &coeffs, &cal);
     let table = eval::table3(&trace, &est);
+    // Placement: the scenario again in carriage space, once per compensator the drive has.
+    let scenario_def = Scenario::load(scenario)?;
+    let plant = plant_params(&common.plant)?;
+    let mut placed = Vec::new();
+    for model in ModelKind::ALL {
+        let t = hil_sim::placement::run_carriage_space(
+            &scenario_def,
+            &plant,
+            &cal.params,
+            model,
+            common.seed,
+            &mut |_| {},
+        )?;
+        placed.push((
+            model.as_str(),
+            hil_sim::placement::positioning(&scenario_def, &t, &coeffs, model),
+        ));
+    }
     if json {
-        println!(
-            "{}",
-            eval::to_json(&trace.scenario, trace.records.len(), &table)
-        );
+        let mut v: serde_json::Value =
+            serde_json::from_str(&eval::to_json(&trace.scenario, trace.records.len(), &table))
+                .map_err(|e| e.to_string())?;
+        let pos: serde_json::Map<String, serde_json::Value> = placed
+            .iter()
+            .map(|(n, p)| {
+                (
+                    n.to_string(),
+                    serde_json::to_value(p).unwrap_or(serde_json::Value::Null),
+                )
+            })
+            .collect();
+        v["positioning"] = serde_json::Value::Object(pos);
+        println!("{v}");
     } else {
         print!(
             "{}",
             report::table_markdown(&trace.scenario, trace.records.len(), &table)
         );
+        println!("\nPlacement (scenario in carriage space, core in-process):\n");
+        println!("| compensator | arrival RMS (um) | arrival max (um) | tracking RMS (um) | cycle (s) | peak v / limit | peak a / limit | moves at rest |");
+        println!("|---|---:|---:|---:|---:|---:|---:|---:|");
+        for (n, p) in &placed {
+            println!(
+                "| {n} | {:.1} | {:.1} | {:.1} | {:.3} | {:.3} | {:.3} | {} |",
+                p.arrival_rms_um,
+                p.arrival_max_um,
+                p.tracking_rms_um,
+                p.cycle_time_s,
+                p.peak_velocity_ratio,
+                p.peak_accel_ratio,
+                p.moves_at_rest
+            );
+        }
     }
     Ok(())
 }

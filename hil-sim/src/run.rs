@@ -35,6 +35,8 @@ pub struct Trace {
     pub counts_per_mm: f64,
     /// One record per tick.
     pub records: Vec<Record>,
+    /// Index of the record on whose tick each move was commanded.
+    pub move_starts: Vec<usize>,
 }
 
 impl Trace {
@@ -57,6 +59,9 @@ pub struct RunConfig {
     pub seed: u64,
     /// Rest after the last move before the run ends, seconds.
     pub settle_s: f64,
+    /// Command the scenario's targets as carriage positions (`MoveCarriageTo`: the drive places
+    /// the carriage with its active model) instead of motor positions (`MoveTo`).
+    pub carriage_space: bool,
 }
 
 impl Default for RunConfig {
@@ -65,6 +70,7 @@ impl Default for RunConfig {
             rate_hz: 2000.0,
             seed: 1,
             settle_s: 0.2,
+            carriage_space: false,
         }
     }
 }
@@ -156,6 +162,7 @@ pub fn run(
 
     let budget = budget_s(scenario);
     let mut records = Vec::with_capacity((budget * cfg.rate_hz * 0.6) as usize);
+    let mut move_starts = Vec::with_capacity(scenario.moves.len());
     let mut next = 0usize; // next move to command
     let mut next_at: Option<f64> = Some(0.0); // time it is due, None = when the drive is at rest
     let mut rest_since: Option<f64> = None;
@@ -171,11 +178,25 @@ pub fn run(
         };
         if due && next < scenario.moves.len() {
             let m = &scenario.moves[next];
-            controller.command(Command::MoveTo {
-                target_um: (m.to_mm * 1000.0).round() as i32,
-                velocity_um_s: (m.velocity_mm_s * 1000.0).round() as u32,
-                accel_um_s2: (m.accel_mm_s2 * 1000.0).round() as u32,
+            let (target_um, velocity_um_s, accel_um_s2) = (
+                (m.to_mm * 1000.0).round() as i32,
+                (m.velocity_mm_s * 1000.0).round() as u32,
+                (m.accel_mm_s2 * 1000.0).round() as u32,
+            );
+            controller.command(if cfg.carriage_space {
+                Command::MoveCarriageTo {
+                    target_um,
+                    velocity_um_s,
+                    accel_um_s2,
+                }
+            } else {
+                Command::MoveTo {
+                    target_um,
+                    velocity_um_s,
+                    accel_um_s2,
+                }
             })?;
+            move_starts.push(records.len());
             next_at = m.retarget_after_ms.map(|ms| t + ms as f64 / 1000.0);
             rest_since = None;
             next += 1;
@@ -231,5 +252,6 @@ pub fn run(
         seed: cfg.seed,
         counts_per_mm: rig.counts_per_mm(),
         records,
+        move_starts,
     })
 }

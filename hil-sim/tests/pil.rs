@@ -58,3 +58,53 @@ fn fig18_pil_is_bit_identical_to_the_host() {
         host.records.len()
     );
 }
+
+/// Carriage placement with the firmware in the loop: the same carriage-space moves give the same
+/// arrival errors, to the bit, as the core in-process.
+#[test]
+#[ignore = "needs the QEMU firmware ELF (cargo fw-qemu); run by .ci/test"]
+fn placement_pil_matches_the_host() {
+    let elf = std::env::var_os("BELT_DRIVE_ELF")
+        .map(Into::into)
+        .unwrap_or_else(|| PilOptions::default_elf(None));
+    let plant = PlantParams::paper_rig();
+    let cal = eval::calibrate_plant(&plant, &mut |_, _| {}).unwrap();
+    let moves = [
+        (150.0, 80.0, 2000.0),
+        (100.0, 60.0, 1500.0),
+        (102.0, 20.0, 500.0),
+        (60.0, 100.0, 3000.0),
+    ];
+    let host = hil_sim::placement::arrival_errors_in_process(
+        &plant,
+        &cal.params,
+        ModelKind::Table,
+        30.0,
+        &moves,
+        5,
+    )
+    .unwrap();
+    let mut opts = PilOptions::new(elf);
+    opts.log = LogSink::Discard;
+    let mut fw = hil_sim::pil::PilController::start(&opts).unwrap();
+    let rig = estimator_core::rig::Rig::PAPER;
+    let mut blob = vec![0u8; estimator_core::blob::MAX_BYTES];
+    let n = estimator_core::blob::encode(&cal.params, &rig, &mut blob).unwrap();
+    fw.load_calibration(&blob[..n]).unwrap();
+    let pil = hil_sim::placement::arrival_errors(
+        &mut fw,
+        &plant,
+        &rig,
+        ModelKind::Table,
+        30.0,
+        &moves,
+        5,
+    )
+    .unwrap();
+    assert_eq!(fw.shutdown(0).unwrap(), 0);
+    assert_eq!(
+        host, pil,
+        "arrival errors (um): host {host:?}, firmware {pil:?}"
+    );
+    eprintln!("placement: firmware under QEMU = host, arrival errors {pil:?} um");
+}

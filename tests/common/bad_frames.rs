@@ -116,7 +116,8 @@ pub fn bad_frame(rng: &mut Rng, out: &mut [u8; estimator_core::link::MAX_FRAME +
         // Correct CRC, a kind the drive does not accept (unused or a reply kind).
         3 => {
             raw[0] = if rng.below(2) == 0 {
-                0x0f + rng.below(0x70) as u8
+                // The first kind after the last request kind, up to 0x7f.
+                kind::MOVE_CARRIAGE + 1 + rng.below(0x7f - kind::MOVE_CARRIAGE as u32) as u8
             } else {
                 kind::ACK + rng.below(0x7f) as u8
             };

@@ -1,0 +1,253 @@
+//! Carriage placement: moves commanded in carriage space (`Command::MoveCarriageTo`), judged by
+//! the linear scale once the carriage has settled.
+//!
+//! The drive turns each carriage target into a motor target with the active model's inverse
+//! along the planned path; the motor still runs a plain trapezoid, so its velocity and
+//! acceleration stay within the move's limits and never step.
+
+use estimator_core::drive::{Command, Drive};
+use estimator_core::model::{ModelKind, ModelParams};
+use estimator_core::rig::Rig;
+
+use crate::controller::{Controller, InProcess};
+use crate::eval::drive_config;
+use crate::plant::{Plant, PlantParams};
+use crate::run::KEEPALIVE_TICKS;
+
+/// One move to rest: carriage target (mm), speed (mm/s), acceleration (mm/s^2).
+pub type Move = (f64, f64, f64);
+
+/// Rest after arrival before the scale is read, seconds.
+pub const SETTLE_S: f64 = 0.3;
+
+/// Arrival error of every move, micrometres: scale reading at rest minus the carriage target.
+pub fn arrival_errors(
+    controller: &mut dyn Controller,
+    plant_params: &PlantParams,
+    rig: &Rig,
+    model: ModelKind,
+    start_mm: f64,
+    moves: &[Move],
+    seed: u64,
+) -> Result<Vec<f64>, String> {
+    let dt = 1.0 / 2000.0;
+    let mut plant = Plant::new(plant_params, start_mm, seed);
+    let sample = |p: &Plant| estimator_core::drive::Sample {
+        motor_counter: p.motor_counter(),
+        scale_counter: p.scale_counter(),
+    };
+    let e = |e: crate::controller::ControlError| e.to_string();
+    controller.step(sample(&plant)).map_err(e)?;
+    let motor_um = (plant.motor_counts() as f64 / rig.counts_per_mm() * 1000.0).round() as i32;
+    let scale_um =
+        (plant.scale_counts() as f64 / plant.scale_counts_per_mm() * 1000.0).round() as i32;
+    for c in [
+        Command::Home {
+            position_um: motor_um,
+            scale_um,
+        },
+        Command::Enable,
+        Command::SelectModel(model),
+    ] {
+        controller.command(c).map_err(e)?;
+    }
+    let mut tick: u64 = 0;
+    let mut errors = Vec::with_capacity(moves.len());
+    for (k, &(to_mm, v, a)) in moves.iter().enumerate() {
+        controller
+            .command(Command::MoveCarriageTo {
+                target_um: (to_mm * 1000.0).round() as i32,
+                velocity_um_s: (v * 1000.0).round() as u32,
+                accel_um_s2: (a * 1000.0).round() as u32,
+            })
+            .map_err(|err| format!("move {k}: {err}"))?;
+        let mut rest_ticks = 0u64;
+        let settle = (SETTLE_S / dt) as u64;
+        loop {
+            if tick.is_multiple_of(KEEPALIVE_TICKS) {
+                controller.keepalive().map_err(e)?;
+            }
+            let out = controller.step(sample(&plant)).map_err(e)?;
+            if !out.telemetry.faults.is_clear() {
+                return Err(format!("move {k}: fault {}", out.telemetry.faults));
+            }
+            plant.step(out.current_a.to_num::<f64>(), dt);
+            tick += 1;
+            rest_ticks = if out.telemetry.moving {
+                0
+            } else {
+                rest_ticks + 1
+            };
+            if rest_ticks >= settle {
+                break;
+            }
+            if tick > 10_000_000 {
+                return Err(format!("move {k}: never came to rest"));
+            }
+        }
+        let scale_mm = plant.scale_counts() as f64 / plant.scale_counts_per_mm();
+        errors.push((scale_mm - to_mm) * 1000.0);
+    }
+    Ok(errors)
+}
+
+/// [`arrival_errors`] with the core in this process, `params` loaded.
+pub fn arrival_errors_in_process(
+    plant: &PlantParams,
+    params: &ModelParams,
+    model: ModelKind,
+    start_mm: f64,
+    moves: &[Move],
+    seed: u64,
+) -> Result<Vec<f64>, String> {
+    let cfg = drive_config(params, model);
+    let drive = Drive::new(&cfg).map_err(|e| format!("drive configuration: {e}"))?;
+    arrival_errors(
+        &mut InProcess(drive),
+        plant,
+        &cfg.rig,
+        model,
+        start_mm,
+        moves,
+        seed,
+    )
+}
+
+/// How well a compensator places the carriage over a scenario run in carriage space.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct Positioning {
+    /// RMS of (scale at rest - carriage target) over the moves that end at rest, um.
+    pub arrival_rms_um: f64,
+    /// Largest |arrival error|, um.
+    pub arrival_max_um: f64,
+    /// RMS of (scale - planned carriage set-point) while moving, um.
+    pub tracking_rms_um: f64,
+    /// Length of the run, seconds.
+    pub cycle_time_s: f64,
+    /// Motor set-point's peak speed over the move's limit (10-tick windows), worst move.
+    pub peak_velocity_ratio: f64,
+    /// Motor set-point's peak acceleration over the move's limit (two 10-tick windows), worst move.
+    pub peak_accel_ratio: f64,
+    /// Moves that end at rest (the arrival statistics' sample).
+    pub moves_at_rest: usize,
+}
+
+/// The set-point's speed and acceleration are measured over windows long enough that its
+/// whole-count rounding (up to one count at each end) stays within 1 % of the move's limits:
+/// at least this many ticks, and at least 100 counts of travel or 200 counts of second
+/// difference at the limit.
+const RATIO_WINDOW_MIN: usize = 10;
+
+/// Positioning figures of `trace`, a run of `scenario` in carriage space with `model` active;
+/// the planned carriage set-point is the motor set-point plus the same fixed-point model replayed
+/// along it.
+pub fn positioning(
+    scenario: &crate::scenario::Scenario,
+    trace: &crate::run::Trace,
+    coeffs: &estimator_core::model::ModelCoeffs,
+    model: ModelKind,
+) -> Positioning {
+    use estimator_core::model::{estimate, ModelState};
+    let cpm = trace.counts_per_mm;
+    let recs = &trace.records;
+    let n = recs.len();
+    // Arrival: the last tick before the next command (or the end), for moves that end at rest.
+    let mut arrivals = Vec::new();
+    for (k, m) in scenario.moves.iter().enumerate() {
+        if m.retarget_after_ms.is_some() {
+            continue;
+        }
+        let end = trace.move_starts.get(k + 1).copied().unwrap_or(n);
+        if end == 0 || end > n {
+            continue;
+        }
+        let r = &recs[end - 1];
+        if !r.out.telemetry.moving {
+            arrivals.push((r.x_ls_mm - m.to_mm) * 1000.0);
+        }
+    }
+    // Tracking while moving.
+    let mut state = ModelState::new(recs.first().map_or(0, |r| r.setpoint_counts));
+    let (mut sq, mut count) = (0.0, 0usize);
+    for r in recs {
+        let y = estimate(coeffs, model, &mut state, r.setpoint_counts).to_num::<f64>();
+        if r.out.telemetry.moving {
+            let planned_mm = r.setpoint_counts as f64 / cpm + y / 1000.0;
+            let e = (r.x_ls_mm - planned_mm) * 1000.0;
+            sq += e * e;
+            count += 1;
+        }
+    }
+    // Limits of each move, against its stretch of set-points.
+    let dt = if n >= 2 {
+        recs[1].t_s - recs[0].t_s
+    } else {
+        1.0 / 2000.0
+    };
+    let (mut v_ratio, mut a_ratio) = (0.0f64, 0.0f64);
+    for (k, m) in scenario.moves.iter().enumerate() {
+        let Some(&start) = trace.move_starts.get(k) else {
+            break;
+        };
+        let end = trace.move_starts.get(k + 1).copied().unwrap_or(n);
+        let v_lim = m.velocity_mm_s * cpm * dt; // counts per tick
+        let a_lim = m.accel_mm_s2 * cpm * dt * dt; // counts per tick^2
+        let wv = RATIO_WINDOW_MIN.max((100.0 / v_lim).ceil() as usize);
+        let wa = RATIO_WINDOW_MIN.max((200.0 / a_lim).sqrt().ceil() as usize);
+        let s = |j: usize| recs[j].setpoint_counts as f64;
+        for i in (start + wv)..end {
+            v_ratio = v_ratio.max((s(i) - s(i - wv)).abs() / wv as f64 / v_lim);
+        }
+        for i in (start + 2 * wa)..end {
+            let a = (s(i) - 2.0 * s(i - wa) + s(i - 2 * wa)).abs() / (wa * wa) as f64;
+            a_ratio = a_ratio.max(a / a_lim);
+        }
+    }
+    let rms = |v: &[f64]| {
+        if v.is_empty() {
+            0.0
+        } else {
+            (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt()
+        }
+    };
+    Positioning {
+        arrival_rms_um: rms(&arrivals),
+        arrival_max_um: arrivals.iter().fold(0.0f64, |m, x| m.max(x.abs())),
+        tracking_rms_um: if count == 0 {
+            0.0
+        } else {
+            (sq / count as f64).sqrt()
+        },
+        cycle_time_s: n as f64 * dt,
+        peak_velocity_ratio: v_ratio,
+        peak_accel_ratio: a_ratio,
+        moves_at_rest: arrivals.len(),
+    }
+}
+
+/// Runs `scenario` in carriage space with the core in this process and `model` active.
+pub fn run_carriage_space(
+    scenario: &crate::scenario::Scenario,
+    plant: &PlantParams,
+    params: &ModelParams,
+    model: ModelKind,
+    seed: u64,
+    progress: &mut dyn FnMut(f64),
+) -> Result<crate::run::Trace, String> {
+    let cfg = drive_config(params, model);
+    let drive = Drive::new(&cfg).map_err(|e| format!("drive configuration: {e}"))?;
+    let rc = crate::run::RunConfig {
+        seed,
+        carriage_space: true,
+        ..crate::run::RunConfig::default()
+    };
+    crate::run::run(
+        scenario,
+        plant,
+        &cfg.rig,
+        &mut InProcess(drive),
+        &rc,
+        progress,
+    )
+    .map_err(|e| format!("{}: {e}", scenario.name))
+}
