@@ -438,7 +438,8 @@ pub fn check(c: &Coeffs, s: &mut State, input: Inputs) -> u16 {
         s.saturation_ticks = s.saturation_ticks.saturating_sub(1);
     }
 
-    // Speed over the window: v = x - x[-W].
+    // Speed over the window: v = x - x[-W]. `wrapping_sub` is exact: the encoder refuses any
+    // step above its plausibility limit, so positions W ticks apart differ by far less than 2^31.
     let slot = s.next & MASK;
     let oldest = s.history[slot];
     let v = x.wrapping_sub(oldest);
