@@ -240,6 +240,12 @@ struct Limits {
     fault_max_counts: i32,
     max_velocity_um_s: u32,
     max_accel_um_s2: u32,
+}
+
+/// A move's limits to the profile's grid (I40F24 counts per tick, per tick²) per um/s and
+/// um/s², Q32: built in integers when a command arrives. Cold: kept apart from [`Limits`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct MoveScale {
     velocity_bits_per_um_s_q32: u64,
     accel_bits_per_um_s2_q32: u64,
 }
@@ -279,12 +285,23 @@ pub struct Drive {
     models: ModelCoeffs,
     /// Limits the trajectory was last built with (velocity um/s, accel um/s^2).
     move_limits: (u32, u32),
+    move_scale: MoveScale,
     /// Late or missed ticks reported by the board, since start.
     missed_ticks: u32,
     /// Scale samples refused by its plausibility check, since start.
     scale_glitches: u32,
     rig: Rig,
     rate_hz: f64,
+}
+
+/// A raw counter that counts up for positive travel: negated if the wiring counts down.
+#[inline(always)]
+fn counting_up(raw: u16, inverted: bool) -> u16 {
+    if inverted {
+        raw.wrapping_neg()
+    } else {
+        raw
+    }
 }
 
 fn finite(v: f64, field: &'static str) -> Result<f64, ConfigError> {
@@ -339,8 +356,8 @@ impl Drive {
             fault_max_counts: to_i32((hi + margin) * cpm, "drive.travel_margin_mm")?,
             max_velocity_um_s: (vmax * 1000.0) as u32,
             max_accel_um_s2: (amax * 1000.0) as u32,
-            // Profile grid (I40F24 counts per tick, per tick²) per um/s and um/s², Q32: a move's
-            // limits are built from them in integers when its command arrives.
+        };
+        let move_scale = MoveScale {
             velocity_bits_per_um_s_q32: (cpm / 1000.0 / rate_hz * 72_057_594_037_927_936.0) as u64,
             accel_bits_per_um_s2_q32: (cpm / 1000.0 / (rate_hz * rate_hz)
                 * 72_057_594_037_927_936.0) as u64,
@@ -382,6 +399,7 @@ impl Drive {
             scale_state: encoder::State::new(0),
             trajectory,
             move_limits: (limits.max_velocity_um_s, limits.max_accel_um_s2),
+            move_scale,
             pid,
             pid_state: pid::State::new(),
             models,
@@ -615,8 +633,8 @@ impl Drive {
             let bits = (x as u128 * per_q32 as u128) >> 32;
             I40F24::from_bits(bits.min(i64::MAX as u128) as i64)
         };
-        let v = grid(velocity_um_s, self.limits.velocity_bits_per_um_s_q32);
-        let a = grid(accel_um_s2, self.limits.accel_bits_per_um_s2_q32);
+        let v = grid(velocity_um_s, self.move_scale.velocity_bits_per_um_s_q32);
+        let a = grid(accel_um_s2, self.move_scale.accel_bits_per_um_s2_q32);
         trajectory::Coeffs::new(v, a, a).map_err(|e| match e.field() {
             "trajectory.velocity_mm_s" => CommandError::VelocityOutOfRange,
             _ => CommandError::AccelOutOfRange,
@@ -685,11 +703,7 @@ impl Drive {
     /// One control tick. Integer-only, allocation-free, bounded time; never panics.
     pub fn step(&mut self, sample: Sample) -> Output {
         self.tick = self.tick.wrapping_add(1);
-        let motor_raw = if self.polarity.motor_encoder_inverted {
-            sample.motor_counter.wrapping_neg()
-        } else {
-            sample.motor_counter
-        };
+        let motor_raw = counting_up(sample.motor_counter, self.polarity.motor_encoder_inverted);
         let x = match self.motor.update(&mut self.motor_state, motor_raw) {
             Ok(x) => x,
             Err(_) => {
@@ -699,11 +713,7 @@ impl Drive {
                 self.motor_state.position_counts()
             }
         };
-        let scale_raw = if self.polarity.scale_inverted {
-            sample.scale_counter.wrapping_neg()
-        } else {
-            sample.scale_counter
-        };
+        let scale_raw = counting_up(sample.scale_counter, self.polarity.scale_inverted);
         // The scale only informs calibration; a glitch there is counted and keeps the last good
         // reading.
         let scale = match self.scale.update(&mut self.scale_state, scale_raw) {

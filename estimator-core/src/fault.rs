@@ -97,15 +97,6 @@ impl Faults {
             .filter(move |(b, _)| self.0 & b != 0)
             .map(|(_, n)| n)
     }
-
-    /// The lowest set bit, if any.
-    pub fn first(self) -> Option<u16> {
-        if self.0 == 0 {
-            None
-        } else {
-            Some(self.0 & self.0.wrapping_neg())
-        }
-    }
 }
 
 impl core::fmt::Display for Faults {
@@ -497,7 +488,6 @@ mod tests {
         assert_eq!(format!("{f}"), "following_error+stall");
         assert_eq!(format!("{}", Faults::NONE), "none");
         assert_eq!(format!("{}", Faults(1 << 15)), "unknown(0x8000)");
-        assert_eq!(f.first(), Some(Faults::FOLLOWING_ERROR));
         // Every bit has exactly one name.
         let mut all = 0;
         for (bit, _) in Faults::NAMES {

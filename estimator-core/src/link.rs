@@ -214,7 +214,7 @@ pub enum Request {
     },
 }
 
-/// One tick's telemetry in wire form (31 bytes).
+/// One tick's telemetry in wire form ([`TELEMETRY_LEN`] bytes).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct WireTelemetry {
     /// Tick counter since start.
@@ -353,11 +353,11 @@ pub enum Reply {
         /// Reason-specific detail (e.g. the drive's refusal code), 0 if none.
         detail: u8,
     },
-    /// Answer to [`Request::Status`] (payload 24).
+    /// Answer to [`Request::Status`] (payload [`STATUS_LEN`]).
     Status(WireStatus),
-    /// Streamed telemetry (payload 31).
+    /// Streamed telemetry (payload [`TELEMETRY_LEN`]).
     Telemetry(WireTelemetry),
-    /// PIL: answer to [`Request::Sample`] (payload 39).
+    /// PIL: answer to [`Request::Sample`] (payload 4 + [`TELEMETRY_LEN`] + 4).
     Answer {
         /// Current command, amperes, bits of an `I16F16`.
         current_a_bits: i32,

@@ -3,45 +3,11 @@
 use estimator_core::drive::{Command, CommandError, Drive, DriveConfig, Faults, Sample};
 use estimator_core::model::ModelKind;
 
-/// Rigid stage: 1.09 m/s^2 per ampere (the PID defaults' design point), light viscous loss.
-struct Mass {
-    x_counts: f64,
-    v_counts_s: f64,
-    cpm: f64,
-}
-
-impl Mass {
-    fn new(x_mm: f64) -> Mass {
-        let cpm = estimator_core::rig::Rig::PAPER.counts_per_mm();
-        Mass {
-            x_counts: x_mm * cpm,
-            v_counts_s: 0.0,
-            cpm,
-        }
-    }
-    fn sample(&self) -> Sample {
-        Sample {
-            motor_counter: (self.x_counts.floor() as i64) as u16,
-            scale_counter: 0,
-        }
-    }
-    fn step(&mut self, current_a: f64, dt: f64) {
-        let a_counts_s2 = current_a * 1.09e3 * self.cpm - 2.0 * self.v_counts_s;
-        self.v_counts_s += a_counts_s2 * dt;
-        self.x_counts += self.v_counts_s * dt;
-    }
-}
+mod common;
+use common::{homed_with, mv, Mass};
 
 fn homed(x_mm: f64) -> (Drive, Mass) {
-    let mut d = Drive::new(&DriveConfig::paper_rig()).unwrap();
-    let m = Mass::new(x_mm);
-    d.step(m.sample());
-    d.command(Command::Home {
-        position_um: (x_mm * 1000.0) as i32,
-        scale_um: 0,
-    })
-    .unwrap();
-    (d, m)
+    homed_with(&DriveConfig::paper_rig(), x_mm)
 }
 
 fn run(d: &mut Drive, m: &mut Mass, ticks: usize) -> Vec<estimator_core::drive::Output> {
@@ -54,14 +20,6 @@ fn run(d: &mut Drive, m: &mut Mass, ticks: usize) -> Vec<estimator_core::drive::
             o
         })
         .collect()
-}
-
-fn mv(target_mm: f64) -> Command {
-    Command::MoveTo {
-        target_um: (target_mm * 1000.0) as i32,
-        velocity_um_s: 80_000,
-        accel_um_s2: 1_000_000,
-    }
 }
 
 #[test]
@@ -297,14 +255,7 @@ fn following_error_fault_when_the_motor_lags() {
     // Saturation off: at 8 A for 30 ms it would otherwise name this lag first.
     let mut cfg = DriveConfig::paper_rig();
     cfg.faults.saturation_time_s = 0.0;
-    let mut d = Drive::new(&cfg).unwrap();
-    let m = Mass::new(50.0);
-    d.step(m.sample());
-    d.command(Command::Home {
-        position_um: 50_000,
-        scale_um: 0,
-    })
-    .unwrap();
+    let (mut d, m) = homed_with(&cfg, 50.0);
     d.command(Command::Enable).unwrap();
     d.command(mv(100.0)).unwrap();
     // The motor moves, but at a third of the set-point's speed (a load it can barely drag):
@@ -500,14 +451,7 @@ fn carriage_moves_put_the_estimated_carriage_on_target() {
             model: estimator_core::drive::Models::Params(&params),
             ..DriveConfig::paper_rig()
         };
-        let mut d = Drive::new(&cfg).unwrap();
-        let mut m = Mass::new(50.0);
-        d.step(m.sample());
-        d.command(Command::Home {
-            position_um: 50_000,
-            scale_um: 0,
-        })
-        .unwrap();
+        let (mut d, mut m) = homed_with(&cfg, 50.0);
         d.command(Command::Enable).unwrap();
         d.command(Command::SelectModel(model)).unwrap();
         let carriage = |target_mm: f64| Command::MoveCarriageTo {

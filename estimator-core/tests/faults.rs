@@ -185,60 +185,15 @@ fn following_error_limit_grows_with_speed() {
 
 // ---- drive level ----------------------------------------------------------------------------
 
-/// Rigid stage: 1.09 m/s^2 per ampere, light viscous loss (as tests/drive.rs).
-struct Mass {
-    x_counts: f64,
-    v_counts_s: f64,
-    sign: f64,
-}
-
-impl Mass {
-    fn new(x_mm: f64) -> Mass {
-        Mass {
-            x_counts: x_mm * cpm(),
-            v_counts_s: 0.0,
-            sign: 1.0,
-        }
-    }
-    fn sample(&self) -> Sample {
-        Sample {
-            motor_counter: (self.x_counts.floor() as i64) as u16,
-            scale_counter: 0,
-        }
-    }
-    fn step(&mut self, current_a: f64) {
-        let a = self.sign * current_a * 1.09e3 * cpm() - 2.0 * self.v_counts_s;
-        self.v_counts_s += a / RATE_HZ;
-        self.x_counts += self.v_counts_s / RATE_HZ;
-    }
-}
-
-fn drive_with(cfg: DriveConfig<'static>, x_mm: f64) -> (Drive, Mass) {
-    let mut d = Drive::new(&cfg).unwrap();
-    let m = Mass::new(x_mm);
-    d.step(m.sample());
-    d.command(Command::Home {
-        position_um: (x_mm * 1000.0) as i32,
-        scale_um: 0,
-    })
-    .unwrap();
-    (d, m)
-}
-
-fn mv(target_mm: f64) -> Command {
-    Command::MoveTo {
-        target_um: (target_mm * 1000.0) as i32,
-        velocity_um_s: 80_000,
-        accel_um_s2: 1_000_000,
-    }
-}
+mod common;
+use common::{homed_with, mv, Mass};
 
 #[test]
 fn amplifier_enable_follows_enabled_and_no_fault() {
-    let (mut d, mut m) = drive_with(DriveConfig::paper_rig(), 50.0);
+    let (mut d, mut m) = homed_with(&DriveConfig::paper_rig(), 50.0);
     let tick = |d: &mut Drive, m: &mut Mass| {
         let o = d.step(m.sample());
-        m.step(o.current_a.to_num());
+        m.step(o.current_a.to_num(), 1.0 / RATE_HZ);
         o.telemetry.amplifier_enabled
     };
     assert!(!tick(&mut d, &mut m), "disabled at start");
@@ -276,7 +231,7 @@ fn moves_are_refused_until_homed() {
 
 #[test]
 fn encoder_jump_loses_the_home() {
-    let (mut d, m) = drive_with(DriveConfig::paper_rig(), 50.0);
+    let (mut d, m) = homed_with(&DriveConfig::paper_rig(), 50.0);
     d.command(Command::Enable).unwrap();
     d.step(m.sample());
     let s = m.sample();
@@ -293,20 +248,20 @@ fn encoder_jump_loses_the_home() {
 
 #[test]
 fn link_watchdog_trips_after_its_timeout_and_not_before() {
-    let (mut d, mut m) = drive_with(DriveConfig::paper_rig(), 50.0);
+    let (mut d, mut m) = homed_with(&DriveConfig::paper_rig(), 50.0);
     d.command(Command::Enable).unwrap();
     let n = d.monitor().link_timeout_ticks();
     assert_eq!(n, 1000);
     for _ in 0..n - 1 {
         let o = d.step(m.sample());
         assert!(o.telemetry.faults.is_clear());
-        m.step(o.current_a.to_num());
+        m.step(o.current_a.to_num(), 1.0 / RATE_HZ);
     }
     d.link_alive();
     for _ in 0..n - 1 {
         let o = d.step(m.sample());
         assert!(o.telemetry.faults.is_clear());
-        m.step(o.current_a.to_num());
+        m.step(o.current_a.to_num(), 1.0 / RATE_HZ);
     }
     let o = d.step(m.sample());
     assert_eq!(o.telemetry.faults, Faults(Faults::LINK_TIMEOUT));
@@ -316,7 +271,7 @@ fn link_watchdog_trips_after_its_timeout_and_not_before() {
 
 #[test]
 fn a_late_tick_latches_deadline_missed_only_while_enabled() {
-    let (mut d, m) = drive_with(DriveConfig::paper_rig(), 50.0);
+    let (mut d, m) = homed_with(&DriveConfig::paper_rig(), 50.0);
     d.missed_ticks(3);
     assert!(d.step(m.sample()).telemetry.faults.is_clear());
     assert_eq!(d.missed_tick_count(), 3);
@@ -332,7 +287,7 @@ fn a_late_tick_latches_deadline_missed_only_while_enabled() {
 
 #[test]
 fn a_scale_glitch_is_counted_not_a_motor_fault() {
-    let (mut d, m) = drive_with(DriveConfig::paper_rig(), 50.0);
+    let (mut d, m) = homed_with(&DriveConfig::paper_rig(), 50.0);
     d.command(Command::Enable).unwrap();
     d.step(m.sample());
     let o = d.step(Sample {
@@ -346,14 +301,14 @@ fn a_scale_glitch_is_counted_not_a_motor_fault() {
 #[test]
 fn reversed_motor_wires_trip_runaway_and_polarity_setting_fixes_them() {
     // Wires reversed: a runaway (or, at worst, the following error) stops it.
-    let (mut d, mut m) = drive_with(DriveConfig::paper_rig(), 100.0);
+    let (mut d, mut m) = homed_with(&DriveConfig::paper_rig(), 100.0);
     m.sign = -1.0;
     d.command(Command::Enable).unwrap();
     d.command(mv(150.0)).unwrap();
     let mut trip = None;
     for k in 0..4000 {
         let o = d.step(m.sample());
-        m.step(o.current_a.to_num());
+        m.step(o.current_a.to_num(), 1.0 / RATE_HZ);
         if !o.telemetry.faults.is_clear() {
             trip = Some((k, o.telemetry.faults));
             break;
@@ -369,7 +324,7 @@ fn reversed_motor_wires_trip_runaway_and_polarity_setting_fixes_them() {
         },
         ..DriveConfig::paper_rig()
     };
-    let (mut d, mut m) = drive_with(cfg, 100.0);
+    let (mut d, mut m) = homed_with(&cfg, 100.0);
     m.sign = -1.0;
     d.command(Command::Enable).unwrap();
     d.command(mv(150.0)).unwrap();
@@ -377,7 +332,7 @@ fn reversed_motor_wires_trip_runaway_and_polarity_setting_fixes_them() {
         d.link_alive();
         let o = d.step(m.sample());
         assert!(o.telemetry.faults.is_clear(), "{}", o.telemetry.faults);
-        m.step(o.current_a.to_num());
+        m.step(o.current_a.to_num(), 1.0 / RATE_HZ);
     }
     let t = d.telemetry();
     assert!(!t.moving);
@@ -414,7 +369,7 @@ fn inverted_encoder_counts_the_other_way() {
 #[test]
 fn a_jammed_axis_trips_stall() {
     // The counter freezes (jam or encoder lost) while the drive pushes.
-    let (mut d, mut m) = drive_with(DriveConfig::paper_rig(), 50.0);
+    let (mut d, mut m) = homed_with(&DriveConfig::paper_rig(), 50.0);
     d.command(Command::Enable).unwrap();
     d.command(Command::MoveTo {
         target_um: 52_000,
@@ -424,7 +379,7 @@ fn a_jammed_axis_trips_stall() {
     .unwrap();
     for _ in 0..100 {
         let o = d.step(m.sample());
-        m.step(o.current_a.to_num());
+        m.step(o.current_a.to_num(), 1.0 / RATE_HZ);
     }
     let frozen = m.sample();
     let mut trip = None;

@@ -143,18 +143,33 @@ pub fn table3(
         .collect()
 }
 
-/// The JSON object of `hil-sim evaluate --json`.
-pub fn to_json(scenario: &str, samples: usize, table: &[(&'static str, ErrorStats)]) -> String {
-    let models: serde_json::Map<String, serde_json::Value> = table
-        .iter()
-        .map(|(n, s)| {
-            (
-                n.to_string(),
-                serde_json::to_value(s).unwrap_or(serde_json::Value::Null),
-            )
-        })
-        .collect();
-    serde_json::json!({ "scenario": scenario, "samples": samples, "models": models }).to_string()
+/// The JSON object of `hil-sim evaluate --json`: Table 3 (`models`) and carriage placement
+/// (`positioning`), each keyed by estimator name.
+pub fn to_json(
+    scenario: &str,
+    samples: usize,
+    table: &[(&'static str, ErrorStats)],
+    positioning: &[(&'static str, crate::placement::Positioning)],
+) -> String {
+    fn by_name<T: serde::Serialize>(
+        rows: &[(&'static str, T)],
+    ) -> serde_json::Map<String, serde_json::Value> {
+        rows.iter()
+            .map(|(n, v)| {
+                (
+                    n.to_string(),
+                    serde_json::to_value(v).unwrap_or(serde_json::Value::Null),
+                )
+            })
+            .collect()
+    }
+    serde_json::json!({
+        "scenario": scenario,
+        "samples": samples,
+        "models": by_name(table),
+        "positioning": by_name(positioning),
+    })
+    .to_string()
 }
 
 /// Runs `scenario` with the firmware under QEMU in the loop: the calibration goes over the link

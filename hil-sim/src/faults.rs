@@ -13,7 +13,7 @@ use estimator_core::rig::Rig;
 use crate::controller::{ControlError, Controller, InProcess};
 use crate::eval::drive_config;
 use crate::plant::{Plant, PlantParams};
-use crate::run::{RunError, KEEPALIVE_TICKS};
+use crate::run::{home_and_enable, RunError, KEEPALIVE_TICKS};
 use crate::scenario::{Scenario, PRESETS};
 
 /// What goes wrong.
@@ -219,19 +219,7 @@ pub fn run_class(
         injection,
         frozen: None,
     };
-    let here_um = (plant.motor_counts() as f64 / rig.counts_per_mm() * 1000.0).round() as i32;
-    let scale_um =
-        (plant.scale_counts() as f64 / plant.scale_counts_per_mm() * 1000.0).round() as i32;
-    controller
-        .step(sensors.sample(&plant, false, false))
-        .map_err(control)?;
-    controller
-        .command(Command::Home {
-            position_um: here_um,
-            scale_um,
-        })
-        .map_err(control)?;
-    controller.command(Command::Enable).map_err(control)?;
+    home_and_enable(controller, &plant, rig).map_err(control)?;
     let (to_mm, v, a) = injection.motion();
     controller
         .command(Command::MoveTo {

@@ -237,20 +237,10 @@ fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), String> {
         ));
     }
     if json {
-        let mut v: serde_json::Value =
-            serde_json::from_str(&eval::to_json(&trace.scenario, trace.records.len(), &table))
-                .map_err(|e| e.to_string())?;
-        let pos: serde_json::Map<String, serde_json::Value> = placed
-            .iter()
-            .map(|(n, p)| {
-                (
-                    n.to_string(),
-                    serde_json::to_value(p).unwrap_or(serde_json::Value::Null),
-                )
-            })
-            .collect();
-        v["positioning"] = serde_json::Value::Object(pos);
-        println!("{v}");
+        println!(
+            "{}",
+            eval::to_json(&trace.scenario, trace.records.len(), &table, &placed)
+        );
     } else {
         print!(
             "{}",

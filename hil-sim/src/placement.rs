@@ -12,7 +12,7 @@ use estimator_core::rig::Rig;
 use crate::controller::{Controller, InProcess};
 use crate::eval::drive_config;
 use crate::plant::{Plant, PlantParams};
-use crate::run::KEEPALIVE_TICKS;
+use crate::run::{home_and_enable, sample, KEEPALIVE_TICKS};
 
 /// One move to rest: carriage target (mm), speed (mm/s), acceleration (mm/s^2).
 pub type Move = (f64, f64, f64);
@@ -32,25 +32,9 @@ pub fn arrival_errors(
 ) -> Result<Vec<f64>, String> {
     let dt = 1.0 / 2000.0;
     let mut plant = Plant::new(plant_params, start_mm, seed);
-    let sample = |p: &Plant| estimator_core::drive::Sample {
-        motor_counter: p.motor_counter(),
-        scale_counter: p.scale_counter(),
-    };
     let e = |e: crate::controller::ControlError| e.to_string();
-    controller.step(sample(&plant)).map_err(e)?;
-    let motor_um = (plant.motor_counts() as f64 / rig.counts_per_mm() * 1000.0).round() as i32;
-    let scale_um =
-        (plant.scale_counts() as f64 / plant.scale_counts_per_mm() * 1000.0).round() as i32;
-    for c in [
-        Command::Home {
-            position_um: motor_um,
-            scale_um,
-        },
-        Command::Enable,
-        Command::SelectModel(model),
-    ] {
-        controller.command(c).map_err(e)?;
-    }
+    home_and_enable(controller, &plant, rig).map_err(e)?;
+    controller.command(Command::SelectModel(model)).map_err(e)?;
     let mut tick: u64 = 0;
     let mut errors = Vec::with_capacity(moves.len());
     for (k, &(to_mm, v, a)) in moves.iter().enumerate() {

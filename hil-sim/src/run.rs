@@ -130,6 +130,33 @@ fn budget_s(s: &Scenario) -> f64 {
     2.0 * t + 5.0
 }
 
+/// What the board samples: the plant's two raw counters.
+pub fn sample(p: &Plant) -> Sample {
+    Sample {
+        motor_counter: p.motor_counter(),
+        scale_counter: p.scale_counter(),
+    }
+}
+
+/// Homing as on a machine, then `Enable`: one tick at rest so the drive has seen the counters,
+/// then both encoders get positions tied to the stage, not to where this run happens to start,
+/// so calibrations carry over between runs.
+pub fn home_and_enable(
+    controller: &mut dyn Controller,
+    plant: &Plant,
+    rig: &Rig,
+) -> Result<(), ControlError> {
+    let motor_um = (plant.motor_counts() as f64 / rig.counts_per_mm() * 1000.0).round() as i32;
+    let scale_um =
+        (plant.scale_counts() as f64 / plant.scale_counts_per_mm() * 1000.0).round() as i32;
+    controller.step(sample(plant))?;
+    controller.command(Command::Home {
+        position_um: motor_um,
+        scale_um,
+    })?;
+    controller.command(Command::Enable)
+}
+
 /// Runs `scenario` through `controller` on a fresh plant. `progress` is called with the fraction
 /// of the scenario done (moves commanded), for progress bars.
 pub fn run(
@@ -142,23 +169,7 @@ pub fn run(
 ) -> Result<Trace, RunError> {
     let dt = 1.0 / cfg.rate_hz;
     let mut plant = Plant::new(plant_params, scenario.start_mm, cfg.seed);
-    // Homing as on a machine: both encoders get positions tied to the stage, not to where this
-    // run happens to start, so calibrations carry over between runs.
-    let start_um = (plant.motor_counts() as f64 / rig.counts_per_mm() * 1000.0).round() as i32;
-    let scale_um =
-        (plant.scale_counts() as f64 / plant.scale_counts_per_mm() * 1000.0).round() as i32;
-    let sample = |p: &Plant| Sample {
-        motor_counter: p.motor_counter(),
-        scale_counter: p.scale_counter(),
-    };
-
-    // One tick at rest so the drive has seen the counters before homing.
-    controller.step(sample(&plant))?;
-    controller.command(Command::Home {
-        position_um: start_um,
-        scale_um,
-    })?;
-    controller.command(Command::Enable)?;
+    home_and_enable(controller, &plant, rig)?;
 
     let budget = budget_s(scenario);
     let mut records = Vec::with_capacity((budget * cfg.rate_hz * 0.6) as usize);
