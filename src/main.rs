@@ -444,7 +444,7 @@ mod app {
     fn log_event(e: &LinkEvent) {
         match *e {
             LinkEvent::None => {}
-            LinkEvent::Applied(Command::MoveTo {
+            LinkEvent::Applied(Command::MoveMotorTo {
                 target_um,
                 velocity_um_s,
                 accel_um_s2,
@@ -454,7 +454,7 @@ mod app {
                 velocity_um_s,
                 accel_um_s2
             ),
-            LinkEvent::Applied(Command::MoveCarriageTo {
+            LinkEvent::Applied(Command::MoveTo {
                 target_um,
                 velocity_um_s,
                 accel_um_s2,
@@ -503,8 +503,8 @@ mod app {
 
     fn command_name(c: &Command) -> &'static str {
         match c {
-            Command::MoveTo { .. } => "move",
-            Command::MoveCarriageTo { .. } => "move carriage",
+            Command::MoveMotorTo { .. } => "move",
+            Command::MoveTo { .. } => "move carriage",
             Command::Stop => "stop",
             Command::Enable => "enable",
             Command::Disable => "disable",

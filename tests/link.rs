@@ -11,12 +11,12 @@ use belt_drive as _;
 #[cfg(target_os = "none")]
 use estimator_core::link::{
     cobs_encode, crc32, encode, kind, Frame, LinkError, Message, Receiver, Reply, Request,
-    WireStatus, WireTelemetry, CHUNK_MAX, MAX_ENCODED, MAX_FRAME, MAX_RAW,
+    WireStatus, WireTelemetry, CHUNK_MAX, MAX_ENCODED, MAX_FRAME, MAX_RAW, MODEL_MAX,
 };
 
 /// The same bytes as the host test `known_wire_bytes` (computed independently in Python).
 #[cfg(target_os = "none")]
-const KNOWN_MOVE: [u8; 20] = [
+const KNOWN_MOVE_MOTOR: [u8; 20] = [
     9, 1, 9, 112, 47, 252, 255, 80, 195, 1, 4, 64, 13, 3, 5, 157, 230, 2, 169, 0,
 ];
 
@@ -55,15 +55,15 @@ mod tests {
     #[test]
     fn known_move_bytes() {
         let mut out = [0u8; MAX_FRAME];
-        let req = Request::Move {
+        let req = Request::MoveMotor {
             target_um: -250_000,
             velocity_um_s: 50_000,
             accel_um_s2: 200_000,
         };
         let n = encode(9, &req, &mut out);
-        defmt::assert_eq!(&out[..n], &KNOWN_MOVE[..]);
+        defmt::assert_eq!(&out[..n], &KNOWN_MOVE_MOTOR[..]);
         let mut rx = Receiver::new();
-        defmt::assert!(feed(&mut rx, &KNOWN_MOVE) == Some(Ok(Frame { seq: 9, msg: req })));
+        defmt::assert!(feed(&mut rx, &KNOWN_MOVE_MOTOR) == Some(Ok(Frame { seq: 9, msg: req })));
     }
 
     #[test]
@@ -131,7 +131,7 @@ mod tests {
         long[MAX_ENCODED + 2] = 0;
         defmt::assert!(feed(&mut rx, &long) == Some(Err(LinkError::Oversize as u8)));
         // One flipped bit.
-        let mut bad = KNOWN_MOVE;
+        let mut bad = KNOWN_MOVE_MOTOR;
         bad[5] ^= 0x10;
         defmt::assert!(feed(&mut rx, &bad) == Some(Err(LinkError::Crc as u8)));
 
@@ -140,14 +140,17 @@ mod tests {
             (&[0x7e, 1], LinkError::UnknownKind),
             (&[kind::STOP, 1, 0], LinkError::BadLength),
             (
-                &[kind::MOVE, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0],
+                &[kind::MOVE_MOTOR, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0],
                 LinkError::OutOfRange,
             ),
             (
-                &[kind::MOVE, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0],
+                &[kind::MOVE_MOTOR, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0],
                 LinkError::OutOfRange,
             ),
-            (&[kind::SELECT_MODEL, 1, 4], LinkError::OutOfRange),
+            (
+                &[kind::SELECT_MODEL, 1, MODEL_MAX + 1],
+                LinkError::OutOfRange,
+            ),
             (&[kind::CAL_CHUNK, 1, 0, 0, 0, 0], LinkError::BadLength),
         ];
         for (body, error) in cases {

@@ -37,7 +37,7 @@ fn main() {
         for k in 0..TICKS {
             if k % 40_000 == 0 {
                 let t = targets[(k / 40_000) % targets.len()];
-                let _ = d.command(Command::MoveTo {
+                let _ = d.command(Command::MoveMotorTo {
                     target_um: t,
                     velocity_um_s: 80_000,
                     accel_um_s2: 1_500_000,
@@ -59,7 +59,7 @@ fn main() {
         for (k, s) in samples.iter().enumerate() {
             if k % 40_000 == 0 {
                 let t = targets[(k / 40_000) % targets.len()];
-                let _ = d2.command(Command::MoveTo {
+                let _ = d2.command(Command::MoveMotorTo {
                     target_um: t,
                     velocity_um_s: 80_000,
                     accel_um_s2: 1_500_000,

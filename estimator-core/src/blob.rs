@@ -1,10 +1,10 @@
 //! The calibration blob: every model's parameters in fixed point, versioned and checksummed, as
 //! `hil-sim calibrate` writes it and the firmware loads it over the link.
 //!
-//! Layout (little-endian), version 1:
+//! Layout (little-endian), version 2 (version 1 had no baselines):
 //! ```text
 //! 0   magic "BDCB"
-//! 4   version u16 (= 1)          6  reserved u16 (= 0)
+//! 4   version u16 (= 2)          6  reserved u16 (= 0)
 //! 8   payload length u32        12  CRC-32 (IEEE) of bytes 0..12 followed by the payload
 //! 16  payload:
 //!     counts_per_mm   u32 Q16.16  the rig it was calibrated on (must match the drive's)
@@ -14,14 +14,18 @@
 //!     model3 bands    forward, reverse: n u16, 0 u16, n x (x um i32, y um I16F16)
 //!     model3 trans.   forward, reverse: n_d u16, n_g0 u16, d step um I16F16, g0 step um I16F16,
 //!                     n_d x n_g0 gaps U11F5 u16
+//!     backlash        offset, backlash                                2 x i32 I16F16 um
+//!     bidir table     rows u16, 0 u16, x0 um i32, step um I24F8, rows x (forward, reverse)
+//!                     I16F16 um
 //! ```
 //! Slopes are I16F16 um per mm, errors I16F16 um, Model 2 rates I8F24 per mm. Decoding checks
 //! every length and count before reading and never panics; a blob that fails any check is
 //! refused with the reason and changes nothing.
 
 use crate::model::{
-    build_coeffs, BandParams, Model1Params, Model2Params, Model3Params, Model3Source, ModelCoeffs,
-    ModelParams, TransitionParams, MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
+    build_coeffs, BacklashParams, BandParams, BidirParams, BidirSource, Model1Params, Model2Params,
+    Model3Params, Model3Source, ModelCoeffs, ModelParams, TransitionParams, MAX_BAND_POINTS,
+    MAX_BIDIR_ROWS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
 };
 use crate::rig::Rig;
 use crate::ConfigError;
@@ -29,12 +33,15 @@ use crate::ConfigError;
 /// First four bytes of every blob.
 pub const MAGIC: [u8; 4] = *b"BDCB";
 /// The version this code writes and reads.
-pub const VERSION: u16 = 1;
+pub const VERSION: u16 = 2;
 const HEADER: usize = 16;
 const BAND_BYTES: usize = 4 + 8 * MAX_BAND_POINTS;
 const TRANSITION_BYTES: usize = 12 + 2 * MAX_TRANSITION_D * MAX_TRANSITION_G0;
-/// Largest blob: header, rig and dead band, Models 1 and 2, two full bands, two full tables.
-pub const MAX_BYTES: usize = HEADER + 8 + 4 * 6 + 4 * 8 + 2 * BAND_BYTES + 2 * TRANSITION_BYTES;
+const BIDIR_BYTES: usize = 12 + 8 * MAX_BIDIR_ROWS;
+/// Largest blob: header, rig and dead band, Models 1 and 2, two full bands, two full tables,
+/// backlash and a full bidirectional table.
+pub const MAX_BYTES: usize =
+    HEADER + 8 + 4 * 6 + 4 * 8 + 2 * BAND_BYTES + 2 * TRANSITION_BYTES + 8 + BIDIR_BYTES;
 
 /// Why a blob was refused.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -249,6 +256,18 @@ pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, 
             }
         }
     }
+    w.fixed(params.backlash.offset_um, Q16, "backlash.offset_um")?;
+    w.fixed(params.backlash.backlash_um, Q16, "backlash.backlash_um")?;
+    let t = &params.bidir_table;
+    let rows = t.rows.min(MAX_BIDIR_ROWS);
+    w.u16(rows as u16)?;
+    w.u16(0)?;
+    w.fixed(t.x0_mm * 1000.0, 0, "bidir_table.x0_mm")?;
+    w.fixed(t.step_mm * 1000.0, 8, "bidir_table.step_mm")?;
+    for i in 0..rows {
+        w.fixed(t.forward_um[i], Q16, "bidir_table.forward_um")?;
+        w.fixed(t.reverse_um[i], Q16, "bidir_table.reverse_um")?;
+    }
     let len = w.at;
     let payload_len = (len - HEADER) as u32;
     let mut head = [0u8; 12];
@@ -268,6 +287,29 @@ struct Parsed<'a> {
     model1: Model1Params,
     model2: Model2Params,
     model3: BlobModel3<'a>,
+    backlash: BacklashParams,
+    bidir: BlobBidir<'a>,
+}
+
+/// The bidirectional table read straight from a checked blob.
+struct BlobBidir<'a> {
+    rows: usize,
+    x0_mm: f64,
+    step_mm: f64,
+    /// Rows of (forward, reverse), 8 bytes each.
+    values: &'a [u8],
+}
+
+impl BidirSource for BlobBidir<'_> {
+    fn shape(&self) -> (usize, f64, f64) {
+        (self.rows, self.x0_mm, self.step_mm)
+    }
+    fn value_um(&self, dir: usize, i: usize) -> f64 {
+        if i >= self.rows {
+            return f64::NAN;
+        }
+        le_i32(self.values, 8 * i + 4 * (dir & 1)) as f64 / 65536.0
+    }
 }
 
 /// Model 3's tables read straight from a checked blob.
@@ -399,6 +441,23 @@ fn parse<'a>(blob: &'a [u8], rig: &Rig) -> Result<Parsed<'a>, BlobError> {
         shapes[dir] = (nd, ng, d_step_mm, g0_step_um);
         gaps[dir] = r.slice(2 * nd * ng)?;
     }
+    let backlash = BacklashParams {
+        offset_um: r.fixed(Q16)?,
+        backlash_um: r.fixed(Q16)?,
+    };
+    let rows = r.u16()? as usize;
+    r.u16()?;
+    if !(2..=MAX_BIDIR_ROWS).contains(&rows) {
+        return Err(BlobError::BadCount("bidir_table.rows"));
+    }
+    let x0_mm = r.fixed(0)? / 1000.0;
+    let step_mm = r.fixed(8)? / 1000.0;
+    let bidir = BlobBidir {
+        rows,
+        x0_mm,
+        step_mm,
+        values: r.slice(8 * rows)?,
+    };
     if r.at != r.buf.len() {
         return Err(BlobError::TooLong);
     }
@@ -411,6 +470,8 @@ fn parse<'a>(blob: &'a [u8], rig: &Rig) -> Result<Parsed<'a>, BlobError> {
             shapes,
             gaps,
         },
+        backlash,
+        bidir,
     })
 }
 
@@ -418,7 +479,15 @@ fn parse<'a>(blob: &'a [u8], rig: &Rig) -> Result<Parsed<'a>, BlobError> {
 /// bytes: what the firmware does, without ever holding the `f64` parameters.
 pub fn decode_coeffs(blob: &[u8], rig: &Rig) -> Result<ModelCoeffs, BlobError> {
     let p = parse(blob, rig)?;
-    build_coeffs(&p.model1, &p.model2, &p.model3, p.deadband, rig).map_err(BlobError::Invalid)
+    build_coeffs(
+        &p.model1,
+        &p.model2,
+        &p.model3,
+        (&p.backlash, &p.bidir),
+        p.deadband,
+        rig,
+    )
+    .map_err(BlobError::Invalid)
 }
 
 /// Checks and decodes a blob for a drive on `rig` into `f64` parameters (host tools).
@@ -452,10 +521,18 @@ pub fn decode(blob: &[u8], rig: &Rig) -> Result<ModelParams, BlobError> {
             }
         }
     }
+    let mut bidir_table = BidirParams::from_model1(&p.model1, 1.0);
+    (bidir_table.rows, bidir_table.x0_mm, bidir_table.step_mm) = p.bidir.shape();
+    for i in 0..bidir_table.rows {
+        bidir_table.forward_um[i] = p.bidir.value_um(0, i);
+        bidir_table.reverse_um[i] = p.bidir.value_um(1, i);
+    }
     let params = ModelParams {
         model1: p.model1,
         model2: p.model2,
         model3,
+        backlash: p.backlash,
+        bidir_table,
         reversal_deadband_counts: p.deadband,
     };
     params.build(rig).map_err(BlobError::Invalid)?;

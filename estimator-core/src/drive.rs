@@ -70,8 +70,9 @@ pub struct Output {
 /// Commands from the link, in integer SI units so that no float crosses the wire.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Command {
-    /// Move the motor to `target_um` of nominal carriage travel.
-    MoveTo {
+    /// Move the motor to `target_um` of nominal carriage travel, no compensation: calibration
+    /// needs raw motor trajectories.
+    MoveMotorTo {
         /// Target, micrometres of nominal travel from the encoder's zero.
         target_um: i32,
         /// Cruise speed, micrometres per second (> 0).
@@ -81,8 +82,8 @@ pub enum Command {
     },
     /// Move the carriage to `target_um` of carriage travel (as the linear scale would read it):
     /// the motor's target is the active model's inverse along the planned path, so the carriage,
-    /// not the motor, arrives there. With no model active it is a motor move.
-    MoveCarriageTo {
+    /// not the motor, arrives there. With no compensator active it is a motor move.
+    MoveTo {
         /// Carriage target, micrometres of travel from the home position.
         target_um: i32,
         /// Cruise speed of the motor, micrometres per second (> 0).
@@ -290,6 +291,10 @@ pub struct Drive {
     missed_ticks: u32,
     /// Scale samples refused by its plausibility check, since start.
     scale_glitches: u32,
+    /// Where the last move sends the carriage, um.
+    carriage_target_um: i32,
+    /// Micrometres per count, Q32 (status only).
+    um_per_count_q32: i64,
     rig: Rig,
     rate_hz: f64,
 }
@@ -416,6 +421,8 @@ impl Drive {
             silent_ticks: 0,
             missed_ticks: 0,
             scale_glitches: 0,
+            carriage_target_um: 0,
+            um_per_count_q32: (1000.0 / cpm * 4_294_967_296.0) as i64,
             tick: 0,
             last: Telemetry {
                 model: cfg.initial_model,
@@ -524,6 +531,21 @@ impl Drive {
         self.scale_glitches
     }
 
+    /// Where the last move sends the carriage, um of travel (the motor target of a motor move;
+    /// the home position after homing).
+    pub fn carriage_target_um(&self) -> i32 {
+        self.carriage_target_um
+    }
+
+    /// The estimated carriage position of the last tick: motor position plus the active
+    /// compensator's estimate, um of travel (rounded, saturating).
+    pub fn carriage_estimate_um(&self) -> i32 {
+        let motor_q32 = (self.last.motor_counts as i64).saturating_mul(self.um_per_count_q32);
+        let est_q32 = (self.last.est_error_um.to_bits() as i64) << 16;
+        let um = motor_q32.saturating_add(est_q32).saturating_add(1 << 31) >> 32;
+        um.clamp(i32::MIN as i64, i32::MAX as i64) as i32
+    }
+
     /// The fault detectors' thresholds in counts and ticks.
     pub fn monitor(&self) -> &fault::Coeffs {
         &self.monitor
@@ -586,6 +608,7 @@ impl Drive {
         profile.set_target(motor_target);
         self.trajectory = profile;
         self.move_limits = (velocity_um_s, accel_um_s2);
+        self.carriage_target_um = target_um;
         Ok(())
     }
 
@@ -599,6 +622,9 @@ impl Drive {
         if self.model == ModelKind::None {
             return carriage_counts;
         }
+        // Every compensator goes through the same inverse: the baselines' estimates are the
+        // LinuxCNC corrections, applied to the move's end point so that the motor's trapezoid
+        // takes up the backlash within the move's limits.
         let here = (profile.position_counts().to_bits() >> 24) as i32;
         let stop = profile.stopping_point_counts();
         let moving_up = stop >= here;
@@ -646,12 +672,12 @@ impl Drive {
     pub fn command(&mut self, cmd: Command) -> Result<(), CommandError> {
         self.link_alive();
         match cmd {
-            Command::MoveTo {
+            Command::MoveMotorTo {
                 target_um,
                 velocity_um_s,
                 accel_um_s2,
             } => self.start_move(target_um, velocity_um_s, accel_um_s2, false)?,
-            Command::MoveCarriageTo {
+            Command::MoveTo {
                 target_um,
                 velocity_um_s,
                 accel_um_s2,
@@ -682,6 +708,7 @@ impl Drive {
                     .clamp(i32::MIN as i64, i32::MAX as i64) as i32;
                 self.scale_state.reset(scale);
                 self.model_state.reset(x);
+                self.carriage_target_um = position_um;
                 self.homed = true;
                 self.hold_here();
             }

@@ -40,8 +40,8 @@ const OVERHEAD: usize = 6;
 
 /// Message kinds (the first raw byte).
 pub mod kind {
-    /// [`super::Request::Move`]
-    pub const MOVE: u8 = 0x01;
+    /// [`super::Request::MoveMotor`]
+    pub const MOVE_MOTOR: u8 = 0x01;
     /// [`super::Request::Stop`]
     pub const STOP: u8 = 0x02;
     /// [`super::Request::Enable`]
@@ -68,8 +68,8 @@ pub mod kind {
     pub const SHUTDOWN: u8 = 0x0d;
     /// [`super::Request::Home`]
     pub const HOME: u8 = 0x0e;
-    /// [`super::Request::MoveCarriage`]
-    pub const MOVE_CARRIAGE: u8 = 0x0f;
+    /// [`super::Request::Move`]
+    pub const MOVE: u8 = 0x0f;
 
     /// [`super::Reply::Ack`]
     pub const ACK: u8 = 0x80;
@@ -131,14 +131,16 @@ impl LinkError {
     }
 }
 
-/// Highest model number [`Request::SelectModel`] may carry (Models 1, 2 and 3; 0 is "none").
-pub const MODEL_MAX: u8 = 3;
+/// Highest compensator number [`Request::SelectModel`] may carry (0 none, 1-3 Models 1-3, 4
+/// constant backlash, 5 bidirectional table; see [`crate::model::ModelKind`]).
+pub const MODEL_MAX: u8 = 5;
 
 /// Host -> drive messages.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Request {
-    /// Move to `target_um` (payload 12 bytes).
-    Move {
+    /// Move the motor to `target_um` of nominal travel, no compensation (payload 12 bytes):
+    /// calibration records raw motor trajectories with it.
+    MoveMotor {
         /// Target, micrometres of nominal travel.
         target_um: i32,
         /// Cruise speed, micrometres per second; must be > 0.
@@ -146,9 +148,9 @@ pub enum Request {
         /// Acceleration, micrometres per second squared; must be > 0.
         accel_um_s2: u32,
     },
-    /// Move the carriage to `target_um` (payload 12, as [`Request::Move`]): the drive places
-    /// the carriage with its active model.
-    MoveCarriage {
+    /// Move the carriage to `target_um` (payload 12, as [`Request::MoveMotor`]): the drive places
+    /// the carriage with its active compensator.
+    Move {
         /// Carriage target, micrometres of travel.
         target_um: i32,
         /// Cruise speed, micrometres per second; must be > 0.
@@ -313,6 +315,11 @@ pub struct WireStatus {
     pub frames_bad: u32,
     /// Deepest stack use seen so far, bytes (0 where not measured).
     pub stack_peak_bytes: u32,
+    /// Where the last move sends the carriage, micrometres of travel.
+    pub carriage_target_um: i32,
+    /// Estimated carriage position (motor position plus the active compensator's estimate),
+    /// micrometres of travel.
+    pub carriage_estimate_um: i32,
 }
 
 /// Bits of [`WireStatus::flags`].
@@ -334,7 +341,7 @@ pub mod status_flags {
 }
 
 /// Wire size of [`WireStatus`].
-pub const STATUS_LEN: usize = 34;
+pub const STATUS_LEN: usize = 42;
 
 /// Drive -> host messages.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -524,8 +531,8 @@ impl WireTelemetry {
 impl Message for Request {
     fn kind(&self) -> u8 {
         match self {
+            Request::MoveMotor { .. } => kind::MOVE_MOTOR,
             Request::Move { .. } => kind::MOVE,
-            Request::MoveCarriage { .. } => kind::MOVE_CARRIAGE,
             Request::Stop => kind::STOP,
             Request::Enable => kind::ENABLE,
             Request::Disable => kind::DISABLE,
@@ -545,12 +552,12 @@ impl Message for Request {
     fn write_payload(&self, out: &mut [u8]) -> usize {
         let mut w = Writer::new(out);
         match *self {
-            Request::Move {
+            Request::MoveMotor {
                 target_um,
                 velocity_um_s,
                 accel_um_s2,
             }
-            | Request::MoveCarriage {
+            | Request::Move {
                 target_um,
                 velocity_um_s,
                 accel_um_s2,
@@ -600,20 +607,20 @@ impl Message for Request {
 
     fn parse(k: u8, payload: &[u8]) -> Result<Self, LinkError> {
         Ok(match k {
-            kind::MOVE | kind::MOVE_CARRIAGE => {
+            kind::MOVE_MOTOR | kind::MOVE => {
                 let mut r = expect_len(payload, 12)?;
                 let (target_um, velocity_um_s, accel_um_s2) = (r.i32(), r.u32(), r.u32());
                 if velocity_um_s == 0 || accel_um_s2 == 0 {
                     return Err(LinkError::OutOfRange);
                 }
-                if k == kind::MOVE {
-                    Request::Move {
+                if k == kind::MOVE_MOTOR {
+                    Request::MoveMotor {
                         target_um,
                         velocity_um_s,
                         accel_um_s2,
                     }
                 } else {
-                    Request::MoveCarriage {
+                    Request::Move {
                         target_um,
                         velocity_um_s,
                         accel_um_s2,
@@ -714,6 +721,8 @@ impl Message for Reply {
                 w.u32(s.frames_ok);
                 w.u32(s.frames_bad);
                 w.u32(s.stack_peak_bytes);
+                w.i32(s.carriage_target_um);
+                w.i32(s.carriage_estimate_um);
             }
             Reply::Telemetry(t) => t.write(&mut w),
             Reply::Answer {
@@ -759,6 +768,8 @@ impl Message for Reply {
                     frames_ok: r.u32(),
                     frames_bad: r.u32(),
                     stack_peak_bytes: r.u32(),
+                    carriage_target_um: r.i32(),
+                    carriage_estimate_um: r.i32(),
                 };
                 if s.flags & !status_flags::ALL != 0 {
                     return Err(LinkError::OutOfRange);
@@ -1104,20 +1115,20 @@ pub fn blob_error_code(e: BlobError) -> u8 {
 /// The request for a drive command, if `req` is one.
 pub fn to_command(req: &Request) -> Option<Command> {
     Some(match *req {
+        Request::MoveMotor {
+            target_um,
+            velocity_um_s,
+            accel_um_s2,
+        } => Command::MoveMotorTo {
+            target_um,
+            velocity_um_s,
+            accel_um_s2,
+        },
         Request::Move {
             target_um,
             velocity_um_s,
             accel_um_s2,
         } => Command::MoveTo {
-            target_um,
-            velocity_um_s,
-            accel_um_s2,
-        },
-        Request::MoveCarriage {
-            target_um,
-            velocity_um_s,
-            accel_um_s2,
-        } => Command::MoveCarriageTo {
             target_um,
             velocity_um_s,
             accel_um_s2,
@@ -1142,20 +1153,20 @@ pub fn to_command(req: &Request) -> Option<Command> {
 /// The request that carries `cmd`.
 pub fn from_command(cmd: &Command) -> Request {
     match *cmd {
+        Command::MoveMotorTo {
+            target_um,
+            velocity_um_s,
+            accel_um_s2,
+        } => Request::MoveMotor {
+            target_um,
+            velocity_um_s,
+            accel_um_s2,
+        },
         Command::MoveTo {
             target_um,
             velocity_um_s,
             accel_um_s2,
         } => Request::Move {
-            target_um,
-            velocity_um_s,
-            accel_um_s2,
-        },
-        Command::MoveCarriageTo {
-            target_um,
-            velocity_um_s,
-            accel_um_s2,
-        } => Request::MoveCarriage {
             target_um,
             velocity_um_s,
             accel_um_s2,
@@ -1500,6 +1511,8 @@ impl Endpoint {
             frames_ok: rx.frames_ok,
             frames_bad: rx.frames_bad,
             stack_peak_bytes,
+            carriage_target_um: drive.carriage_target_um(),
+            carriage_estimate_um: drive.carriage_estimate_um(),
         }
     }
 }
@@ -1542,17 +1555,17 @@ mod tests {
             *d = i as u8; // includes a zero byte: COBS must carry it
         }
         vec![
-            Request::Move {
+            Request::MoveMotor {
                 target_um: -250_000,
                 velocity_um_s: 50_000,
                 accel_um_s2: 1,
             },
-            Request::Move {
+            Request::MoveMotor {
                 target_um: i32::MAX,
                 velocity_um_s: u32::MAX,
                 accel_um_s2: u32::MAX,
             },
-            Request::MoveCarriage {
+            Request::Move {
                 target_um: -7,
                 velocity_um_s: 3,
                 accel_um_s2: 0x00ff_0000,
@@ -1598,14 +1611,16 @@ mod tests {
 
     fn all_replies() -> Vec<Reply> {
         vec![
-            Reply::Ack { of: kind::MOVE },
+            Reply::Ack {
+                of: kind::MOVE_MOTOR,
+            },
             Reply::Error {
                 of: kind::UNKNOWN,
                 reason: LinkError::Crc,
                 detail: 0,
             },
             Reply::Error {
-                of: kind::MOVE,
+                of: kind::MOVE_MOTOR,
                 reason: LinkError::Refused,
                 detail: 3,
             },
@@ -1622,6 +1637,8 @@ mod tests {
                 frames_ok: u32::MAX,
                 frames_bad: 0,
                 stack_peak_bytes: 1500,
+                carriage_target_um: -300_000,
+                carriage_estimate_um: i32::MAX,
             }),
             Reply::Telemetry(telemetry()),
             Reply::Telemetry(WireTelemetry::default()),
@@ -1708,7 +1725,7 @@ mod tests {
     #[test]
     fn layout_is_fixed() {
         // A Move, byte by byte: kind, seq, target (LE), velocity, accel, CRC.
-        let m = Request::Move {
+        let m = Request::MoveMotor {
             target_um: 0x0403_0201,
             velocity_um_s: 5,
             accel_um_s2: 6,
@@ -1723,7 +1740,7 @@ mod tests {
             (Reply::Ack { of: 1 }.write_payload(&mut [0; MAX_PAYLOAD]), 1),
             (
                 Reply::Status(WireStatus::default()).write_payload(&mut [0; MAX_PAYLOAD]),
-                34,
+                42,
             ),
             (
                 Reply::Telemetry(telemetry()).write_payload(&mut [0; MAX_PAYLOAD]),
@@ -1745,7 +1762,7 @@ mod tests {
     }
 
     /// Wire bytes computed independently (Python: zlib.crc32 and a separate COBS encoder).
-    pub(crate) const KNOWN_MOVE: [u8; 20] = [
+    pub(crate) const KNOWN_MOVE_MOTOR: [u8; 20] = [
         9, 1, 9, 112, 47, 252, 255, 80, 195, 1, 4, 64, 13, 3, 5, 157, 230, 2, 169, 0,
     ];
     pub(crate) const KNOWN_SAMPLE: [u8; 12] = [2, 12, 3, 52, 18, 1, 5, 48, 121, 235, 166, 0];
@@ -1754,13 +1771,13 @@ mod tests {
     fn known_wire_bytes() {
         let (b, n) = wire(
             9,
-            &Request::Move {
+            &Request::MoveMotor {
                 target_um: -250_000,
                 velocity_um_s: 50_000,
                 accel_um_s2: 200_000,
             },
         );
-        assert_eq!(&b[..n], &KNOWN_MOVE);
+        assert_eq!(&b[..n], &KNOWN_MOVE_MOTOR);
         let (b, n) = wire(
             0,
             &Request::Sample {
@@ -1810,19 +1827,19 @@ mod tests {
                 kind::STOP,
             ),
             (
-                frame_with_crc(&[kind::MOVE, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0]),
+                frame_with_crc(&[kind::MOVE_MOTOR, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0]),
                 LinkError::OutOfRange,
-                kind::MOVE,
+                kind::MOVE_MOTOR,
             ),
             (
-                frame_with_crc(&[kind::MOVE, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0]),
+                frame_with_crc(&[kind::MOVE_MOTOR, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0]),
                 LinkError::OutOfRange,
-                kind::MOVE,
+                kind::MOVE_MOTOR,
             ),
             (
-                frame_with_crc(&[kind::MOVE, 1, 0, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0]),
+                frame_with_crc(&[kind::MOVE_MOTOR, 1, 0, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0]),
                 LinkError::BadLength,
-                kind::MOVE,
+                kind::MOVE_MOTOR,
             ),
             (
                 frame_with_crc(&[kind::SELECT_MODEL, 1, MODEL_MAX + 1]),
@@ -1925,7 +1942,7 @@ mod tests {
     #[test]
     fn commands_map_both_ways() {
         let cmds = [
-            Command::MoveTo {
+            Command::MoveMotorTo {
                 target_um: 1,
                 velocity_um_s: 2,
                 accel_um_s2: 3,
@@ -1971,7 +1988,7 @@ mod tests {
     fn endpoint_applies_commands_and_reports_refusals() {
         let mut d = drive();
         let mut ep = Endpoint::new();
-        let mv = Request::Move {
+        let mv = Request::MoveMotor {
             target_um: 10_000,
             velocity_um_s: 50_000,
             accel_um_s2: 500_000,
@@ -2005,9 +2022,14 @@ mod tests {
             Effect::Reply(Reply::Ack { of: kind::HOME })
         );
         let (e, ev) = ep.handle_inline(&mv, &mut d);
-        assert_eq!(e, Effect::Reply(Reply::Ack { of: kind::MOVE }));
-        assert!(matches!(ev, Event::Applied(Command::MoveTo { .. })));
-        let far = Request::Move {
+        assert_eq!(
+            e,
+            Effect::Reply(Reply::Ack {
+                of: kind::MOVE_MOTOR
+            })
+        );
+        assert!(matches!(ev, Event::Applied(Command::MoveMotorTo { .. })));
+        let far = Request::MoveMotor {
             target_um: 10_000_000,
             velocity_um_s: 1,
             accel_um_s2: 1,
@@ -2204,13 +2226,13 @@ mod tests {
 
     fn arb_request() -> impl Strategy<Value = Request> {
         prop_oneof![
-            (any::<i32>(), 1..=u32::MAX, 1..=u32::MAX).prop_map(|(t, v, a)| Request::Move {
+            (any::<i32>(), 1..=u32::MAX, 1..=u32::MAX).prop_map(|(t, v, a)| Request::MoveMotor {
                 target_um: t,
                 velocity_um_s: v,
                 accel_um_s2: a
             }),
             (any::<i32>(), 1..=u32::MAX, 1..=u32::MAX).prop_map(|(t, v, a)| {
-                Request::MoveCarriage {
+                Request::Move {
                     target_um: t,
                     velocity_um_s: v,
                     accel_um_s2: a,

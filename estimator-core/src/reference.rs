@@ -96,6 +96,12 @@ pub struct Reference {
     band_r: RefBand,
     trans_f: RefTransition,
     trans_r: RefTransition,
+    /// Backlash baseline per direction (forward, reverse), mm.
+    backlash_mm: (f64, f64),
+    /// Bidirectional table: row 0 and spacing in counts, rows per direction in mm.
+    bidir_x0: f64,
+    bidir_step: f64,
+    bidir_mm: [Vec<f64>; 2],
     // Detector and turning point (errors in mm).
     dir: Direction,
     x_ext: i32,
@@ -122,6 +128,18 @@ impl Reference {
             band_r: RefBand::from_coeffs(m3.band(Direction::Reverse)),
             trans_f: RefTransition::from_coeffs(m3.transition(Direction::Forward)),
             trans_r: RefTransition::from_coeffs(m3.transition(Direction::Reverse)),
+            backlash_mm: (
+                c.backlash().at(Direction::Forward).to_num::<f64>() / 1000.0,
+                c.backlash().at(Direction::Reverse).to_num::<f64>() / 1000.0,
+            ),
+            bidir_x0: c.bidir().grid_counts().0 as f64,
+            bidir_step: c.bidir().grid_counts().1 as f64,
+            bidir_mm: [Direction::Forward, Direction::Reverse].map(|d| {
+                (0..c.bidir().rows())
+                    .filter_map(|i| c.bidir().value_um(d, i))
+                    .map(|v| v.to_num::<f64>() / 1000.0)
+                    .collect()
+            }),
             dir: Direction::Forward,
             x_ext: x0_counts,
             y_ext_mm: 0.0,
@@ -158,6 +176,11 @@ impl Reference {
             ModelKind::Linear => self.model1(x_counts),
             ModelKind::Exponential => self.model2(x_counts),
             ModelKind::Table => self.model3(x_counts),
+            ModelKind::Backlash => match self.dir {
+                Direction::Forward => self.backlash_mm.0,
+                Direction::Reverse => self.backlash_mm.1,
+            },
+            ModelKind::BidirTable => self.bidir(x_counts),
         };
         if x_counts == self.x_ext {
             self.y_ext_mm = y_mm;
@@ -190,6 +213,19 @@ impl Reference {
             }
             .max(0.0);
         }
+    }
+
+    /// The bidirectional table of the current direction, interpolated, held flat outside.
+    fn bidir(&self, x: i32) -> f64 {
+        let t = match self.dir {
+            Direction::Forward => &self.bidir_mm[0],
+            Direction::Reverse => &self.bidir_mm[1],
+        };
+        let last = (t.len() - 1) as f64;
+        let f = ((x as f64 - self.bidir_x0) / self.bidir_step).clamp(0.0, last);
+        let i = (f.floor() as usize).min(t.len() - 2);
+        let w = f - i as f64;
+        t[i] + (t[i + 1] - t[i]) * w
     }
 
     fn mm(&self, counts: f64) -> f64 {

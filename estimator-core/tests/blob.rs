@@ -63,9 +63,10 @@ fn each_defect_has_its_reason() {
     let mut b = good.clone();
     b[0] = b'X';
     assert_eq!(decode(&b, &rig), Err(BlobError::BadMagic));
+    // A version 1 blob (no baselines) is refused by its version, not misread.
     let mut b = good.clone();
-    b[4] = 2;
-    assert_eq!(decode(&b, &rig), Err(BlobError::UnsupportedVersion(2)));
+    b[4] = 1;
+    assert_eq!(decode(&b, &rig), Err(BlobError::UnsupportedVersion(1)));
     let mut b = good.clone();
     b[40] ^= 0x10;
     assert_eq!(decode(&b, &rig), Err(BlobError::BadChecksum));
@@ -108,6 +109,26 @@ fn well_signed_nonsense_is_refused_by_the_model_checks() {
     assert_eq!(
         decode(&b, &rig),
         Err(BlobError::BadCount("model3.forward_band"))
+    );
+    // The bidirectional table (the last section: rows, 0, x0, step, 2 rows of 2 values) with
+    // one row, with too many, and with a step of zero.
+    for (rows, want) in [
+        (1u16, Err(BlobError::BadCount("bidir_table.rows"))),
+        (257, Err(BlobError::BadCount("bidir_table.rows"))),
+        (3, Err(BlobError::Truncated)),
+    ] {
+        let mut b = paper_blob();
+        let at = b.len() - 28;
+        b[at..at + 2].copy_from_slice(&rows.to_le_bytes());
+        resign(&mut b);
+        assert_eq!(decode(&b, &rig), want, "{rows} rows");
+    }
+    let mut b = paper_blob();
+    let at = b.len() - 20;
+    b[at..at + 4].copy_from_slice(&0i32.to_le_bytes());
+    resign(&mut b);
+    assert!(
+        matches!(decode(&b, &rig), Err(BlobError::Invalid(e)) if e.field() == "bidir_table.step_mm")
     );
 }
 

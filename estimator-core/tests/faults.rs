@@ -371,7 +371,7 @@ fn a_jammed_axis_trips_stall() {
     // The counter freezes (jam or encoder lost) while the drive pushes.
     let (mut d, mut m) = homed_with(&DriveConfig::paper_rig(), 50.0);
     d.command(Command::Enable).unwrap();
-    d.command(Command::MoveTo {
+    d.command(Command::MoveMotorTo {
         target_um: 52_000,
         velocity_um_s: 5_000,
         accel_um_s2: 100_000,

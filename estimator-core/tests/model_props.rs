@@ -9,9 +9,9 @@ use std::cell::Cell;
 
 use estimator_core::fixed::types::I16F16;
 use estimator_core::model::{
-    estimate, BandParams, Model1Params, Model2Params, Model3Params, ModelKind, ModelParams,
-    ModelState, TransitionParams, ACCURATE_RANGE_COUNTS, MAX_BAND_POINTS, MAX_TRANSITION_D,
-    MAX_TRANSITION_G0,
+    estimate, BacklashParams, BandParams, BidirParams, Model1Params, Model2Params, Model3Params,
+    ModelKind, ModelParams, ModelState, TransitionParams, ACCURATE_RANGE_COUNTS, MAX_BAND_POINTS,
+    MAX_BIDIR_ROWS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
 };
 use estimator_core::reference::Reference;
 use estimator_core::rig::Rig;
@@ -183,6 +183,37 @@ fn transition() -> impl Strategy<Value = TransitionParams> {
         })
 }
 
+/// Random baselines: a backlash, and a bidirectional table of 2..=256 rows somewhere within the
+/// accurate range.
+fn baselines(cpm: f64) -> impl Strategy<Value = (BacklashParams, BidirParams)> {
+    let range_mm = 0.9 * ACCURATE_RANGE_COUNTS as f64 / cpm;
+    (
+        -2_000.0f64..2_000.0,
+        -500.0f64..2_000.0,
+        2usize..=MAX_BIDIR_ROWS,
+        -1.0f64..0.5,
+        0.0f64..1.0,
+        prop::collection::vec(-8_000.0f64..8_000.0, 2 * MAX_BIDIR_ROWS),
+    )
+        .prop_map(move |(offset, backlash, rows, start, span, values)| {
+            let mut t = BidirParams::from_model1(&Model1Params::PAPER, 1.0);
+            t.rows = rows;
+            t.x0_mm = start * range_mm;
+            t.step_mm = ((range_mm - t.x0_mm) * span / (rows - 1) as f64).max(2.0 / cpm);
+            for i in 0..rows {
+                t.forward_um[i] = values[2 * i];
+                t.reverse_um[i] = values[2 * i + 1];
+            }
+            (
+                BacklashParams {
+                    offset_um: offset,
+                    backlash_um: backlash,
+                },
+                t,
+            )
+        })
+}
+
 /// A random valid parameter set and rig.
 fn params() -> impl Strategy<Value = (Rig, ModelParams)> {
     rigs().prop_flat_map(|rig| {
@@ -195,8 +226,9 @@ fn params() -> impl Strategy<Value = (Rig, ModelParams)> {
             transition(),
             prop_oneof![Just(0u32), 0u32..6],
             any::<bool>(),
+            baselines(cpm),
         )
-            .prop_map(|(rig, (m1, m2), (bf, br), tf, tr, db, from_m1)| {
+            .prop_map(|(rig, (m1, m2), (bf, br), tf, tr, db, from_m1, (bl, bt))| {
                 let model3 = if from_m1 {
                     Model3Params::from_model1(
                         &m1,
@@ -216,6 +248,8 @@ fn params() -> impl Strategy<Value = (Rig, ModelParams)> {
                         model1: m1,
                         model2: m2,
                         model3,
+                        backlash: bl,
+                        bidir_table: bt,
                         reversal_deadband_counts: db,
                     },
                 )

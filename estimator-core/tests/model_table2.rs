@@ -390,8 +390,9 @@ fn model_kind_numbers_and_names() {
         assert_eq!(ModelKind::from_u8(i as u8), Some(k));
         assert_eq!(ModelKind::parse(k.as_str()), Some(k));
     }
-    assert_eq!(ModelKind::from_u8(4), None);
+    assert_eq!(ModelKind::from_u8(6), None);
     assert_eq!(ModelKind::parse("model4"), None);
+    assert_eq!(ModelKind::BidirTable.as_str(), "bidir_table");
     assert_eq!(ModelKind::Exponential.as_str(), "model2");
 }
 

@@ -6,6 +6,9 @@
 //!   rows of (position, forward error, reverse error), linear interpolation, direction from the
 //!   commanded velocity, no model of the passage between the two curves.
 //!
+//! This module measures them; the drive runs them (`estimator_core::model::baseline`), in fixed
+//! point like the paper's models, selectable at run time as `backlash` and `bidir_table`.
+//!
 //! Both are measured the way their users measure them: from samples taken after a run-up of
 //! `RUN_UP_MM` in the direction of approach, as a dial indicator or a G425 probe would.
 
@@ -13,8 +16,8 @@ use crate::run::Trace;
 
 /// Run-up in the direction of approach before a sample counts as "approached from" that side.
 pub const RUN_UP_MM: f64 = 5.0;
-/// LinuxCNC's compensation file holds at most 256 rows.
-pub const MAX_ROWS: usize = 256;
+/// LinuxCNC's compensation file holds at most 256 rows; so does the drive's table.
+pub const MAX_ROWS: usize = estimator_core::model::MAX_BIDIR_ROWS;
 
 /// Per-record commanded direction and the motor travel since that direction was taken.
 fn run_up(trace: &Trace) -> Vec<(i8, f64)> {
@@ -71,17 +74,6 @@ impl Backlash {
             offset_um: 0.5 * (f + r),
             backlash_um: r - f,
         })
-    }
-
-    /// The estimate y for every record of `trace`, um.
-    pub fn estimate(&self, trace: &Trace) -> Vec<f64> {
-        trace
-            .records
-            .iter()
-            .map(|r| {
-                self.offset_um + 0.5 * self.backlash_um * if r.cmd_dir > 0 { -1.0 } else { 1.0 }
-            })
-            .collect()
     }
 }
 
@@ -162,25 +154,35 @@ impl BidirTable {
             reverse_um: fill_gaps(&sr, &nr)?,
         })
     }
+}
 
-    fn lookup(&self, table: &[f64], x_mm: f64) -> f64 {
-        let f = ((x_mm - self.x0_mm) / self.step_mm).clamp(0.0, (table.len() - 1) as f64);
-        let i = (f.floor() as usize).min(table.len() - 2);
-        let w = f - i as f64;
-        table[i] * (1.0 - w) + table[i + 1] * w
+impl Backlash {
+    /// The drive's parameters.
+    pub fn to_params(&self) -> estimator_core::model::BacklashParams {
+        estimator_core::model::BacklashParams {
+            offset_um: self.offset_um,
+            backlash_um: self.backlash_um,
+        }
     }
+}
 
-    /// The estimate y for every record of `trace`, um.
-    pub fn estimate(&self, trace: &Trace) -> Vec<f64> {
-        (0..trace.records.len())
-            .map(|i| {
-                let t = if trace.records[i].cmd_dir > 0 {
-                    &self.forward_um
-                } else {
-                    &self.reverse_um
-                };
-                self.lookup(t, trace.x_pe_mm(i))
-            })
-            .collect()
+impl BidirTable {
+    /// The drive's parameters (at most [`MAX_ROWS`] rows, as `calibrate` makes them).
+    pub fn to_params(&self) -> estimator_core::model::BidirParams {
+        let mut p = estimator_core::model::BidirParams::from_model1(
+            &estimator_core::model::Model1Params::PAPER,
+            1.0,
+        );
+        let rows = self
+            .forward_um
+            .len()
+            .min(self.reverse_um.len())
+            .min(MAX_ROWS);
+        p.rows = rows;
+        p.x0_mm = self.x0_mm;
+        p.step_mm = self.step_mm;
+        p.forward_um[..rows].copy_from_slice(&self.forward_um[..rows]);
+        p.reverse_um[..rows].copy_from_slice(&self.reverse_um[..rows]);
+        p
     }
 }

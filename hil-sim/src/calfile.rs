@@ -8,7 +8,6 @@ use estimator_core::model::ModelParams;
 use estimator_core::rig::Rig;
 use serde::{Deserialize, Serialize};
 
-use crate::baseline::{Backlash, BidirTable};
 use crate::calibrate::Calibration;
 
 /// The human-readable file.
@@ -20,8 +19,8 @@ struct CalFile {
     model1: toml::Table,
     model2: toml::Table,
     model3: toml::Table,
-    backlash: Backlash,
-    bidir_table: BidirTable,
+    backlash: toml::Table,
+    bidir_table: toml::Table,
 }
 
 fn table(pairs: &[(&str, f64)]) -> toml::Table {
@@ -98,15 +97,25 @@ pub fn save(dir: &Path, cal: &Calibration, rig: &Rig) -> Result<(), String> {
             ("amplitude_b_mm", m2.amplitude_b_mm),
         ]),
         model3,
-        backlash: cal.backlash.clone(),
-        bidir_table: cal.bidir.clone(),
+        backlash: table(&[
+            ("offset_um", p.backlash.offset_um),
+            ("backlash_um", p.backlash.backlash_um),
+        ]),
+        bidir_table: {
+            let b = &p.bidir_table;
+            let mut t = table(&[("x0_mm", b.x0_mm), ("step_mm", b.step_mm)]);
+            t.insert("forward_um".into(), floats(&b.forward_um[..b.rows]));
+            t.insert("reverse_um".into(), floats(&b.reverse_um[..b.rows]));
+            t
+        },
     };
     let text = toml::to_string(&file).map_err(|e| e.to_string())?;
     let path = dir.join("calibration.toml");
     std::fs::write(&path, text).map_err(|e| format!("{}: {e}", path.display()))
 }
 
-/// Reads a calibration directory: the blob (checked as the firmware checks it) and the baselines.
+/// Reads a calibration directory: the blob (checked as the firmware checks it; it holds every
+/// compensator, the baselines included) and the fit quality from the TOML file.
 pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, String> {
     let bin = dir.join("calibration.bin");
     let bytes = std::fs::read(&bin).map_err(|e| format!("{}: {e}", bin.display()))?;
@@ -124,8 +133,6 @@ pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, String> {
     use estimator_core::model::ModelKind as K;
     Ok(Calibration {
         params,
-        backlash: file.backlash,
-        bidir: file.bidir_table,
         fit_rms_um: [
             (K::Linear, rms("model1")),
             (K::Exponential, rms("model2")),

@@ -37,12 +37,8 @@ pub const FILTER_HALF_WIDTH: usize = 5;
 /// What calibration produced, with the fit quality on its own data.
 #[derive(Clone, Debug)]
 pub struct Calibration {
-    /// All three models' parameters (what the firmware loads).
+    /// Every compensator's parameters, the baselines' included (what the firmware loads).
     pub params: ModelParams,
-    /// Constant-backlash baseline.
-    pub backlash: Backlash,
-    /// Bidirectional-table baseline.
-    pub bidir: BidirTable,
     /// RMS residual of each model on the calibration data, um.
     pub fit_rms_um: [(ModelKind, f64); 3],
     /// Samples used.
@@ -424,6 +420,12 @@ pub fn calibrate(
         }
     }
     params.model3 = model3(&params.model1, &runs, rig, deadband, best.1)?;
+    params.backlash = Backlash::calibrate(traces)
+        .ok_or("no approached samples in both directions")?
+        .to_params();
+    params.bidir_table = BidirTable::calibrate(traces, crate::baseline::MAX_ROWS)
+        .ok_or("no approached samples for the table")?
+        .to_params();
     // From here on, exactly what the firmware will hold: the blob's fixed-point formats.
     let params = crate::calfile::quantised(&params, rig)
         .map_err(|e| format!("calibrated parameters rejected: {e}"))?;
@@ -439,9 +441,6 @@ pub fn calibrate(
         (ModelKind::Table, rms(ModelKind::Table)),
     ];
     Ok(Calibration {
-        backlash: Backlash::calibrate(traces).ok_or("no approached samples in both directions")?,
-        bidir: BidirTable::calibrate(traces, crate::baseline::MAX_ROWS)
-            .ok_or("no approached samples for the table")?,
         params,
         fit_rms_um,
         samples: runs.iter().map(|r| r.x_counts.len()).sum(),

@@ -104,15 +104,12 @@ pub fn calibrate_plant(
     calibrate(&traces, &Rig::PAPER, progress)
 }
 
-/// Every estimator's y along `trace`, um, in `ESTIMATORS` order. The paper's models are replayed
-/// through the fixed-point code the firmware runs, from the recorded motor counts.
-pub fn estimates(
-    trace: &Trace,
-    coeffs: &ModelCoeffs,
-    cal: &Calibration,
-) -> Vec<(&'static str, Vec<f64>)> {
+/// Every estimator's y along `trace`, um, in `ESTIMATORS` order: every compensator of the drive
+/// (the paper's models and the baselines) replayed through the fixed-point code the firmware
+/// runs, from the recorded motor counts.
+pub fn estimates(trace: &Trace, coeffs: &ModelCoeffs) -> Vec<(&'static str, Vec<f64>)> {
     let x0 = trace.records.first().map_or(0, |r| r.motor_counts);
-    let mut out: Vec<(&'static str, Vec<f64>)> = ModelKind::ALL
+    ModelKind::ALL
         .iter()
         .map(|&kind| {
             let mut st = ModelState::new(x0);
@@ -123,10 +120,7 @@ pub fn estimates(
                 .collect();
             (kind.as_str(), y)
         })
-        .collect();
-    out.push(("backlash", cal.backlash.estimate(trace)));
-    out.push(("bidir_table", cal.bidir.estimate(trace)));
-    out
+        .collect()
 }
 
 /// Table 3 for one trace.
@@ -180,7 +174,7 @@ pub fn run_pil(
     plant: &PlantParams,
     params: &ModelParams,
     model: ModelKind,
-    seed: u64,
+    rc: &RunConfig,
     opts: &crate::pil::PilOptions,
     progress: &mut dyn FnMut(f64),
 ) -> Result<Trace, String> {
@@ -193,7 +187,7 @@ pub fn run_pil(
     c.send_command(estimator_core::drive::Command::SelectModel(model))
         .map_err(|e| format!("PIL: selecting {model}: {e}"))?;
     let trace =
-        run_with(scenario, plant, &rig, &mut c, seed, progress).map_err(|e| format!("PIL: {e}"))?;
+        run(scenario, plant, &rig, &mut c, rc, progress).map_err(|e| format!("PIL: {e}"))?;
     let status = c.shutdown(0).map_err(|e| format!("PIL: {e}"))?;
     if status != 0 {
         return Err(format!("PIL: QEMU exited with status {status}"));

@@ -222,7 +222,7 @@ pub fn run_class(
     home_and_enable(controller, &plant, rig).map_err(control)?;
     let (to_mm, v, a) = injection.motion();
     controller
-        .command(Command::MoveTo {
+        .command(Command::MoveMotorTo {
             target_um: (to_mm * 1000.0) as i32,
             velocity_um_s: (v * 1000.0) as u32,
             accel_um_s2: (a * 1000.0) as u32,

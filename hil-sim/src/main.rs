@@ -56,8 +56,48 @@ impl Common {
         model: ModelKind,
         progress: &mut Progress,
     ) -> Result<hil_sim::run::Trace, String> {
-        let label = format!("{} {}", if self.pil { "PIL" } else { "run" }, scenario.name);
+        self.run_as(scenario, plant, params, model, false, progress)
+    }
+
+    /// The scenario in carriage space once per compensator, in-process or under QEMU.
+    fn placement(
+        &self,
+        scenario: &Scenario,
+        plant: &PlantParams,
+        params: &estimator_core::model::ModelParams,
+        progress: &mut Progress,
+    ) -> Result<Vec<hil_sim::placement::Placement>, String> {
+        hil_sim::placement::compare(scenario, params, &mut |model| {
+            self.run_as(scenario, plant, params, model, true, progress)
+        })
+    }
+
+    /// [`Common::run`], the targets as motor or (`carriage_space`) carriage positions.
+    fn run_as(
+        &self,
+        scenario: &Scenario,
+        plant: &PlantParams,
+        params: &estimator_core::model::ModelParams,
+        model: ModelKind,
+        carriage_space: bool,
+        progress: &mut Progress,
+    ) -> Result<hil_sim::run::Trace, String> {
+        let label = format!(
+            "{} {}{}",
+            if self.pil { "PIL" } else { "run" },
+            scenario.name,
+            if carriage_space {
+                format!(" placing with {model}")
+            } else {
+                String::new()
+            }
+        );
         let mut p = |f| progress.stage(&label, f);
+        let rc = hil_sim::run::RunConfig {
+            seed: self.seed,
+            carriage_space,
+            ..hil_sim::run::RunConfig::default()
+        };
         if self.pil {
             let elf = self
                 .elf
@@ -79,7 +119,11 @@ impl Common {
                         self.log_level
                     )
                 })?;
-            eval::run_pil(scenario, plant, params, model, self.seed, &opts, &mut p)
+            eval::run_pil(scenario, plant, params, model, &rc, &opts, &mut p)
+        } else if carriage_space {
+            hil_sim::placement::run_carriage_space(
+                scenario, plant, params, model, self.seed, &mut p,
+            )
         } else {
             eval::run_in_process(scenario, plant, params, model, self.seed, &mut p)
                 .map_err(|e| format!("{}: {e}", scenario.name))
@@ -116,7 +160,8 @@ enum Cmd {
         scenario: String,
         #[command(flatten)]
         common: Common,
-        /// Model the drive uses for its estimate: none, model1, model2, model3.
+        /// Compensator the drive uses for its estimate: none, model1, model2, model3, backlash,
+        /// bidir_table.
         #[arg(long, default_value = "model3")]
         model: String,
         /// CSV output file ("-" for standard output).
@@ -181,6 +226,7 @@ fn calibration(
 /// Plant, calibration and the scenario's run with Model 3 active: what `evaluate` and `report`
 /// share.
 struct Session {
+    scenario: Scenario,
     plant: PlantParams,
     cal: Calibration,
     trace: hil_sim::run::Trace,
@@ -200,6 +246,7 @@ fn session(scenario: &str, common: &Common) -> Result<Session, String> {
         &mut progress,
     )?;
     Ok(Session {
+        scenario,
         plant,
         cal,
         trace,
@@ -209,33 +256,22 @@ fn session(scenario: &str, common: &Common) -> Result<Session, String> {
 
 fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), String> {
     let Session {
+        scenario,
+        plant,
         cal,
         trace,
         mut progress,
-        ..
     } = session(scenario, common)?;
-    progress.finish();
     let coeffs = cal.params.build(&Rig::PAPER).map_err(|e| e.to_string())?;
-    let est = eval::estimates(&trace, &coeffs, &cal);
+    let est = eval::estimates(&trace, &coeffs);
     let table = eval::table3(&trace, &est);
     // Placement: the scenario again in carriage space, once per compensator the drive has.
-    let scenario_def = Scenario::load(scenario)?;
-    let plant = plant_params(&common.plant)?;
-    let mut placed = Vec::new();
-    for model in ModelKind::ALL {
-        let t = hil_sim::placement::run_carriage_space(
-            &scenario_def,
-            &plant,
-            &cal.params,
-            model,
-            common.seed,
-            &mut |_| {},
-        )?;
-        placed.push((
-            model.as_str(),
-            hil_sim::placement::positioning(&scenario_def, &t, &coeffs, model),
-        ));
-    }
+    let placed: Vec<_> = common
+        .placement(&scenario, &plant, &cal.params, &mut progress)?
+        .into_iter()
+        .map(|p| (p.name, p.positioning))
+        .collect();
+    progress.finish();
     if json {
         println!(
             "{}",
@@ -246,28 +282,16 @@ fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), String> {
             "{}",
             report::table_markdown(&trace.scenario, trace.records.len(), &table)
         );
-        println!("\nPlacement (scenario in carriage space, core in-process):\n");
-        println!("| compensator | arrival RMS (um) | arrival max (um) | tracking RMS (um) | cycle (s) | peak v / limit | peak a / limit | moves at rest |");
-        println!("|---|---:|---:|---:|---:|---:|---:|---:|");
-        for (n, p) in &placed {
-            println!(
-                "| {n} | {:.1} | {:.1} | {:.1} | {:.3} | {:.3} | {:.3} | {} |",
-                p.arrival_rms_um,
-                p.arrival_max_um,
-                p.tracking_rms_um,
-                p.cycle_time_s,
-                p.peak_velocity_ratio,
-                p.peak_accel_ratio,
-                p.moves_at_rest
-            );
-        }
+        print!("\n{}", report::placement_markdown(&placed));
     }
     Ok(())
 }
 
 fn run_csv(scenario: &str, common: &Common, model: &str, out: &str) -> Result<(), String> {
-    let kind = ModelKind::parse(model)
-        .ok_or_else(|| format!("--model {model}: use none, model1, model2 or model3"))?;
+    let kind = ModelKind::parse(model).ok_or_else(|| {
+        let names: Vec<_> = ModelKind::ALL.iter().map(|k| k.as_str()).collect();
+        format!("--model {model}: use one of {}", names.join(", "))
+    })?;
     let scenario = Scenario::load(scenario)?;
     let plant = plant_params(&common.plant)?;
     let mut progress = Progress::new();
@@ -446,6 +470,7 @@ fn main() -> ExitCode {
             out,
         } => (|| {
             let Session {
+                scenario,
                 plant,
                 cal,
                 trace,
@@ -456,7 +481,16 @@ fn main() -> ExitCode {
             } else {
                 "core in-process"
             };
-            report::write(Path::new(&out), &trace, how, &plant, &cal, &mut progress)?;
+            let placed = common.placement(&scenario, &plant, &cal.params, &mut progress)?;
+            report::write(
+                Path::new(&out),
+                &trace,
+                how,
+                &plant,
+                &cal,
+                &placed,
+                &mut progress,
+            )?;
             progress.finish();
             eprintln!("wrote {}", out.join("report.md").display());
             Ok(())

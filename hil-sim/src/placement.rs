@@ -1,4 +1,4 @@
-//! Carriage placement: moves commanded in carriage space (`Command::MoveCarriageTo`), judged by
+//! Carriage placement: moves commanded in carriage space (`Command::MoveTo`), judged by
 //! the linear scale once the carriage has settled.
 //!
 //! The drive turns each carriage target into a motor target with the active model's inverse
@@ -39,7 +39,7 @@ pub fn arrival_errors(
     let mut errors = Vec::with_capacity(moves.len());
     for (k, &(to_mm, v, a)) in moves.iter().enumerate() {
         controller
-            .command(Command::MoveCarriageTo {
+            .command(Command::MoveTo {
                 target_um: (to_mm * 1000.0).round() as i32,
                 velocity_um_s: (v * 1000.0).round() as u32,
                 accel_um_s2: (a * 1000.0).round() as u32,
@@ -122,6 +122,92 @@ pub struct Positioning {
 /// difference at the limit.
 const RATIO_WINDOW_MIN: usize = 10;
 
+/// Arrival error of every move of `scenario` that ends at rest in `trace`: (move index, scale at
+/// rest minus the carriage target, um), read on the last tick before the next command.
+pub fn arrivals(
+    scenario: &crate::scenario::Scenario,
+    trace: &crate::run::Trace,
+) -> Vec<(usize, f64)> {
+    let recs = &trace.records;
+    let n = recs.len();
+    let mut out = Vec::new();
+    for (k, m) in scenario.moves.iter().enumerate() {
+        if m.retarget_after_ms.is_some() {
+            continue;
+        }
+        let end = trace.move_starts.get(k + 1).copied().unwrap_or(n);
+        if end == 0 || end > n {
+            continue;
+        }
+        let r = &recs[end - 1];
+        if !r.out.telemetry.moving {
+            out.push((k, (r.x_ls_mm - m.to_mm) * 1000.0));
+        }
+    }
+    out
+}
+
+/// One compensator's placement over a scenario: the figures and the arrival of every move.
+#[derive(Clone, Debug)]
+pub struct Placement {
+    /// Compensator name (`ModelKind::as_str`).
+    pub name: &'static str,
+    /// The figures of `hil-sim evaluate --json`'s `"positioning"`.
+    pub positioning: Positioning,
+    /// (move index, arrival error um) of the moves that end at rest.
+    pub arrivals: Vec<(usize, f64)>,
+}
+
+/// Runs `scenario` in carriage space once per compensator of the drive (`ModelKind::ALL`)
+/// through `run` (the core in this process, or the firmware under QEMU) and measures each run.
+pub fn compare(
+    scenario: &crate::scenario::Scenario,
+    params: &ModelParams,
+    run: &mut dyn FnMut(ModelKind) -> Result<crate::run::Trace, String>,
+) -> Result<Vec<Placement>, String> {
+    let coeffs = params
+        .build(&Rig::PAPER)
+        .map_err(|e| format!("drive configuration: {e}"))?;
+    let mut out = Vec::new();
+    for model in ModelKind::ALL {
+        let t = run(model)?;
+        out.push(Placement {
+            name: model.as_str(),
+            positioning: positioning(scenario, &t, &coeffs, model),
+            arrivals: arrivals(scenario, &t),
+        });
+    }
+    Ok(out)
+}
+
+/// [`compare`] with the core in this process.
+pub fn compare_in_process(
+    scenario: &crate::scenario::Scenario,
+    plant: &PlantParams,
+    params: &ModelParams,
+    seed: u64,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Vec<Placement>, String> {
+    compare(scenario, params, &mut |model| {
+        let label = format!("placement {model}");
+        run_carriage_space(scenario, plant, params, model, seed, &mut |f| {
+            progress(&label, f)
+        })
+    })
+}
+
+/// The best of `names` by arrival RMS.
+pub fn best<'a>(placements: &'a [Placement], names: &[&str]) -> Option<&'a Placement> {
+    placements
+        .iter()
+        .filter(|p| names.contains(&p.name))
+        .min_by(|a, b| {
+            a.positioning
+                .arrival_rms_um
+                .total_cmp(&b.positioning.arrival_rms_um)
+        })
+}
+
 /// Positioning figures of `trace`, a run of `scenario` in carriage space with `model` active;
 /// the planned carriage set-point is the motor set-point plus the same fixed-point model replayed
 /// along it.
@@ -135,21 +221,7 @@ pub fn positioning(
     let cpm = trace.counts_per_mm;
     let recs = &trace.records;
     let n = recs.len();
-    // Arrival: the last tick before the next command (or the end), for moves that end at rest.
-    let mut arrivals = Vec::new();
-    for (k, m) in scenario.moves.iter().enumerate() {
-        if m.retarget_after_ms.is_some() {
-            continue;
-        }
-        let end = trace.move_starts.get(k + 1).copied().unwrap_or(n);
-        if end == 0 || end > n {
-            continue;
-        }
-        let r = &recs[end - 1];
-        if !r.out.telemetry.moving {
-            arrivals.push((r.x_ls_mm - m.to_mm) * 1000.0);
-        }
-    }
+    let arrivals: Vec<f64> = arrivals(scenario, trace).into_iter().map(|a| a.1).collect();
     // Tracking while moving.
     let mut state = ModelState::new(recs.first().map_or(0, |r| r.setpoint_counts));
     let (mut sq, mut count) = (0.0, 0usize);

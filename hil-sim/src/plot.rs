@@ -165,3 +165,64 @@ pub fn scenario(path: &Path, title: &str, trace: &Trace) -> PlotResult {
     root.present()?;
     Ok(())
 }
+
+/// Carriage placement: the arrival error of every move (scale at rest minus the target) per
+/// compensator, one shared scale so that their sizes compare at a glance.
+pub fn arrivals(path: &Path, title: &str, series: &[(&str, Vec<(usize, f64)>)]) -> PlotResult {
+    init_fonts()?;
+    let root = BitMapBackend::new(path, (1000, 500)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let last = series
+        .iter()
+        .flat_map(|(_, v)| v.iter().map(|p| p.0))
+        .max()
+        .unwrap_or(0) as f64;
+    let ys = range(
+        series
+            .iter()
+            .flat_map(|(_, v)| v.iter().map(|p| p.1))
+            .chain([0.0]),
+    );
+    let mut c = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 22))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        // Headroom above the data for the legend.
+        .build_cartesian_2d(-0.5..last + 0.5, ys.0..ys.1 + 0.35 * (ys.1 - ys.0))?;
+    c.configure_mesh()
+        .x_desc("move")
+        .y_desc("arrival error (um)")
+        .draw()?;
+    c.draw_series(LineSeries::new(
+        [(-0.5, 0.0), (last + 0.5, 0.0)],
+        BLACK.mix(0.4),
+    ))?;
+    for (k, (name, pts)) in series.iter().enumerate() {
+        const COLORS: [RGBColor; 4] = [
+            RGBColor(200, 30, 30),
+            RGBColor(230, 140, 0),
+            RGBColor(20, 80, 200),
+            RGBColor(40, 150, 60),
+        ];
+        let color = COLORS[k % COLORS.len()];
+        let rms = (pts.iter().map(|p| p.1 * p.1).sum::<f64>() / pts.len().max(1) as f64).sqrt();
+        c.draw_series(
+            pts.iter()
+                .map(|&(i, e)| Circle::new((i as f64, e), 4, color.filled())),
+        )?
+        .label(format!("{name} (RMS {rms:.1} um)"))
+        .legend(move |(x, y)| Circle::new((x + 10, y), 4, color.filled()));
+        c.draw_series(LineSeries::new(
+            pts.iter().map(|&(i, e)| (i as f64, e)),
+            color.mix(0.5).stroke_width(1),
+        ))?;
+    }
+    c.configure_series_labels()
+        .position(SeriesLabelPosition::UpperRight)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()?;
+    root.present()?;
+    Ok(())
+}

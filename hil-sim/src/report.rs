@@ -51,6 +51,31 @@ pub fn table_markdown(
     s
 }
 
+/// The positioning table: one row per compensator, the keys of `evaluate --json`.
+pub fn placement_markdown(placed: &[(&'static str, crate::placement::Positioning)]) -> String {
+    let mut s = String::from(
+        "Carriage placement: the scenario again with every move in carriage space (`MoveTo`), \
+         one run per compensator; arrival = scale at rest minus the carriage target; tracking = \
+         scale minus the planned carriage set-point while moving; ratios = the motor set-point's \
+         peak velocity and acceleration over the move's limits.\n\n\
+         | compensator | arrival RMS (um) | arrival max (um) | tracking RMS (um) | cycle (s) | peak v / limit | peak a / limit | moves at rest |\n\
+         |---|---:|---:|---:|---:|---:|---:|---:|\n",
+    );
+    for (n, p) in placed {
+        s += &format!(
+            "| {n} | {:.1} | {:.1} | {:.1} | {:.3} | {:.3} | {:.3} | {} |\n",
+            p.arrival_rms_um,
+            p.arrival_max_um,
+            p.tracking_rms_um,
+            p.cycle_time_s,
+            p.peak_velocity_ratio,
+            p.peak_accel_ratio,
+            p.moves_at_rest
+        );
+    }
+    s
+}
+
 /// Every tick of `trace` as CSV.
 pub fn write_csv(w: &mut dyn Write, trace: &Trace) -> std::io::Result<()> {
     writeln!(
@@ -82,17 +107,19 @@ pub fn write_csv(w: &mut dyn Write, trace: &Trace) -> std::io::Result<()> {
 pub const FIG11_RUNS: u64 = 12;
 
 /// Runs the scenario, writes report.md, the figures and the CSV into `dir`.
+/// `placed`: the scenario in carriage space per compensator ([`crate::placement::compare`]).
 pub fn write(
     dir: &Path,
     trace: &Trace,
     how: &str,
     plant: &PlantParams,
     cal: &Calibration,
+    placed: &[crate::placement::Placement],
     progress: &mut Progress,
 ) -> Result<(), String> {
     std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
     let coeffs = cal.params.build(&Rig::PAPER).map_err(|e| e.to_string())?;
-    let est = eval::estimates(trace, &coeffs, cal);
+    let est = eval::estimates(trace, &coeffs);
     let table = eval::table3(trace, &est);
 
     let rep = Scenario::load("repeatability")?;
@@ -153,6 +180,28 @@ pub fn write(
             ),
         );
     }
+    let shown: Vec<_> = [
+        crate::placement::best(placed, &["none"]),
+        crate::placement::best(placed, &["backlash", "bidir_table"]),
+        crate::placement::best(placed, &["model1", "model2", "model3"]),
+    ]
+    .into_iter()
+    .flatten()
+    .map(|p| (p.name, p.arrivals.clone()))
+    .collect();
+    fig(
+        "placement_arrivals.png",
+        format!(
+            "Carriage placement along `{}`: arrival error of every move that ends at rest, for no \
+             compensation, the best baseline and the best model",
+            trace.scenario
+        ),
+        plot::arrivals(
+            &dir.join("placement_arrivals.png"),
+            &format!("Arrival error per move, {}", trace.scenario),
+            &shown,
+        ),
+    );
     progress.stage("figures", 1.0);
 
     let spread = repeatability_spread_um(&overlay);
@@ -171,6 +220,9 @@ pub fn write(
         ".\n\nRun-to-run repeatability of Delta x over {FIG11_RUNS} runs (RMS of the deviation from the mean, binned by \
          position and direction): {spread:.1} um. This is the floor under every model's error.\n\n"
     );
+    let rows: Vec<_> = placed.iter().map(|p| (p.name, p.positioning)).collect();
+    md += &placement_markdown(&rows);
+    md += "\n";
     for (file, caption) in &figures {
         md += &format!("![{caption}]({file})\n\n*{caption}*\n\n");
     }

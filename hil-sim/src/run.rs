@@ -59,8 +59,8 @@ pub struct RunConfig {
     pub seed: u64,
     /// Rest after the last move before the run ends, seconds.
     pub settle_s: f64,
-    /// Command the scenario's targets as carriage positions (`MoveCarriageTo`: the drive places
-    /// the carriage with its active model) instead of motor positions (`MoveTo`).
+    /// Command the scenario's targets as carriage positions (`MoveTo`: the drive places
+    /// the carriage with its active model) instead of motor positions (`MoveMotorTo`).
     pub carriage_space: bool,
 }
 
@@ -195,13 +195,13 @@ pub fn run(
                 (m.accel_mm_s2 * 1000.0).round() as u32,
             );
             controller.command(if cfg.carriage_space {
-                Command::MoveCarriageTo {
+                Command::MoveTo {
                     target_um,
                     velocity_um_s,
                     accel_um_s2,
                 }
             } else {
-                Command::MoveTo {
+                Command::MoveMotorTo {
                     target_um,
                     velocity_um_s,
                     accel_um_s2,

@@ -27,7 +27,7 @@ fn evaluate(
     let trace =
         eval::run_in_process(&s, plant, &cal.params, ModelKind::Table, seed, &mut |_| {}).unwrap();
     let coeffs = cal.params.build(&Rig::PAPER).unwrap();
-    let est = eval::estimates(&trace, &coeffs, cal);
+    let est = eval::estimates(&trace, &coeffs);
     // The drive's own per-tick estimate is the replayed fixed-point Model 3, bit for bit.
     let m3 = &est.iter().find(|(n, _)| *n == "model3").unwrap().1;
     for (r, y) in trace.records.iter().zip(m3) {

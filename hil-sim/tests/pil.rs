@@ -43,7 +43,10 @@ fn fig18_pil_is_bit_identical_to_the_host() {
         &plant,
         &cal.params,
         ModelKind::Table,
-        3,
+        &hil_sim::run::RunConfig {
+            seed: 3,
+            ..Default::default()
+        },
         &opts,
         &mut |_| {},
     )
@@ -107,4 +110,92 @@ fn placement_pil_matches_the_host() {
         "arrival errors (um): host {host:?}, firmware {pil:?}"
     );
     eprintln!("placement: firmware under QEMU = host, arrival errors {pil:?} um");
+}
+
+/// Every compensator places the carriage identically with the firmware under QEMU: the
+/// `"positioning"` JSON of a short scenario (a reversal, a retarget with new limits in mid-move
+/// that reverses, moves at several limits) is the same text from both.
+#[test]
+#[ignore = "needs the QEMU firmware ELF (cargo fw-qemu); run by .ci/test"]
+fn positioning_json_pil_matches_the_host() {
+    let elf: std::path::PathBuf = std::env::var_os("BELT_DRIVE_ELF")
+        .map(Into::into)
+        .unwrap_or_else(|| PilOptions::default_elf(None));
+    let plant = PlantParams::paper_rig();
+    let cal = eval::calibrate_plant(&plant, &mut |_, _| {}).unwrap();
+    let scenario = Scenario::from_toml_str(
+        r#"
+name = "placement-pil"
+start_mm = 40.0
+[[move]]
+to_mm = 90.0
+velocity_mm_s = 120.0
+accel_mm_s2 = 3000.0
+dwell_ms = 100
+[[move]]
+to_mm = 70.0
+velocity_mm_s = 40.0
+accel_mm_s2 = 800.0
+retarget_after_ms = 150
+[[move]]
+to_mm = 95.0
+velocity_mm_s = 150.0
+accel_mm_s2 = 4000.0
+dwell_ms = 100
+[[move]]
+to_mm = 60.0
+velocity_mm_s = 60.0
+accel_mm_s2 = 1500.0
+"#,
+    )
+    .unwrap();
+    let rc = hil_sim::run::RunConfig {
+        seed: 9,
+        carriage_space: true,
+        ..Default::default()
+    };
+    let json = |placed: Vec<hil_sim::placement::Placement>| {
+        let rows: Vec<_> = placed
+            .into_iter()
+            .map(|p| (p.name, p.positioning))
+            .collect();
+        eval::to_json(&scenario.name, 0, &[], &rows)
+    };
+    let host = hil_sim::placement::compare(&scenario, &cal.params, &mut |model| {
+        hil_sim::placement::run_carriage_space(
+            &scenario,
+            &plant,
+            &cal.params,
+            model,
+            rc.seed,
+            &mut |_| {},
+        )
+    })
+    .unwrap();
+    assert!(
+        host.iter().all(|p| p.positioning.moves_at_rest == 3),
+        "{host:?}"
+    );
+    let host = json(host);
+    let mut opts = PilOptions::new(elf);
+    opts.log = LogSink::Discard;
+    let pil = json(
+        hil_sim::placement::compare(&scenario, &cal.params, &mut |model| {
+            eval::run_pil(
+                &scenario,
+                &plant,
+                &cal.params,
+                model,
+                &rc,
+                &opts,
+                &mut |_| {},
+            )
+        })
+        .unwrap(),
+    );
+    assert_eq!(
+        host, pil,
+        "positioning differs:\nhost {host}\nfirmware {pil}"
+    );
+    eprintln!("positioning: firmware under QEMU = host: {pil}");
 }

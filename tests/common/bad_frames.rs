@@ -28,12 +28,12 @@ impl Rng {
 fn valid_request(rng: &mut Rng) -> estimator_core::link::Request {
     use estimator_core::link::Request;
     match rng.below(6) {
-        0 => Request::Move {
+        0 => Request::MoveMotor {
             target_um: rng.next() as i32,
             velocity_um_s: 1 + rng.below(100_000),
             accel_um_s2: 1 + rng.below(1_000_000),
         },
-        1 => Request::SelectModel(rng.below(4) as u8),
+        1 => Request::SelectModel(rng.below(estimator_core::link::MODEL_MAX as u32 + 1) as u8),
         2 => Request::Stop,
         3 => Request::Home {
             position_um: rng.next() as i32,
@@ -117,7 +117,7 @@ pub fn bad_frame(rng: &mut Rng, out: &mut [u8; estimator_core::link::MAX_FRAME +
         3 => {
             raw[0] = if rng.below(2) == 0 {
                 // The first kind after the last request kind, up to 0x7f.
-                kind::MOVE_CARRIAGE + 1 + rng.below(0x7f - kind::MOVE_CARRIAGE as u32) as u8
+                kind::MOVE + 1 + rng.below(0x7f - kind::MOVE as u32) as u8
             } else {
                 kind::ACK + rng.below(0x7f) as u8
             };
@@ -132,17 +132,17 @@ pub fn bad_frame(rng: &mut Rng, out: &mut [u8; estimator_core::link::MAX_FRAME +
         // Correct CRC and length, a value out of range.
         4 => {
             let req = match rng.below(4) {
-                0 => Request::Move {
+                0 => Request::MoveMotor {
                     target_um: rng.next() as i32,
                     velocity_um_s: 0,
                     accel_um_s2: 1 + rng.below(1000),
                 },
-                1 => Request::Move {
+                1 => Request::MoveMotor {
                     target_um: rng.next() as i32,
                     velocity_um_s: 1 + rng.below(1000),
                     accel_um_s2: 0,
                 },
-                2 => Request::SelectModel(4 + rng.below(252) as u8),
+                2 => Request::SelectModel(estimator_core::link::MODEL_MAX + 1 + rng.below(255 - estimator_core::link::MODEL_MAX as u32) as u8),
                 _ => Request::CalBegin {
                     total_len: 0,
                     crc32: rng.next(),

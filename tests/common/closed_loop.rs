@@ -69,7 +69,7 @@ pub fn closed_loop(model: estimator_core::model::ModelKind) -> RunDigest {
     for tick in 0..MAX_TICKS {
         if rest_ticks == 20 && next_move < moves.len() {
             let (target_um, velocity_um_s, accel_um_s2) = moves[next_move];
-            if let Err(e) = drive.command(Command::MoveTo {
+            if let Err(e) = drive.command(Command::MoveMotorTo {
                 target_um,
                 velocity_um_s,
                 accel_um_s2,

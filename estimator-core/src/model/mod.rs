@@ -84,6 +84,7 @@
 //! `UDIV`s only when Model 3 enters another band segment). `ModelCoeffs` is 2708 bytes (Model 3's
 //! tables 2608), `ModelState` 72 bytes, on the host and on the target alike.
 
+pub mod baseline;
 pub mod fixmath;
 
 mod convert;
@@ -93,6 +94,9 @@ pub mod table;
 
 use fixed::types::I16F16;
 
+pub use baseline::{
+    BacklashCoeffs, BacklashParams, BidirCoeffs, BidirParams, BidirSource, MAX_BIDIR_ROWS,
+};
 pub use convert::MAX_ABS_UM;
 pub use exponential::{Model2Coeffs, Model2Params};
 pub use fixmath::Scale;
@@ -121,35 +125,49 @@ pub enum ModelKind {
     Exponential = 2,
     /// Model 3: lookup tables (eq. 18).
     Table = 3,
+    /// Baseline: constant backlash by direction (LinuxCNC `BACKLASH`, Marlin `M425`).
+    Backlash = 4,
+    /// Baseline: bidirectional position table (LinuxCNC `COMP_FILE`).
+    BidirTable = 5,
 }
 
 impl ModelKind {
     /// Every kind, in numeric order.
-    pub const ALL: [ModelKind; 4] = [
+    pub const ALL: [ModelKind; 6] = [
         ModelKind::None,
         ModelKind::Linear,
         ModelKind::Exponential,
         ModelKind::Table,
+        ModelKind::Backlash,
+        ModelKind::BidirTable,
     ];
 
-    /// The kind with this number (`0..=3`), e.g. from a command byte.
+    /// The paper's three models.
+    pub const PAPER_MODELS: [ModelKind; 3] =
+        [ModelKind::Linear, ModelKind::Exponential, ModelKind::Table];
+
+    /// The kind with this number (`0..=5`), e.g. from a command byte.
     pub const fn from_u8(v: u8) -> Option<ModelKind> {
         match v {
             0 => Some(ModelKind::None),
             1 => Some(ModelKind::Linear),
             2 => Some(ModelKind::Exponential),
             3 => Some(ModelKind::Table),
+            4 => Some(ModelKind::Backlash),
+            5 => Some(ModelKind::BidirTable),
             _ => None,
         }
     }
 
-    /// `"none"`, `"model1"`, `"model2"` or `"model3"`.
+    /// `"none"`, `"model1"`, `"model2"`, `"model3"`, `"backlash"` or `"bidir_table"`.
     pub const fn as_str(self) -> &'static str {
         match self {
             ModelKind::None => "none",
             ModelKind::Linear => "model1",
             ModelKind::Exponential => "model2",
             ModelKind::Table => "model3",
+            ModelKind::Backlash => "backlash",
+            ModelKind::BidirTable => "bidir_table",
         }
     }
 
@@ -215,6 +233,10 @@ pub struct ModelParams {
     pub model2: Model2Params,
     /// Model 3 (lookup tables).
     pub model3: Model3Params,
+    /// Baseline: constant backlash.
+    pub backlash: BacklashParams,
+    /// Baseline: bidirectional table.
+    pub bidir_table: BidirParams,
     /// A reversal is registered only when `x` moves back more than this from its extreme.
     pub reversal_deadband_counts: u32,
 }
@@ -232,6 +254,8 @@ impl ModelParams {
         model1: Model1Params::PAPER,
         model2: Model2Params::PAPER,
         model3: Model3Params::from_model1(&Model1Params::PAPER, ModelParams::PAPER_TRAVEL_MM),
+        backlash: BacklashParams::PAPER,
+        bidir_table: BidirParams::from_model1(&Model1Params::PAPER, ModelParams::PAPER_TRAVEL_MM),
         reversal_deadband_counts: ModelParams::DEFAULT_DEADBAND_COUNTS,
     };
 
@@ -242,18 +266,20 @@ impl ModelParams {
             &self.model1,
             &self.model2,
             &self.model3,
+            (&self.backlash, &self.bidir_table),
             self.reversal_deadband_counts,
             rig,
         )
     }
 }
 
-/// Checks and converts every model's parameters, Model 3's read from any [`Model3Source`] (the
-/// `f64` tables of [`Model3Params`], or a calibration blob in place).
+/// Checks and converts every model's parameters, the tables read from any [`Model3Source`] and
+/// [`BidirSource`] (the `f64` tables of [`ModelParams`], or a calibration blob in place).
 pub fn build_coeffs(
     model1: &Model1Params,
     model2: &Model2Params,
     model3: &impl Model3Source,
+    baselines: (&BacklashParams, &impl BidirSource),
     reversal_deadband_counts: u32,
     rig: &Rig,
 ) -> Result<ModelCoeffs, ConfigError> {
@@ -263,6 +289,8 @@ pub fn build_coeffs(
         model1: model1.build(cpm)?,
         model2: model2.build(cpm)?,
         model3: table::build_model3(model3, cpm)?,
+        backlash: baselines.0.build()?,
+        bidir: BidirCoeffs::build(baselines.1, cpm)?,
         deadband_counts: reversal_deadband_counts,
     })
 }
@@ -280,6 +308,8 @@ pub struct ModelCoeffs {
     model1: Model1Coeffs,
     model2: Model2Coeffs,
     model3: Model3Coeffs,
+    backlash: BacklashCoeffs,
+    bidir: BidirCoeffs,
     deadband_counts: u32,
 }
 
@@ -303,6 +333,16 @@ impl ModelCoeffs {
         &self.model3
     }
 
+    /// The constant-backlash baseline.
+    pub fn backlash(&self) -> &BacklashCoeffs {
+        &self.backlash
+    }
+
+    /// The bidirectional-table baseline.
+    pub fn bidir(&self) -> &BidirCoeffs {
+        &self.bidir
+    }
+
     /// The reversal dead band.
     pub fn deadband_counts(&self) -> u32 {
         self.deadband_counts
@@ -312,7 +352,9 @@ impl ModelCoeffs {
     /// direction is worth a warning at start-up.
     pub fn closing(&self, kind: ModelKind) -> Closing {
         match kind {
-            ModelKind::None => Closing::from_mm(Some(0.0), Some(0.0)),
+            ModelKind::None | ModelKind::Backlash | ModelKind::BidirTable => {
+                Closing::from_mm(Some(0.0), Some(0.0))
+            }
             ModelKind::Linear => self.model1.closing(),
             ModelKind::Exponential => self.model2.closing(),
             ModelKind::Table => self.model3.closing(),
@@ -452,6 +494,8 @@ pub fn estimate(
         ModelKind::Linear => linear::eval(&coeffs.model1, state, x_counts),
         ModelKind::Exponential => exponential::eval(&coeffs.model2, state, x_counts),
         ModelKind::Table => table::eval(&coeffs.model3, state, x_counts),
+        ModelKind::Backlash => baseline::eval_backlash(&coeffs.backlash, state),
+        ModelKind::BidirTable => baseline::eval_bidir(&coeffs.bidir, state, x_counts),
     };
     if x_counts == state.x_ext_counts {
         state.y_ext_um = y;

@@ -50,7 +50,7 @@ pub fn homed_with(cfg: &DriveConfig, x_mm: f64) -> (Drive, Mass) {
 
 /// A motor move at 80 mm/s and 1000 mm/s^2.
 pub fn mv(target_mm: f64) -> Command {
-    Command::MoveTo {
+    Command::MoveMotorTo {
         target_um: (target_mm * 1000.0) as i32,
         velocity_um_s: 80_000,
         accel_um_s2: 1_000_000,

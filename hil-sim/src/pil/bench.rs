@@ -134,7 +134,7 @@ pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilEr
     ls.command(Command::SelectModel(model))?;
     ls.command(Command::Enable)?;
     'moves: for &(to_mm, v, a) in &MOVES {
-        ls.command(Command::MoveTo {
+        ls.command(Command::MoveMotorTo {
             target_um: (to_mm * 1000.0).round() as i32,
             velocity_um_s: (v * 1000.0).round() as u32,
             accel_um_s2: (a * 1000.0).round() as u32,
