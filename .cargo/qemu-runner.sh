@@ -6,5 +6,6 @@
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 host="$(rustc -vV | sed -n 's/^host: //p')"
-exec "${CARGO:-cargo}" run --quiet --release --manifest-path "$root/Cargo.toml" \
+# QEMU_RUN_PROFILE: the profile qemu-run itself is built with (CI: `ci`, no fat LTO).
+exec "${CARGO:-cargo}" run --quiet --profile "${QEMU_RUN_PROFILE:-release}" --manifest-path "$root/Cargo.toml" \
   -p hil-sim --bin qemu-run --target "$host" -- "$@"

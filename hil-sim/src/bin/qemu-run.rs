@@ -4,7 +4,8 @@
 //!
 //! ```text
 //! qemu-run [--timeout SECS] [--icount SHIFT] [--log-level LEVEL] [--log-file PATH] ELF [ignored...]
-//! qemu-run --bench [--log-level LEVEL] [ELF]      PIL runs per model: instructions per tick,
+//! qemu-run --bench [--check FILE] [--log-level LEVEL] [ELF]
+//!                                                  PIL runs per model: instructions per tick,
 //!                                                 host/firmware equality, stack, flash, RAM
 //! qemu-run --pil-fuzz N [--log-level LEVEL] [ELF] N bad frames through USART2 in PIL mode
 //! ```
@@ -21,7 +22,8 @@ use hil_sim::pil::{bench, PilOptions};
 /// What the command line asks for.
 enum Mode {
     Run,
-    Bench,
+    /// With the checked-in figures to hold the measurement against, if any.
+    Bench(Option<PathBuf>),
     Fuzz(u32),
 }
 
@@ -44,7 +46,11 @@ fn main() -> ExitCode {
     let mut level_set = false;
     while let Some(a) = args.next() {
         match a.as_str() {
-            "--bench" => mode = Mode::Bench,
+            "--bench" => mode = Mode::Bench(None),
+            "--check" => match (args.next(), &mode) {
+                (Some(p), Mode::Bench(_)) => mode = Mode::Bench(Some(p.into())),
+                _ => return usage(),
+            },
             "--pil-fuzz" => match args.next().and_then(|v| v.parse().ok()) {
                 Some(n) => mode = Mode::Fuzz(n),
                 None => return usage(),
@@ -84,13 +90,13 @@ fn main() -> ExitCode {
     }
     match mode {
         Mode::Run => {}
-        Mode::Bench | Mode::Fuzz(_) => {
+        Mode::Bench(_) | Mode::Fuzz(_) => {
             let elf = elf.unwrap_or_else(|| PilOptions::default_elf(None));
             let mut opts = PilOptions::new(elf);
             opts.min_level = if level_set { level } else { "warn" };
             opts.log = log;
             return match mode {
-                Mode::Bench => run_bench(&opts),
+                Mode::Bench(check) => run_bench(&opts, check.as_deref()),
                 Mode::Fuzz(n) => run_fuzz(&opts, n),
                 Mode::Run => unreachable!(),
             };
@@ -123,7 +129,7 @@ fn main() -> ExitCode {
     }
 }
 
-fn run_bench(opts: &PilOptions) -> ExitCode {
+fn run_bench(opts: &PilOptions, check: Option<&std::path::Path>) -> ExitCode {
     println!(
         "belt-drive PIL bench: {} under QEMU netduinoplus2, -icount shift={}",
         opts.elf.display(),
@@ -137,6 +143,7 @@ fn run_bench(opts: &PilOptions) -> ExitCode {
     );
     let mut ok = true;
     let mut peak = 0;
+    let mut instructions = serde_json::Map::new();
     for model in estimator_core::model::ModelKind::ALL {
         match bench::run_model(opts, model) {
             Ok(r) => {
@@ -151,6 +158,13 @@ fn run_bench(opts: &PilOptions) -> ExitCode {
                     ok = false;
                 }
                 peak = peak.max(r.stack_peak_bytes);
+                instructions.insert(
+                    model.as_str().to_string(),
+                    serde_json::json!({
+                        "mean": (r.counts.mean() * 10.0).round() / 10.0,
+                        "max": r.counts.max,
+                    }),
+                );
                 println!(
                     "{:<12} {:>7} {:>6} {:>8.1} {:>6}  {:<12} {:>7} B",
                     format!("{} ({})", model.as_str(), model as u8),
@@ -168,25 +182,93 @@ fn run_bench(opts: &PilOptions) -> ExitCode {
             }
         }
     }
-    match bench::footprint(&opts.elf) {
-        Ok(f) => println!(
-            "\nflash {} B ({:.1} KiB), static RAM {} B ({:.1} KiB), peak stack {} B",
-            f.flash_bytes,
-            f.flash_bytes as f64 / 1024.0,
-            f.static_ram_bytes,
-            f.static_ram_bytes as f64 / 1024.0,
-            peak
-        ),
+    let footprint = match bench::footprint(&opts.elf) {
+        Ok(f) => {
+            println!(
+                "\nflash {} B ({:.1} KiB), static RAM {} B ({:.1} KiB), peak stack {} B",
+                f.flash_bytes,
+                f.flash_bytes as f64 / 1024.0,
+                f.static_ram_bytes,
+                f.static_ram_bytes as f64 / 1024.0,
+                peak
+            );
+            f
+        }
         Err(e) => {
-            ok = false;
             println!("footprint: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    println!("budget: <= 400 instructions per tick (Model 3), < 48 KiB flash, < 8 KiB static RAM");
+    let measured = serde_json::json!({
+        "flash_bytes": footprint.flash_bytes,
+        "static_ram_bytes": footprint.static_ram_bytes,
+        "peak_stack_bytes": peak,
+        "instructions": instructions,
+    });
+    if let Some(path) = check {
+        match check_against(&measured, path) {
+            Ok(notes) => {
+                for n in notes {
+                    println!("{n}");
+                }
+            }
+            Err(e) => {
+                println!("{e}");
+                ok = false;
+            }
         }
     }
-    println!("budget: <= 400 instructions per tick (Model 3), < 48 KiB flash, < 8 KiB static RAM");
+    // Last line: one JSON object, for scripts.
+    println!("{measured}");
     if ok {
         ExitCode::SUCCESS
     } else {
         ExitCode::FAILURE
+    }
+}
+
+/// Holds `measured` against the checked-in figures at `path` (same keys): any flash, static RAM,
+/// peak stack or per-tick maximum above them is an error that names the figure, so that every
+/// change of cost shows in a reviewed change of the file. Figures below them are notes.
+fn check_against(
+    measured: &serde_json::Value,
+    path: &std::path::Path,
+) -> Result<Vec<String>, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let want: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+    let mut keys: Vec<String> = ["flash_bytes", "static_ram_bytes", "peak_stack_bytes"]
+        .iter()
+        .map(|k| format!("/{k}"))
+        .collect();
+    if let Some(models) = measured["instructions"].as_object() {
+        keys.extend(models.keys().map(|m| format!("/instructions/{m}/max")));
+    }
+    let (mut over, mut notes) = (Vec::new(), Vec::new());
+    for k in keys {
+        let got = measured.pointer(&k).and_then(|v| v.as_u64());
+        let limit = want.pointer(&k).and_then(|v| v.as_u64());
+        match (got, limit) {
+            (Some(g), Some(l)) if g > l => over.push(format!("{k}: {g} > {l}")),
+            (Some(g), Some(l)) if g < l => notes.push(format!(
+                "{}: {k} is now {g}, below {l}: lower it in the file",
+                path.display()
+            )),
+            (Some(_), Some(_)) => {}
+            (_, None) => over.push(format!("{k}: missing from {}", path.display())),
+            (None, _) => over.push(format!("{k}: not measured")),
+        }
+    }
+    if over.is_empty() {
+        Ok(notes)
+    } else {
+        Err(format!(
+            "{}: the firmware costs more than the checked-in figures ({}); if that is intended, \
+             update the file with the figures of the JSON line below",
+            path.display(),
+            over.join(", ")
+        ))
     }
 }
 
