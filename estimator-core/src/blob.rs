@@ -521,7 +521,7 @@ pub fn decode(blob: &[u8], rig: &Rig) -> Result<ModelParams, BlobError> {
             }
         }
     }
-    let mut bidir_table = BidirParams::from_model1(&p.model1, 1.0);
+    let mut bidir_table = BidirParams::ZERO;
     (bidir_table.rows, bidir_table.x0_mm, bidir_table.step_mm) = p.bidir.shape();
     for i in 0..bidir_table.rows {
         bidir_table.forward_um[i] = p.bidir.value_um(0, i);

@@ -553,11 +553,17 @@ impl Drive {
 
     /// Micrometres of nominal travel to counts (round to nearest), saturating.
     fn um_to_counts(&self, um: i32) -> i32 {
-        // |um| * 2^33 can exceed i64: saturate, the range check then refuses it.
+        self.fixed_um_to_counts(um, 0)
+    }
+
+    /// Micrometres with `frac_bits` fractional bits to counts, rounded to nearest, saturating:
+    /// |um| * 2^33 can exceed i64, and a target out of range is then refused by its range check.
+    fn fixed_um_to_counts(&self, um: i32, frac_bits: u32) -> i32 {
+        let shift = 32 + frac_bits;
         let q = (um as i64)
             .saturating_mul(self.limits.counts_per_um_q32)
-            .saturating_add(1 << 31);
-        (q >> 32).clamp(i32::MIN as i64, i32::MAX as i64) as i32
+            .saturating_add(1 << (shift - 1));
+        (q >> shift).clamp(i32::MIN as i64, i32::MAX as i64) as i32
     }
 
     /// Checks and starts a move; `carriage`: `target_um` is where the carriage must arrive. All
@@ -636,17 +642,9 @@ impl Drive {
                 model::estimate(&self.models, self.model, &mut state, stop);
             }
             let y_um = model::estimate(&self.models, self.model, &mut state, m);
-            m = carriage_counts.saturating_sub(self.um_q16_to_counts(y_um.to_bits()));
+            m = carriage_counts.saturating_sub(self.fixed_um_to_counts(y_um.to_bits(), 16));
         }
         m
-    }
-
-    /// Micrometres (I16F16 bits) of nominal travel to counts, rounded to nearest, saturating.
-    fn um_q16_to_counts(&self, um_q16: i32) -> i32 {
-        let q48 = (um_q16 as i64)
-            .saturating_mul(self.limits.counts_per_um_q32)
-            .saturating_add(1 << 47);
-        (q48 >> 48).clamp(i32::MIN as i64, i32::MAX as i64) as i32
     }
 
     /// A move's profile limits on the counts grid, from integer um/s and um/s² (rounded down).

@@ -196,7 +196,7 @@ fn baselines(cpm: f64) -> impl Strategy<Value = (BacklashParams, BidirParams)> {
         prop::collection::vec(-8_000.0f64..8_000.0, 2 * MAX_BIDIR_ROWS),
     )
         .prop_map(move |(offset, backlash, rows, start, span, values)| {
-            let mut t = BidirParams::from_model1(&Model1Params::PAPER, 1.0);
+            let mut t = BidirParams::ZERO;
             t.rows = rows;
             t.x0_mm = start * range_mm;
             t.step_mm = ((range_mm - t.x0_mm) * span / (rows - 1) as f64).max(2.0 / cpm);

@@ -169,10 +169,7 @@ impl Backlash {
 impl BidirTable {
     /// The drive's parameters (at most [`MAX_ROWS`] rows, as `calibrate` makes them).
     pub fn to_params(&self) -> estimator_core::model::BidirParams {
-        let mut p = estimator_core::model::BidirParams::from_model1(
-            &estimator_core::model::Model1Params::PAPER,
-            1.0,
-        );
+        let mut p = estimator_core::model::BidirParams::ZERO;
         let rows = self
             .forward_um
             .len()

@@ -12,9 +12,8 @@ use hil_sim::pil::PilOptions;
 use hil_sim::plant::PlantParams;
 use hil_sim::scenario::Scenario;
 
-#[test]
-#[ignore = "needs the QEMU firmware ELF (cargo fw-qemu); run by .ci/test"]
-fn fig18_pil_is_bit_identical_to_the_host() {
+/// The firmware under test: `BELT_DRIVE_ELF`, or the `cargo fw-qemu` output.
+fn elf() -> std::path::PathBuf {
     let elf = std::env::var_os("BELT_DRIVE_ELF")
         .map(Into::into)
         .unwrap_or_else(|| PilOptions::default_elf(None));
@@ -23,6 +22,13 @@ fn fig18_pil_is_bit_identical_to_the_host() {
         "{}: build the firmware with `cargo fw-qemu` first",
         elf.display()
     );
+    elf
+}
+
+#[test]
+#[ignore = "needs the QEMU firmware ELF (cargo fw-qemu); run by .ci/test"]
+fn fig18_pil_is_bit_identical_to_the_host() {
+    let elf = elf();
     let plant = PlantParams::paper_rig();
     let cal = eval::calibrate_plant(&plant, &mut |_, _| {}).unwrap();
     let scenario = Scenario::load("fig18").unwrap();
@@ -67,9 +73,7 @@ fn fig18_pil_is_bit_identical_to_the_host() {
 #[test]
 #[ignore = "needs the QEMU firmware ELF (cargo fw-qemu); run by .ci/test"]
 fn placement_pil_matches_the_host() {
-    let elf = std::env::var_os("BELT_DRIVE_ELF")
-        .map(Into::into)
-        .unwrap_or_else(|| PilOptions::default_elf(None));
+    let elf = elf();
     let plant = PlantParams::paper_rig();
     let cal = eval::calibrate_plant(&plant, &mut |_, _| {}).unwrap();
     let moves = [
@@ -118,9 +122,7 @@ fn placement_pil_matches_the_host() {
 #[test]
 #[ignore = "needs the QEMU firmware ELF (cargo fw-qemu); run by .ci/test"]
 fn positioning_json_pil_matches_the_host() {
-    let elf: std::path::PathBuf = std::env::var_os("BELT_DRIVE_ELF")
-        .map(Into::into)
-        .unwrap_or_else(|| PilOptions::default_elf(None));
+    let elf = elf();
     let plant = PlantParams::paper_rig();
     let cal = eval::calibrate_plant(&plant, &mut |_, _| {}).unwrap();
     let scenario = Scenario::from_toml_str(

@@ -88,6 +88,15 @@ pub struct BidirParams {
 }
 
 impl BidirParams {
+    /// Two rows of zeros over 0-1 mm: a start to fill in.
+    pub const ZERO: BidirParams = BidirParams {
+        x0_mm: 0.0,
+        step_mm: 1.0,
+        rows: 2,
+        forward_um: [0.0; MAX_BIDIR_ROWS],
+        reverse_um: [0.0; MAX_BIDIR_ROWS],
+    };
+
     /// Table 2's Model 1 band edges over `+-travel_mm`, two rows.
     pub const fn from_model1(m: &super::Model1Params, travel_mm: f64) -> BidirParams {
         let mut forward_um = [0.0; MAX_BIDIR_ROWS];
@@ -239,7 +248,7 @@ mod tests {
     use super::*;
 
     fn table(rows: usize) -> BidirParams {
-        let mut p = BidirParams::from_model1(&super::super::Model1Params::PAPER, 100.0);
+        let mut p = BidirParams::ZERO;
         p.rows = rows;
         p.x0_mm = -10.0;
         p.step_mm = 1.0;
