@@ -94,7 +94,11 @@ mod runtime {
         crate::hardware::halt(crate::EXIT_UNEXPECTED_IRQ)
     }
 
+    // The board: milliseconds since boot. QEMU: plant time (control ticks over the rate).
+    #[cfg(not(feature = "qemu"))]
     defmt::timestamp!("{=u32:ms}", crate::hardware::timestamp_ms());
+    #[cfg(feature = "qemu")]
+    defmt::timestamp!("{=u64:us}", crate::hardware::timestamp_us());
 }
 
 /// Ends the program successfully: QEMU exits with status 0; the real board halts with the motor

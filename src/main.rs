@@ -9,7 +9,7 @@
 //! | `usart2`  | USART2 (RXNE / TXE)           | 2        | received bytes into a queue, transmit queue drained |
 //! | `link`    | software (bytes queued)       | 1        | frame decoding, commands, replies, calibration decode |
 //! | `logger`  | software (events queued)      | 1        | defmt lines for the control task's events |
-//! | `idle`    | -                             | 0        | `wfi`                                 |
+//! | `idle`    | -                             | 0        | `wfi` (QEMU PIL pipe: waits for the host's bytes) |
 //!
 //! Nothing in `control` formats or logs, and nothing in `usart2` decodes: each hands small
 //! records to a lock-free queue (heapless spsc) for a priority-1 task.
@@ -33,7 +33,7 @@ mod app {
     use belt_drive::doorbell::Doorbell;
     use belt_drive::drive::{Command, CommandError, Drive, DriveConfig, Faults, Models, Telemetry};
     use belt_drive::events::{self, Event};
-    use belt_drive::hardware::{self, ControlIo, LinkRx};
+    use belt_drive::hardware::{self, ControlIo, IdleIo, LinkRx};
     use belt_drive::outbox::Outbox;
     use belt_drive::postmortem::{self, reset_cause};
     use belt_drive::stack;
@@ -69,6 +69,7 @@ mod app {
         events_in: events::Producer,
         events_out: events::Consumer,
         rx: LinkRx,
+        idle_io: IdleIo,
         bytes_in: spsc::Producer<'static, u8>,
         bytes_out: spsc::Consumer<'static, u8>,
         receiver: Receiver,
@@ -160,6 +161,7 @@ mod app {
                 events_in,
                 events_out,
                 rx: board.rx,
+                idle_io: board.idle,
                 bytes_in,
                 bytes_out,
                 receiver,
@@ -170,11 +172,12 @@ mod app {
         )
     }
 
-    #[idle]
-    fn idle(_: idle::Context) -> ! {
+    /// Board: `wfi` (under QEMU with -icount this also skips idle time). QEMU with the PIL pipe:
+    /// waits on the host for the next bytes of the link (see `hardware::qemu`).
+    #[idle(local = [idle_io])]
+    fn idle(cx: idle::Context) -> ! {
         loop {
-            // Sleep until the next interrupt; under QEMU with -icount this also skips idle time.
-            cortex_m::asm::wfi();
+            cx.local.idle_io.wait();
         }
     }
 

@@ -69,7 +69,8 @@ fn fig18_pil_is_bit_identical_to_the_host() {
 }
 
 /// Carriage placement with the firmware in the loop: the same carriage-space moves give the same
-/// arrival errors, to the bit, as the core in-process.
+/// arrival errors, to the bit, as the core in-process. This one runs over the emulated USART2,
+/// byte by byte as on the board's serial line (the others use the faster PIL pipe).
 #[test]
 #[ignore = "needs the QEMU firmware ELF (cargo fw-qemu); run by .ci/test"]
 fn placement_pil_matches_the_host() {
@@ -93,6 +94,7 @@ fn placement_pil_matches_the_host() {
     .unwrap();
     let mut opts = PilOptions::new(elf);
     opts.log = LogSink::Discard;
+    opts.transport = hil_sim::pil::Transport::Usart;
     let mut fw = hil_sim::pil::PilController::start(&opts).unwrap();
     let rig = estimator_core::rig::Rig::PAPER;
     let mut blob = vec![0u8; estimator_core::blob::MAX_BYTES];

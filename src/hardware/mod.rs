@@ -7,6 +7,8 @@
 //!   `write_current()` drives the amplifier (board only), `overran()`, `feed_watchdog()` and
 //!   `start()` (tick timer and watchdog; board only);
 //! - `pil_deliver()` (QEMU: hand a PIL sample to `control`; board: refused), `clock_failed()`,
+//! - `LinkRx`, `LinkTx` (the link; board: the USART halves; QEMU: also the PIL pipe) and
+//!   `IdleIo` (what `idle` does);
 //! - `emergency_stop()`, `halt(code)`; here: `timestamp_ms()` and the link USART halves.
 //!
 //! The control-tick interrupt is `TIM7` on both: on the board TIM7 (a basic timer) fires at the
@@ -29,7 +31,8 @@ use stm32f4xx_hal::pac;
 
 rtic_monotonics::systick_monotonic!(Mono, 1_000);
 
-/// Milliseconds since the monotonic started (defmt timestamps).
+/// Milliseconds since the monotonic started (the board's defmt timestamps).
+#[cfg(not(feature = "qemu"))]
 pub fn timestamp_ms() -> u32 {
     use rtic_monotonics::systick::prelude::*;
     Mono::now().as_ticks()
@@ -39,10 +42,12 @@ pub fn timestamp_ms() -> u32 {
 pub struct Board {
     /// Sampling and output, owned by the `control` task.
     pub control: ControlIo,
-    /// Receive side of the link USART, owned by the `link` task.
+    /// Receive side of the link, owned by the `usart2` task.
     pub rx: LinkRx,
-    /// Transmit side of the link USART, shared by the tasks that send.
+    /// Transmit side of the link, shared by the tasks that send.
     pub tx: LinkTx,
+    /// What `idle` does between interrupts.
+    pub idle: IdleIo,
     /// Core clock, Hz.
     pub sysclk_hz: u32,
     /// The crystal did not start (or the PLL did not lock): running from the internal RC.
@@ -54,7 +59,7 @@ pub struct Board {
 /// Sets up the link USART (USART2 on both boards) at register level: clock, PA2 (TX) and PA3
 /// (RX, pulled up so an unplugged cable idles instead of framing noise) on AF7, 8N1 at `baud`
 /// from `pclk1_hz`, receive interrupt on; split into its receive and transmit halves.
-fn link_usart(usart: pac::USART2, pclk1_hz: u32, baud: u32) -> (LinkRx, LinkTx) {
+fn link_usart(usart: pac::USART2, pclk1_hz: u32, baud: u32) -> (UsartRx, UsartTx) {
     // SAFETY: a read-modify-write of RCC during init, before any task runs.
     let rcc = unsafe { &*pac::RCC::ptr() };
     rcc.apb1enr().modify(|_, w| w.usart2en().set_bit());
@@ -79,15 +84,15 @@ fn link_usart(usart: pac::USART2, pclk1_hz: u32, baud: u32) -> (LinkRx, LinkTx) 
             .rxneie()
             .set_bit()
     });
-    (LinkRx { _owned: () }, LinkTx { usart })
+    (UsartRx { _owned: () }, UsartTx { usart })
 }
 
 /// Receive half of the link USART: reads SR and DR only.
-pub struct LinkRx {
+pub struct UsartRx {
     _owned: (),
 }
 
-impl LinkRx {
+impl UsartRx {
     /// The next received byte, if any. Overrun, noise and framing errors are cleared (the lost
     /// byte then shows up as a frame that fails its CRC).
     #[inline]
@@ -109,15 +114,21 @@ impl LinkRx {
 }
 
 /// Transmit half of the link USART: the only writer of CR1 after init.
-pub struct LinkTx {
+pub struct UsartTx {
     usart: pac::USART2,
 }
 
-impl LinkTx {
+impl UsartTx {
     /// True when the transmit register can take a byte.
     #[inline]
     pub fn can_write(&self) -> bool {
         self.usart.sr().read().txe().bit_is_set()
+    }
+
+    /// A whole frame in one go: not on a USART (the outbox queues it byte by byte).
+    #[inline(always)]
+    pub fn write_frame(&mut self, _frame: &[u8]) -> bool {
+        false
     }
 
     /// Writes one byte; call only when `can_write()`.

@@ -4,18 +4,28 @@
 //! - Clocks: HSI, no PLL (QEMU does not model RCC: the PLL's ready bit never sets). The CPU and
 //!   SysTick run at 168 MHz whatever RCC says, so the monotonic is started at 168 MHz.
 //! - Time: SysTick only; QEMU's TIM2-5 do not keep time.
-//! - The plant: `hil-sim` on USART2 (QEMU's second `-serial`), in lockstep: each
+//! - The plant: `hil-sim`, in lockstep: each
 //!   [`Request::Sample`](estimator_core::link::Request::Sample) is handed to `control` by pending
 //!   TIM7, and `control` answers with the current and telemetry. No sample, no tick.
+//! - The link: USART2 (QEMU's second `-serial`), or, when QEMU's semihosting command line holds
+//!   `--pipe IN OUT`, two host FIFOs read and written through semihosting ([`IdleIo`]): one call
+//!   per burst of bytes instead of one emulated interrupt and host round trip per byte (QEMU's
+//!   USART takes about 19 us a byte). The frames, the decoder and every task are the same.
+//! - Time: the defmt timestamp is plant time, control ticks over the configured rate, so that a
+//!   log line lines up with the simulator's figures (QEMU's virtual clock runs at another pace).
 //! - TIM2 with PSC = 0 and ARR = 0 counts executed instructions under `-icount shift=0`: read
 //!   before and after `Drive::step` it gives the step's exact instruction count (+5 for the reads).
 //! - defmt over semihosting (QEMU's stdout); `halt(code)` is a semihosting exit with `code`.
 
+use core::ffi::CStr;
 use core::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 
+use heapless::spsc::{Consumer, Producer, Queue};
+use semihosting::fd::{AsFd, OwnedFd};
+use semihosting::sys::arm_compat::{sys_get_cmdline_uninit, sys_open, OpenMode};
 use stm32f4xx_hal::pac;
 
-use super::{link_usart, Board, Mono};
+use super::{link_usart, Board, Mono, UsartRx, UsartTx};
 use crate::drive::{Output as DriveOutput, Sample};
 
 /// Board name for the boot log.
@@ -35,6 +45,18 @@ pub const MAX_LINEAR_CURRENT_MA: i32 = 8_787;
 static SAMPLE: AtomicU32 = AtomicU32::new(0);
 static SEQ: AtomicU32 = AtomicU32::new(0);
 static PENDING: AtomicBool = AtomicBool::new(false);
+/// Control ticks run (PIL samples taken) and the control rate: the log's clock.
+static TICKS: AtomicU32 = AtomicU32::new(0);
+static RATE_HZ: AtomicU32 = AtomicU32::new(1);
+
+/// Bytes read from the pipe and not yet taken by the `usart2` task: one read's worth.
+const PIPE_CHUNK: usize = 64;
+type PipeQueue = Queue<u8, { PIPE_CHUNK + 1 }>;
+
+/// Plant time in microseconds: ticks run over the control rate.
+pub fn timestamp_us() -> u64 {
+    TICKS.load(Ordering::Relaxed) as u64 * 1_000_000 / RATE_HZ.load(Ordering::Relaxed).max(1) as u64
+}
 
 /// Sampling and output of the control task.
 pub struct ControlIo {
@@ -63,6 +85,7 @@ impl ControlIo {
         if !PENDING.swap(false, Ordering::Acquire) {
             return None;
         }
+        TICKS.fetch_add(1, Ordering::Relaxed);
         let raw = SAMPLE.load(Ordering::Relaxed);
         Some(Tick {
             sample: Sample {
@@ -123,10 +146,146 @@ pub fn pil_deliver(seq: u8, sample: Sample) -> bool {
     true
 }
 
+/// Receive half of the link: the pipe's bytes (handed over by `idle`) or USART2.
+pub struct LinkRx {
+    usart: UsartRx,
+    pipe: Option<Consumer<'static, u8>>,
+}
+
+impl LinkRx {
+    /// The next received byte, if any.
+    #[inline]
+    pub fn read(&mut self) -> Option<u8> {
+        match &mut self.pipe {
+            Some(c) => c.dequeue(),
+            None => self.usart.read(),
+        }
+    }
+}
+
+/// Transmit half of the link: whole frames into the pipe, or bytes into USART2.
+pub struct LinkTx {
+    usart: UsartTx,
+    pipe: Option<OwnedFd>,
+}
+
+impl LinkTx {
+    /// True when the USART can take a byte (always under QEMU).
+    #[inline]
+    pub fn can_write(&self) -> bool {
+        self.usart.can_write()
+    }
+
+    /// Writes a whole frame into the pipe; false on USART2 (the outbox queues it).
+    pub fn write_frame(&mut self, frame: &[u8]) -> bool {
+        let Some(fd) = &self.pipe else { return false };
+        let mut rest = frame;
+        while !rest.is_empty() {
+            match semihosting::sys::write(fd.as_fd(), rest) {
+                Ok(n) if n > 0 => rest = &rest[n.min(rest.len())..],
+                // The host is gone: nothing to report to.
+                _ => halt(EXIT_HOST_GONE),
+            }
+        }
+        true
+    }
+
+    /// Writes one byte to USART2.
+    #[inline]
+    pub fn write(&mut self, byte: u8) {
+        self.usart.write(byte)
+    }
+
+    /// The USART's TXE interrupt (QEMU raises none; kept for the shared outbox).
+    #[inline]
+    pub fn set_tx_interrupt(&mut self, on: bool) {
+        self.usart.set_tx_interrupt(on)
+    }
+
+    /// Receive interrupt on or off. With the pipe, "on" pends `usart2` to take the bytes it
+    /// left when its queue was full.
+    #[inline]
+    pub fn set_rx_interrupt(&mut self, on: bool) {
+        if self.pipe.is_some() {
+            if on {
+                rtic::pend(pac::Interrupt::USART2);
+            }
+        } else {
+            self.usart.set_rx_interrupt(on)
+        }
+    }
+}
+
+/// QEMU exit status when the host closed the pipe.
+pub const EXIT_HOST_GONE: i32 = 3;
+
+/// What `idle` does: `wfi` with USART2; with the pipe, waits (inside QEMU, in the host's
+/// `read`) for the host's next bytes and hands them to `usart2`. Virtual time stands still
+/// while it waits, as the plant paces the firmware anyway.
+pub struct IdleIo {
+    pipe: Option<(OwnedFd, Producer<'static, u8>)>,
+}
+
+impl IdleIo {
+    /// One idle round.
+    pub fn wait(&mut self) {
+        let Some((fd, queue)) = &mut self.pipe else {
+            cortex_m::asm::wfi();
+            return;
+        };
+        if !queue.is_empty() {
+            // `usart2` paused on a full queue; `link` pends it again once drained.
+            cortex_m::asm::wfi();
+            return;
+        }
+        let mut buf = [0u8; PIPE_CHUNK];
+        match semihosting::sys::read(fd.as_fd(), &mut buf) {
+            Ok(n) if n > 0 => {
+                for &b in &buf[..n.min(PIPE_CHUNK)] {
+                    let _ = queue.enqueue(b);
+                }
+                rtic::pend(pac::Interrupt::USART2);
+            }
+            // End of file or an error: the host closed the pipe.
+            _ => {
+                defmt::info!("link pipe closed by the host: exit");
+                halt(EXIT_HOST_GONE)
+            }
+        }
+    }
+}
+
+/// The pipe's paths from QEMU's semihosting command line (`... --pipe IN OUT`), opened.
+fn open_pipe() -> Option<(OwnedFd, OwnedFd)> {
+    let mut line = [core::mem::MaybeUninit::<u8>::uninit(); 256];
+    let line = sys_get_cmdline_uninit(&mut line).ok()?;
+    let mut words = line.split(|&b| b == b' ').filter(|w| !w.is_empty());
+    words.find(|w| *w == b"--pipe")?;
+    let (input, output) = (words.next()?, words.next()?);
+    let open = |path: &[u8], mode| {
+        let mut z = [0u8; 128];
+        let n = path.len().min(z.len() - 1);
+        z[..n].copy_from_slice(&path[..n]);
+        let p = CStr::from_bytes_until_nul(&z).ok()?;
+        sys_open(p, mode).ok()
+    };
+    match (
+        open(input, OpenMode::RDONLY_BINARY),
+        open(output, OpenMode::WRONLY_TRUNC_BINARY),
+    ) {
+        (Some(i), Some(o)) => Some((i, o)),
+        _ => {
+            defmt::error!("--pipe given but its FIFOs cannot be opened: link on USART2");
+            None
+        }
+    }
+}
+
 /// Reset clocks (HSI: QEMU ignores RCC), SysTick monotonic at 168 MHz, TIM2 instruction
-/// counter, USART2.
-pub fn init(dp: pac::Peripherals, core: cortex_m::Peripherals, _control_rate_hz: u32) -> Board {
+/// counter, the link (the pipe if the command line names one, else USART2).
+pub fn init(dp: pac::Peripherals, core: cortex_m::Peripherals, control_rate_hz: u32) -> Board {
     Mono::start(core.SYST, QEMU_CORE_HZ);
+    RATE_HZ.store(control_rate_hz.max(1), Ordering::Relaxed);
 
     // TIM2 as an instruction counter: PSC = 0, ARR = 0, no interrupt.
     // SAFETY: one RCC bit during init (QEMU ignores it; kept for honesty).
@@ -141,12 +300,45 @@ pub fn init(dp: pac::Peripherals, core: cortex_m::Peripherals, _control_rate_hz:
     counter.cr1().write(|w| w.cen().set_bit());
 
     // The HSI frequency: what the board's BRR would be without the PLL.
-    let (rx, tx) = link_usart(dp.USART2, 16_000_000, BAUD);
+    let (usart_rx, usart_tx) = link_usart(dp.USART2, 16_000_000, BAUD);
+    // `singleton!` is `None` only on a second call; init runs once.
+    let pipe = open_pipe()
+        .and_then(|(i, o)| cortex_m::singleton!(: PipeQueue = Queue::new()).map(|q| (i, o, q)));
+    let (rx, tx, idle) = match pipe {
+        Some((input, output, queue)) => {
+            let (producer, consumer) = queue.split();
+            (
+                LinkRx {
+                    usart: usart_rx,
+                    pipe: Some(consumer),
+                },
+                LinkTx {
+                    usart: usart_tx,
+                    pipe: Some(output),
+                },
+                IdleIo {
+                    pipe: Some((input, producer)),
+                },
+            )
+        }
+        None => (
+            LinkRx {
+                usart: usart_rx,
+                pipe: None,
+            },
+            LinkTx {
+                usart: usart_tx,
+                pipe: None,
+            },
+            IdleIo { pipe: None },
+        ),
+    };
 
     Board {
         control: ControlIo { counter },
         rx,
         tx,
+        idle,
         sysclk_hz: QEMU_CORE_HZ,
         clock_fallback: false,
         // QEMU reads RCC as 0: unknown.

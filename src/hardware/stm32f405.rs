@@ -30,6 +30,7 @@ use stm32f4xx_hal::pac;
 
 use super::gpio::{self, Pull};
 use super::{link_usart, Board, Mono};
+pub use super::{UsartRx as LinkRx, UsartTx as LinkTx};
 use crate::drive::{Output as DriveOutput, Sample};
 use crate::postmortem::reset_cause;
 
@@ -347,9 +348,21 @@ pub fn init(dp: pac::Peripherals, mut core: cortex_m::Peripherals, control_rate_
         },
         rx,
         tx,
+        idle: IdleIo,
         sysclk_hz: clocks.sysclk_hz,
         clock_fallback: clocks.source != ClockSource::Hse,
         reset_cause,
+    }
+}
+
+/// What `idle` does: sleep until the next interrupt.
+pub struct IdleIo;
+
+impl IdleIo {
+    /// One idle round.
+    #[inline(always)]
+    pub fn wait(&mut self) {
+        cortex_m::asm::wfi();
     }
 }
 

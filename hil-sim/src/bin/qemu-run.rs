@@ -8,6 +8,7 @@
 //!                                                  PIL runs per model: instructions per tick,
 //!                                                 host/firmware equality, stack, flash, RAM
 //! qemu-run --pil-fuzz N [--log-level LEVEL] [ELF] N bad frames through USART2 in PIL mode
+//!                                                 (the emulated serial line, byte by byte)
 //! ```
 //! `.cargo/qemu-runner.sh` calls it for `cargo test-target` / `cargo run-qemu`; ELF defaults to
 //! the `cargo fw-qemu` output for `--bench` and `--pil-fuzz`.
@@ -17,7 +18,7 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use hil_sim::pil::qemu::{LogSink, Qemu, QemuError, QemuOptions, LEVELS};
-use hil_sim::pil::{bench, PilOptions};
+use hil_sim::pil::{bench, PilOptions, Transport};
 
 /// What the command line asks for.
 enum Mode {
@@ -97,7 +98,14 @@ fn main() -> ExitCode {
             opts.log = log;
             return match mode {
                 Mode::Bench(check) => run_bench(&opts, check.as_deref()),
-                Mode::Fuzz(n) => run_fuzz(&opts, n),
+                // The fuzz goes through the emulated USART2, the board's byte-by-byte path.
+                Mode::Fuzz(n) => run_fuzz(
+                    &PilOptions {
+                        transport: Transport::Usart,
+                        ..opts
+                    },
+                    n,
+                ),
                 Mode::Run => unreachable!(),
             };
         }

@@ -39,6 +39,9 @@ pub struct QemuOptions {
     pub icount_shift: Option<u8>,
     /// Put USART2 on this Unix socket (QEMU is the server and waits for the connection).
     pub usart2_socket: Option<PathBuf>,
+    /// The link over two FIFOs (host to firmware, firmware to host) through semihosting
+    /// instead of USART2: passed as `--pipe IN OUT` on the semihosting command line.
+    pub pipe: Option<(PathBuf, PathBuf)>,
     /// Wall-clock limit for the whole run.
     pub timeout: Duration,
     /// Where the decoded log goes.
@@ -56,6 +59,7 @@ impl QemuOptions {
             elf: elf.into(),
             icount_shift: None,
             usart2_socket: None,
+            pipe: None,
             timeout: Duration::from_secs(60),
             log: LogSink::Stderr,
             min_level: "info",
@@ -110,19 +114,23 @@ pub struct Qemu {
 
 /// The QEMU command line for `opts` (exposed for logs and tests).
 pub fn command_line(opts: &QemuOptions) -> Vec<String> {
-    let mut args: Vec<String> = [
-        "-M",
-        "netduinoplus2",
-        "-nographic",
-        "-monitor",
-        "none",
-        "-semihosting-config",
-        "enable=on,target=native",
-        "-kernel",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect();
+    let mut args: Vec<String> = ["-M", "netduinoplus2", "-nographic", "-monitor", "none"]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+    args.push("-semihosting-config".into());
+    let mut semihosting = String::from("enable=on,target=native");
+    if let Some((input, output)) = &opts.pipe {
+        // QEMU's option syntax doubles a comma inside a value.
+        let arg = |p: &PathBuf| p.display().to_string().replace(',', ",,");
+        semihosting += &format!(
+            ",arg=belt-drive,arg=--pipe,arg={},arg={}",
+            arg(input),
+            arg(output)
+        );
+    }
+    args.push(semihosting);
+    args.push("-kernel".into());
     args.push(opts.elf.display().to_string());
     if let Some(shift) = opts.icount_shift {
         args.push("-icount".into());
