@@ -6,16 +6,23 @@ use std::path::Path;
 use estimator_core::blob;
 use estimator_core::model::ModelParams;
 use estimator_core::rig::Rig;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
 use crate::calibrate::Calibration;
 
 /// The human-readable file.
-#[derive(Serialize, Deserialize)]
+#[derive(Serialize)]
 struct CalFile {
     note: String,
-    reversal_deadband_counts: u32,
     fit_rms_um: toml::Table,
+    #[serde(flatten)]
+    models: Models,
+}
+
+/// The model sections: a copy of what `calibration.bin` holds, for people to read.
+#[derive(Serialize)]
+struct Models {
+    reversal_deadband_counts: u32,
     model1: toml::Table,
     model2: toml::Table,
     model3: toml::Table,
@@ -46,6 +53,27 @@ pub fn save(dir: &Path, cal: &Calibration, rig: &Rig) -> Result<(), String> {
     let bin = dir.join("calibration.bin");
     std::fs::write(&bin, &buf[..n]).map_err(|e| format!("{}: {e}", bin.display()))?;
     let p = blob::decode(&buf[..n], rig).map_err(|e| e.to_string())?;
+    let file = CalFile {
+        note: format!(
+            "belt-drive calibration from {} samples; units in the names; the firmware loads \
+             calibration.bin ({n} bytes), which holds the model sections below: edit neither \
+             by hand (a calibration.toml that no longer matches its calibration.bin is refused)",
+            cal.samples
+        ),
+        fit_rms_um: cal
+            .fit_rms_um
+            .iter()
+            .map(|(k, v)| (k.as_str().to_string(), toml::Value::Float(*v)))
+            .collect(),
+        models: models_of(&p),
+    };
+    let text = toml::to_string(&file).map_err(|e| e.to_string())?;
+    let path = dir.join("calibration.toml");
+    std::fs::write(&path, text).map_err(|e| format!("{}: {e}", path.display()))
+}
+
+/// The model sections of `calibration.toml` for parameters `p` (as the blob holds them).
+fn models_of(p: &ModelParams) -> Models {
     let (m1, m2, m3) = (&p.model1, &p.model2, &p.model3);
     let mut model3 = toml::Table::new();
     for (name, b) in [
@@ -71,13 +99,8 @@ pub fn save(dir: &Path, cal: &Calibration, rig: &Rig) -> Result<(), String> {
         t.insert("gap_um".into(), toml::Value::Array(rows));
         model3.insert(name.into(), toml::Value::Table(t));
     }
-    let file = CalFile {
-        note: format!(
-            "belt-drive calibration from {} samples; units in the names; the firmware loads calibration.bin ({n} bytes)",
-            cal.samples
-        ),
+    Models {
         reversal_deadband_counts: p.reversal_deadband_counts,
-        fit_rms_um: cal.fit_rms_um.iter().map(|(k, v)| (k.as_str().to_string(), toml::Value::Float(*v))).collect(),
         model1: table(&[
             ("m_mm_per_mm", m1.m_mm_per_mm),
             ("offset_mm", m1.offset_mm),
@@ -108,10 +131,40 @@ pub fn save(dir: &Path, cal: &Calibration, rig: &Rig) -> Result<(), String> {
             t.insert("reverse_um".into(), floats(&b.reverse_um[..b.rows]));
             t
         },
-    };
-    let text = toml::to_string(&file).map_err(|e| e.to_string())?;
-    let path = dir.join("calibration.toml");
-    std::fs::write(&path, text).map_err(|e| format!("{}: {e}", path.display()))
+    }
+}
+
+/// The first place where `found` (the file) differs from `want` (the blob), as a dotted path.
+fn first_difference(path: &str, want: &toml::Value, found: &toml::Value) -> Option<String> {
+    use toml::Value as V;
+    match (want, found) {
+        (V::Table(w), V::Table(f)) => {
+            if let Some(k) = f.keys().find(|k| !w.contains_key(*k)) {
+                return Some(format!("{path}.{k} (not a calibration field)"));
+            }
+            w.iter().find_map(|(k, wv)| match f.get(k) {
+                None => Some(format!("{path}.{k} (missing)")),
+                Some(fv) => first_difference(&format!("{path}.{k}"), wv, fv),
+            })
+        }
+        (V::Array(w), V::Array(f)) => {
+            if w.len() != f.len() {
+                return Some(format!(
+                    "{path} ({} entries, calibration.bin has {})",
+                    f.len(),
+                    w.len()
+                ));
+            }
+            w.iter()
+                .zip(f)
+                .enumerate()
+                .find_map(|(i, (wv, fv))| first_difference(&format!("{path}[{i}]"), wv, fv))
+        }
+        (V::Float(w), V::Float(f)) if w == f => None,
+        (V::Float(w), V::Integer(f)) if *w == *f as f64 => None,
+        (V::Integer(w), V::Integer(f)) if w == f => None,
+        (w, f) => Some(format!("{path} = {f} (calibration.bin: {w})")),
+    }
 }
 
 /// Reads a calibration directory: the blob (checked as the firmware checks it; it holds every
@@ -123,20 +176,40 @@ pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, String> {
         blob::decode(&bytes, rig).map_err(|e| format!("{}: {e}", bin.display()))?;
     let path = dir.join("calibration.toml");
     let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let file: CalFile = toml::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
-    let rms = |k: &str| {
-        file.fit_rms_um
-            .get(k)
-            .and_then(|v| v.as_float())
-            .unwrap_or(f64::NAN)
+    let mut found: toml::Table =
+        crate::input::from_toml(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+    found.remove("note");
+    let fit_rms_um = match found.remove("fit_rms_um") {
+        Some(toml::Value::Table(t)) => t,
+        _ => return Err(format!("{}: [fit_rms_um] is missing", path.display())),
+    };
+    // The model sections mirror the blob: an edit there would be silently ignored, so it is
+    // refused instead, naming the field.
+    let want = toml::Value::try_from(models_of(&params)).map_err(|e| e.to_string())?;
+    let found = toml::Value::Table(found);
+    if let Some(at) = first_difference("", &want, &found) {
+        return Err(format!(
+            "{}: {} differs from {}: the drive loads the blob, so edits to the model sections \
+             are not used; run `hil-sim calibrate` again (or restore the file)",
+            path.display(),
+            at.trim_start_matches('.'),
+            bin.display()
+        ));
+    }
+    let rms = |k: &str| match fit_rms_um.get(k).and_then(|v| v.as_float()) {
+        Some(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!(
+            "{}: fit_rms_um.{k} is missing or not a finite number >= 0",
+            path.display()
+        )),
     };
     use estimator_core::model::ModelKind as K;
     Ok(Calibration {
         params,
         fit_rms_um: [
-            (K::Linear, rms("model1")),
-            (K::Exponential, rms("model2")),
-            (K::Table, rms("model3")),
+            (K::Linear, rms("model1")?),
+            (K::Exponential, rms("model2")?),
+            (K::Table, rms("model3")?),
         ],
         samples: 0,
     })

@@ -183,7 +183,7 @@ fn model3(
     }
     let n_bins = (((hi - lo) / rig.belt_pitch_mm).ceil() as usize).clamp(2, MAX_BAND_POINTS);
     let bin_w = (hi - lo) / n_bins as f64;
-    let band = |dir: i8| -> Result<BandParams, String> {
+    let band = |dir: i8| -> Vec<(f64, f64)> {
         let (mut sum, mut cnt) = (vec![0.0; n_bins], vec![0usize; n_bins]);
         for r in runs {
             for s in strokes(&r.x_counts, deadband)
@@ -211,10 +211,22 @@ fn model3(
                 (x, edge(x, dir) + corr)
             })
             .collect();
-        BandParams::from_points(&pts).ok_or_else(|| "band table rejected".to_string())
+        pts
     };
-    let forward_band = band(1)?;
-    let reverse_band = band(-1)?;
+    let (mut fwd, mut rev) = (band(1), band(-1));
+    // The reverse edge lies above the forward one (the model's invariant). With almost no
+    // hysteresis (a frictionless guide) the two averages can cross by noise: they meet at their
+    // mean there.
+    for (f, r) in fwd.iter_mut().zip(rev.iter_mut()) {
+        if r.1 < f.1 {
+            let mid = 0.5 * (f.1 + r.1);
+            (f.1, r.1) = (mid, mid);
+        }
+    }
+    let forward_band =
+        BandParams::from_points(&fwd).ok_or_else(|| "forward band table rejected".to_string())?;
+    let reverse_band =
+        BandParams::from_points(&rev).ok_or_else(|| "reverse band table rejected".to_string())?;
 
     // Transition tables: gap to the new band edge after each reversal.
     let band_at =

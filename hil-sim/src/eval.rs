@@ -78,11 +78,19 @@ pub fn record_calibration(
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Vec<Trace>, String> {
     let mut traces = Vec::new();
-    for (k, name) in CALIBRATION_SCENARIOS.iter().enumerate() {
-        let s = Scenario::load(name)?;
+    let scenarios = CALIBRATION_SCENARIOS
+        .iter()
+        .map(|name| Scenario::load(name))
+        .collect::<Result<Vec<_>, _>>()?;
+    // All checked before the first is recorded: a plant they do not fit fails at once.
+    for s in &scenarios {
+        s.check_against(&DriveConfig::paper_rig(), plant)
+            .map_err(|e| format!("calibration scenario {e}"))?;
+    }
+    for (k, (name, s)) in CALIBRATION_SCENARIOS.iter().zip(&scenarios).enumerate() {
         let label = format!("record {name}");
         let t = run_in_process(
-            &s,
+            s,
             plant,
             &ModelParams::PAPER,
             ModelKind::None,
@@ -93,6 +101,18 @@ pub fn record_calibration(
         traces.push(t);
     }
     Ok(traces)
+}
+
+/// True when `scenario` and `plant` are the paper's own setting (the Fig. 18 preset's moves on
+/// the built-in paper rig), where Table 3's published figures can be set beside ours.
+pub fn paper_setting(scenario: &Scenario, plant: &PlantParams) -> bool {
+    let same_plant = PlantParams {
+        source: String::new(),
+        ..plant.clone()
+    } == PlantParams::paper_rig();
+    let same_moves = Scenario::load("fig18")
+        .is_ok_and(|f| f.start_mm == scenario.start_mm && f.moves == scenario.moves);
+    same_plant && same_moves
 }
 
 /// Records the calibration scenarios and calibrates.
@@ -144,7 +164,7 @@ pub fn to_json(
     samples: usize,
     table: &[(&'static str, ErrorStats)],
     positioning: &[(&'static str, crate::placement::Positioning)],
-) -> String {
+) -> Result<String, String> {
     fn by_name<T: serde::Serialize>(
         rows: &[(&'static str, T)],
     ) -> serde_json::Map<String, serde_json::Value> {
@@ -157,13 +177,35 @@ pub fn to_json(
             })
             .collect()
     }
-    serde_json::json!({
+    let v = serde_json::json!({
         "scenario": scenario,
         "samples": samples,
         "models": by_name(table),
         "positioning": by_name(positioning),
-    })
-    .to_string()
+    });
+    // serde_json writes NaN and infinities as null: a result that is not a number is an error.
+    match first_null("", &v) {
+        Some(at) => Err(format!(
+            "{scenario}: {} is not a number: nothing to report",
+            at.trim_start_matches('.')
+        )),
+        None => Ok(v.to_string()),
+    }
+}
+
+/// The path of the first null in `v`, if any.
+fn first_null(path: &str, v: &serde_json::Value) -> Option<String> {
+    match v {
+        serde_json::Value::Null => Some(path.to_string()),
+        serde_json::Value::Object(m) => m
+            .iter()
+            .find_map(|(k, v)| first_null(&format!("{path}.{k}"), v)),
+        serde_json::Value::Array(a) => a
+            .iter()
+            .enumerate()
+            .find_map(|(i, v)| first_null(&format!("{path}[{i}]"), v)),
+        _ => None,
+    }
 }
 
 /// Runs `scenario` with the firmware under QEMU in the loop: the calibration goes over the link
@@ -186,8 +228,8 @@ pub fn run_pil(
         .map_err(|e| format!("PIL: loading the calibration: {e}"))?;
     c.send_command(estimator_core::drive::Command::SelectModel(model))
         .map_err(|e| format!("PIL: selecting {model}: {e}"))?;
-    let trace =
-        run(scenario, plant, &rig, &mut c, rc, progress).map_err(|e| format!("PIL: {e}"))?;
+    let trace = run(scenario, plant, &rig, &mut c, rc, progress)
+        .map_err(|e| format!("PIL: {}: {e}", scenario.source()))?;
     let status = c.shutdown(0).map_err(|e| format!("PIL: {e}"))?;
     if status != 0 {
         return Err(format!("PIL: QEMU exited with status {status}"));

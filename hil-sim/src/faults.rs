@@ -214,7 +214,7 @@ pub fn run_class(
 ) -> Result<ClassResult, String> {
     let dt = 1.0 / 2000.0;
     let params = injection.plant(base);
-    let mut plant = Plant::new(&params, START_MM, seed);
+    let mut plant = Plant::new(&params, START_MM, seed)?;
     let mut sensors = Sensors {
         injection,
         frozen: None,

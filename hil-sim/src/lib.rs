@@ -12,6 +12,7 @@ pub mod controller;
 pub mod eval;
 pub mod faults;
 pub mod fit;
+pub mod input;
 pub mod params;
 pub mod pil;
 pub mod placement;

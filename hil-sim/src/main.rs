@@ -126,7 +126,7 @@ impl Common {
             )
         } else {
             eval::run_in_process(scenario, plant, params, model, self.seed, &mut p)
-                .map_err(|e| format!("{}: {e}", scenario.name))
+                .map_err(|e| format!("{}: {e}", scenario.source()))
         }
     }
 }
@@ -205,10 +205,7 @@ enum Cmd {
 fn plant_params(path: &Option<PathBuf>) -> Result<PlantParams, String> {
     match path {
         None => Ok(PlantParams::paper_rig()),
-        Some(p) => {
-            let text = std::fs::read_to_string(p).map_err(|e| format!("{}: {e}", p.display()))?;
-            PlantParams::from_toml_str(&text).map_err(|e| format!("{}: {e}", p.display()))
-        }
+        Some(p) => PlantParams::load(p),
     }
 }
 
@@ -218,8 +215,17 @@ fn calibration(
     progress: &mut Progress,
 ) -> Result<Calibration, String> {
     match &common.calibration {
-        Some(dir) => calfile::load(dir, &Rig::PAPER),
-        None => eval::calibrate_plant(plant, &mut |stage, f| progress.stage(stage, f)),
+        Some(dir) => {
+            eprintln!("model parameters: {}", dir.display());
+            calfile::load(dir, &Rig::PAPER)
+        }
+        None => {
+            eprintln!(
+                "model parameters: calibrating on {} now (give --calibration DIR to reuse one)",
+                plant.name()
+            );
+            eval::calibrate_plant(plant, &mut |stage, f| progress.stage(stage, f))
+        }
     }
 }
 
@@ -233,9 +239,20 @@ struct Session {
     progress: Progress,
 }
 
-fn session(scenario: &str, common: &Common) -> Result<Session, String> {
+/// The scenario and the plant, checked against each other and the drive's limits before
+/// anything runs.
+fn scenario_and_plant(
+    scenario: &str,
+    plant: &Option<PathBuf>,
+) -> Result<(Scenario, PlantParams), String> {
     let scenario = Scenario::load(scenario)?;
-    let plant = plant_params(&common.plant)?;
+    let plant = plant_params(plant)?;
+    scenario.check_against(&estimator_core::drive::DriveConfig::paper_rig(), &plant)?;
+    Ok((scenario, plant))
+}
+
+fn session(scenario: &str, common: &Common) -> Result<Session, String> {
+    let (scenario, plant) = scenario_and_plant(scenario, &common.plant)?;
     let mut progress = Progress::new();
     let cal = calibration(common, &plant, &mut progress)?;
     let trace = common.run(
@@ -275,12 +292,17 @@ fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), String> {
     if json {
         println!(
             "{}",
-            eval::to_json(&trace.scenario, trace.records.len(), &table, &placed)
+            eval::to_json(&trace.scenario, trace.records.len(), &table, &placed)?
         );
     } else {
         print!(
             "{}",
-            report::table_markdown(&trace.scenario, trace.records.len(), &table)
+            report::table_markdown(
+                &trace.scenario,
+                trace.records.len(),
+                &table,
+                eval::paper_setting(&scenario, &plant)
+            )
         );
         print!("\n{}", report::placement_markdown(&placed));
     }
@@ -292,13 +314,10 @@ fn run_csv(scenario: &str, common: &Common, model: &str, out: &str) -> Result<()
         let names: Vec<_> = ModelKind::ALL.iter().map(|k| k.as_str()).collect();
         format!("--model {model}: use one of {}", names.join(", "))
     })?;
-    let scenario = Scenario::load(scenario)?;
-    let plant = plant_params(&common.plant)?;
+    let (scenario, plant) = scenario_and_plant(scenario, &common.plant)?;
     let mut progress = Progress::new();
-    let params = match &common.calibration {
-        Some(dir) => calfile::load(dir, &Rig::PAPER)?.params,
-        None => estimator_core::model::ModelParams::PAPER,
-    };
+    // As documented for every command: the given calibration, or one made now on this plant.
+    let params = calibration(common, &plant, &mut progress)?.params;
     let trace = common.run(&scenario, &plant, &params, kind, &mut progress)?;
     progress.finish();
     let mut w: Box<dyn std::io::Write> = if out == "-" {
@@ -482,11 +501,15 @@ fn main() -> ExitCode {
                 "core in-process"
             };
             let placed = common.placement(&scenario, &plant, &cal.params, &mut progress)?;
+            let setting = report::Setting {
+                scenario: &scenario,
+                plant: &plant,
+                how,
+            };
             report::write(
                 Path::new(&out),
+                &setting,
                 &trace,
-                how,
-                &plant,
                 &cal,
                 &placed,
                 &mut progress,
@@ -500,7 +523,7 @@ fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("hil-sim: {e}");
-            if e.contains("scenario") && !e.contains(&preset_names()) {
+            if e.contains("No such file") && !e.contains(&preset_names()) {
                 eprintln!("presets: {}", preset_names());
             }
             ExitCode::FAILURE

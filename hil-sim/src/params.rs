@@ -39,6 +39,9 @@ pub struct PlantParams {
     pub variation: Variation,
     /// Numerical integration.
     pub integration: Integration,
+    /// The file these came from, for messages (empty: the built-in preset).
+    #[serde(skip)]
+    pub source: String,
 }
 
 /// Brushed DC motor: torque `kt * i`, rotor inertia, viscous and brush/bearing Coulomb loss.
@@ -249,9 +252,26 @@ impl PlantParams {
 
     /// Parses and validates a TOML preset.
     pub fn from_toml_str(s: &str) -> Result<Self, String> {
-        let p: PlantParams = toml::from_str(s).map_err(|e| format!("plant parameters: {e}"))?;
+        let p: PlantParams = crate::input::from_toml(s)?;
         p.validate()?;
         Ok(p)
+    }
+
+    /// Loads a plant file; errors name it.
+    pub fn load(path: &std::path::Path) -> Result<Self, String> {
+        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let mut p = Self::from_toml_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        p.source = path.display().to_string();
+        Ok(p)
+    }
+
+    /// The plant file's name, or `the built-in paper-rig plant`.
+    pub fn name(&self) -> &str {
+        if self.source.is_empty() {
+            "the built-in paper-rig plant"
+        } else {
+            &self.source
+        }
     }
 
     /// Serialises to TOML (loses the preset's comments).

@@ -31,7 +31,7 @@ pub fn arrival_errors(
     seed: u64,
 ) -> Result<Vec<f64>, String> {
     let dt = 1.0 / 2000.0;
-    let mut plant = Plant::new(plant_params, start_mm, seed);
+    let mut plant = Plant::new(plant_params, start_mm, seed)?;
     let e = |e: crate::controller::ControlError| e.to_string();
     home_and_enable(controller, &plant, rig).map_err(e)?;
     controller.command(Command::SelectModel(model)).map_err(e)?;
@@ -305,5 +305,5 @@ pub fn run_carriage_space(
         &rc,
         progress,
     )
-    .map_err(|e| format!("{}: {e}", scenario.name))
+    .map_err(|e| format!("{}: {e}", scenario.source()))
 }

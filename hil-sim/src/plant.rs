@@ -431,17 +431,22 @@ impl Plant {
     ///
     /// `seed` draws the run-to-run variation (`[variation]`) and the scale noise.
     ///
-    /// # Panics
-    /// If `params` fails [`PlantParams::validate`] or `start_mm` is outside the travel.
-    pub fn new(params: &PlantParams, start_mm: f64, seed: u64) -> Plant {
-        if let Err(e) = params.validate() {
-            panic!("invalid plant parameters: {e}");
-        }
+    /// Refused (with the field named) if `params` fails [`PlantParams::validate`] or `start_mm`
+    /// is outside the travel.
+    pub fn new(params: &PlantParams, start_mm: f64, seed: u64) -> Result<Plant, String> {
+        params
+            .validate()
+            .map_err(|e| format!("{}: {e}", params.name()))?;
         let x = start_mm * 1e-3;
-        assert!(
-            (params.carriage.travel_min_m..=params.carriage.travel_max_m).contains(&x),
-            "start_mm {start_mm} outside the carriage travel"
-        );
+        if !(params.carriage.travel_min_m..=params.carriage.travel_max_m).contains(&x) {
+            return Err(format!(
+                "start at {start_mm} mm is outside the plant's travel {}..={} mm \
+                 (carriage.travel_min_m, carriage.travel_max_m of {})",
+                params.carriage.travel_min_m * 1e3,
+                params.carriage.travel_max_m * 1e3,
+                params.name()
+            ));
+        }
         let mut draws = Rng::new(seed, 0);
         let c = Coeffs::new(params, &mut draws);
         // Pulley angle with the forward flank touching: P(theta) = x + h (P is monotonic).
@@ -470,7 +475,7 @@ impl Plant {
             scale_counts: 0,
         };
         plant.sample_scale();
-        plant
+        Ok(plant)
     }
 
     /// Integrates one control tick of `dt_s` with the amplifier commanded to `current_cmd_a`
@@ -720,7 +725,7 @@ mod tests {
 
     #[test]
     fn starts_at_rest_and_stays_there() {
-        let mut plant = Plant::new(&quiet(), 100.0, 3);
+        let mut plant = Plant::new(&quiet(), 100.0, 3).unwrap();
         let (m0, s0) = (plant.motor_counts(), plant.scale_counts());
         assert!((plant.carriage_mm() - 100.0).abs() < 1e-12);
         let f = plant.belt();
@@ -736,7 +741,7 @@ mod tests {
     #[test]
     fn counters_wrap_like_16_bit_timers() {
         // Drive the motor backwards through zero and the scale across a 16-bit boundary.
-        let mut plant = Plant::new(&quiet(), 0.05, 1);
+        let mut plant = Plant::new(&quiet(), 0.05, 1).unwrap();
         let mut prev = (plant.motor_counter(), plant.motor_counts());
         let mut wrapped = false;
         for _ in 0..4000 {
@@ -759,7 +764,7 @@ mod tests {
 
     #[test]
     fn current_is_clamped_and_lags() {
-        let mut plant = Plant::new(&quiet(), 100.0, 1);
+        let mut plant = Plant::new(&quiet(), 100.0, 1).unwrap();
         plant.step(1e6, 2e-4);
         let i = plant.current_a();
         // One time constant: 63 % of the 10 A limit.
@@ -771,11 +776,11 @@ mod tests {
     #[test]
     fn seeds_change_the_run_but_not_the_geometry() {
         let p = quiet();
-        let a = Plant::new(&p, 50.0, 1);
-        let b = Plant::new(&p, 50.0, 2);
+        let a = Plant::new(&p, 50.0, 1).unwrap();
+        let b = Plant::new(&p, 50.0, 2).unwrap();
         assert_ne!(a.carriage_friction_n(), b.carriage_friction_n());
         assert!((a.motor_counts() - b.motor_counts()).abs() <= 1);
-        let c = Plant::new(&p, 50.0, 1);
+        let c = Plant::new(&p, 50.0, 1).unwrap();
         assert_eq!(a.carriage_friction_n(), c.carriage_friction_n());
     }
 }

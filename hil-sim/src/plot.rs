@@ -88,22 +88,46 @@ pub fn hysteresis(path: &Path, title: &str, traces: &[Trace]) -> PlotResult {
     Ok(())
 }
 
+/// The value ranges every estimate figure of one scenario shares, so that the models and the
+/// baselines compare at a glance: (measured and estimate, um), (error e, um).
+pub fn estimate_scales(trace: &Trace, estimates: &[&[f64]]) -> ((f64, f64), (f64, f64)) {
+    let n = trace.records.len();
+    let values = range(
+        (0..n)
+            .map(|i| trace.dx_um(i))
+            .chain(estimates.iter().flat_map(|y| y.iter().copied())),
+    );
+    let errors = range(
+        estimates
+            .iter()
+            .flat_map(|y| (0..n.min(y.len())).map(move |i| trace.dx_um(i) - y[i])),
+    );
+    (values, errors)
+}
+
 /// Figs. 19-24: measured Delta x and the model's estimate y against time (top), and the
-/// estimation error e = Delta x - y (bottom).
-pub fn estimate(path: &Path, title: &str, trace: &Trace, y_um: &[f64]) -> PlotResult {
+/// estimation error e = Delta x - y (bottom), on the scales of [`estimate_scales`].
+pub fn estimate(
+    path: &Path,
+    title: &str,
+    trace: &Trace,
+    y_um: &[f64],
+    scales: ((f64, f64), (f64, f64)),
+) -> PlotResult {
     init_fonts()?;
     let root = BitMapBackend::new(path, (1000, 700)).into_drawing_area();
     root.fill(&WHITE)?;
     let (top, bottom) = root.split_vertically(420);
-    let n = trace.records.len();
+    let n = trace.records.len().min(y_um.len());
     let t_end = trace.records.last().map_or(1.0, |r| r.t_s);
-    let ys = range((0..n).map(|i| trace.dx_um(i)).chain(y_um.iter().copied()));
+    let (ys, es) = scales;
     let mut c = ChartBuilder::on(&top)
         .caption(title, ("sans-serif", 22))
         .margin(12)
         .x_label_area_size(30)
         .y_label_area_size(60)
-        .build_cartesian_2d(0.0..t_end, ys.0..ys.1)?;
+        // Headroom above the data for the legend, so that it never covers a curve.
+        .build_cartesian_2d(0.0..t_end, ys.0..ys.1 + 0.3 * (ys.1 - ys.0))?;
     c.configure_mesh().y_desc("um").draw()?;
     c.draw_series(LineSeries::new(
         thin(n, 20_000).map(|i| (trace.records[i].t_s, trace.dx_um(i))),
@@ -118,11 +142,11 @@ pub fn estimate(path: &Path, title: &str, trace: &Trace, y_um: &[f64]) -> PlotRe
     .label("estimate y")
     .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RED));
     c.configure_series_labels()
+        .position(SeriesLabelPosition::UpperRight)
         .background_style(WHITE.mix(0.8))
         .border_style(BLACK)
         .draw()?;
 
-    let es = range((0..n).map(|i| trace.dx_um(i) - y_um[i]));
     let mut c = ChartBuilder::on(&bottom)
         .margin(12)
         .x_label_area_size(40)
@@ -132,6 +156,7 @@ pub fn estimate(path: &Path, title: &str, trace: &Trace, y_um: &[f64]) -> PlotRe
         .x_desc("time (s)")
         .y_desc("error e (um)")
         .draw()?;
+    c.draw_series(LineSeries::new([(0.0, 0.0), (t_end, 0.0)], BLACK.mix(0.3)))?;
     c.draw_series(LineSeries::new(
         thin(n, 20_000).map(|i| (trace.records[i].t_s, trace.dx_um(i) - y_um[i])),
         BLACK.stroke_width(1),
@@ -140,7 +165,7 @@ pub fn estimate(path: &Path, title: &str, trace: &Trace, y_um: &[f64]) -> PlotRe
     Ok(())
 }
 
-/// The scenario itself (Fig. 18): motor position against time.
+/// The scenario itself (as the paper's Fig. 18): motor position against time.
 pub fn scenario(path: &Path, title: &str, trace: &Trace) -> PlotResult {
     init_fonts()?;
     let root = BitMapBackend::new(path, (1000, 400)).into_drawing_area();

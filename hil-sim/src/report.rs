@@ -24,15 +24,29 @@ pub const PAPER_TABLE3: &[(&str, f64, f64, f64)] = &[
 ];
 
 /// Table 3 as Markdown, with the paper's figures beside ours.
+/// `paper`: the paper's own setting (its Fig. 18 scenario on its rig, see
+/// [`eval::paper_setting`]): only then are Table 3's published figures shown beside ours.
 pub fn table_markdown(
     scenario: &str,
     samples: usize,
     table: &[(&'static str, ErrorStats)],
+    paper: bool,
 ) -> String {
-    let mut s = format!(
-        "Scenario `{scenario}`, {samples} samples; e = x_LS - x_PE - y in um (eq. 19)\n\n\
-         | estimator | max | min | RMS | paper max | paper min | paper RMS |\n|---|---:|---:|---:|---:|---:|---:|\n"
-    );
+    let mut s =
+        format!("Scenario `{scenario}`, {samples} samples; e = x_LS - x_PE - y in um (eq. 19)\n\n");
+    if !paper {
+        s += "| estimator | max | min | RMS |\n|---|---:|---:|---:|\n";
+        for (name, st) in table {
+            s += &format!(
+                "| {name} | {:.1} | {:.1} | {:.1} |\n",
+                st.max_um, st.min_um, st.rms_um
+            );
+        }
+        s +=
+            "\n(The paper's Table 3 applies to its Fig. 18 scenario on its rig only: not shown.)\n";
+        return s;
+    }
+    s += "| estimator | max | min | RMS | paper max | paper min | paper RMS |\n|---|---:|---:|---:|---:|---:|---:|\n";
     for (name, st) in table {
         let paper = PAPER_TABLE3.iter().find(|p| p.0 == *name);
         let p = |f: fn(&(&str, f64, f64, f64)) -> f64| {
@@ -106,37 +120,57 @@ pub fn write_csv(w: &mut dyn Write, trace: &Trace) -> std::io::Result<()> {
 /// Repetitions of the repeatability scenario overlaid in Fig. 11.
 pub const FIG11_RUNS: u64 = 12;
 
+/// What a report is about.
+pub struct Setting<'a> {
+    /// The scenario run.
+    pub scenario: &'a Scenario,
+    /// The plant it ran on.
+    pub plant: &'a PlantParams,
+    /// How the loop was closed (in-process or the firmware under QEMU), for the text.
+    pub how: &'a str,
+}
+
 /// Runs the scenario, writes report.md, the figures and the CSV into `dir`.
 /// `placed`: the scenario in carriage space per compensator ([`crate::placement::compare`]).
 pub fn write(
     dir: &Path,
+    setting: &Setting,
     trace: &Trace,
-    how: &str,
-    plant: &PlantParams,
     cal: &Calibration,
     placed: &[crate::placement::Placement],
     progress: &mut Progress,
 ) -> Result<(), String> {
+    let Setting { plant, how, .. } = *setting;
+    let paper = eval::paper_setting(setting.scenario, plant);
     std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
     let coeffs = cal.params.build(&Rig::PAPER).map_err(|e| e.to_string())?;
     let est = eval::estimates(trace, &coeffs);
     let table = eval::table3(trace, &est);
 
+    // Fig. 11 from the second of two cycles: a fresh plant starts on the forward band edge, so
+    // the first cycle lacks the reverse-to-forward transition; the second shows the whole loop.
     let rep = Scenario::load("repeatability")?;
+    let cycle = rep.moves.len();
+    let twice = Scenario {
+        moves: [rep.moves.clone(), rep.moves.clone()].concat(),
+        ..rep.clone()
+    };
     let mut overlay = Vec::new();
     for k in 0..FIG11_RUNS {
         let label = format!("Fig. 11 run {}/{}", k + 1, FIG11_RUNS);
-        overlay.push(
-            eval::run_in_process(
-                &rep,
-                plant,
-                &ModelParams::PAPER,
-                ModelKind::None,
-                2_000 + k,
-                &mut |f| progress.stage(&label, f),
-            )
-            .map_err(|e| format!("repeatability: {e}"))?,
-        );
+        let mut t = eval::run_in_process(
+            &twice,
+            plant,
+            &ModelParams::PAPER,
+            ModelKind::None,
+            2_000 + k,
+            &mut |f| progress.stage(&label, f),
+        )
+        .map_err(|e| format!("repeatability: {e}"))?;
+        let from = t.move_starts.get(cycle).copied().unwrap_or(0);
+        t.records.drain(..from);
+        t.move_starts = t.move_starts[cycle..].iter().map(|s| s - from).collect();
+        overlay.push(t);
     }
 
     progress.stage("figures", 0.0);
@@ -148,35 +182,55 @@ pub fn write(
     };
     fig(
         "fig11_hysteresis.png",
-        format!("Fig. 11: x_LS - x_PE against x_PE, {FIG11_RUNS} runs of `repeatability` overlaid"),
+        format!(
+            "Fig. 11: x_LS - x_PE against x_PE, {FIG11_RUNS} runs of `repeatability` overlaid \
+             (each run's second cycle: the whole loop, both reversals)"
+        ),
         plot::hysteresis(
             &dir.join("fig11_hysteresis.png"),
             "Position error, repeated runs (Fig. 11)",
             &overlay,
         ),
     );
+    // The paper's figure numbers only for the paper's own scenario.
+    let paper_fig = |n: &str| {
+        if trace.scenario == "fig18" {
+            format!(" (the paper's {n})")
+        } else {
+            String::new()
+        }
+    };
     fig(
-        "fig18_scenario.png",
-        format!("Fig. 18: the `{}` scenario", trace.scenario),
+        "scenario.png",
+        format!(
+            "The `{}` scenario: motor position against time{}",
+            trace.scenario,
+            paper_fig("Fig. 18")
+        ),
         plot::scenario(
-            &dir.join("fig18_scenario.png"),
-            &format!("Scenario {} (Fig. 18)", trace.scenario),
+            &dir.join("scenario.png"),
+            &format!("Scenario {}", trace.scenario),
             trace,
         ),
     );
+    let ys: Vec<&[f64]> = est.iter().map(|(_, y)| y.as_slice()).collect();
+    let scales = plot::estimate_scales(trace, &ys);
     for (name, y) in &est {
         let file = format!("estimate_{name}.png");
         fig(
             &file,
             format!(
-                "Figs. 19-24: `{name}` estimate and its error along `{}`",
-                trace.scenario
+                "`{name}` estimate and its error along `{}`{}; every estimator's figure has the \
+                 same scales",
+                trace.scenario,
+                paper_fig("Figs. 19-24")
             ),
             plot::estimate(
                 &dir.join(&file),
-                &format!("{name}: estimate and error"),
+                &format!("{name} along {}: estimate and error", trace.scenario),
                 trace,
                 y,
+                scales,
             ),
         );
     }
@@ -205,10 +259,12 @@ pub fn write(
     progress.stage("figures", 1.0);
 
     let spread = repeatability_spread_um(&overlay);
-    let mut md =
-        String::from("# belt-drive: estimation of the carriage position (paper's Table 3)\n\n");
+    let mut md = format!(
+        "# belt-drive: estimation of the carriage position along `{}`\n\n",
+        trace.scenario
+    );
     md += &format!("Closed loop: {how}; noise seed {}.\n\n", trace.seed);
-    md += &table_markdown(&trace.scenario, trace.records.len(), &table);
+    md += &table_markdown(&trace.scenario, trace.records.len(), &table, paper);
     md += "\nCalibration fit on its own data (RMS, um): ";
     md += &cal
         .fit_rms_um

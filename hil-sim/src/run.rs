@@ -1,6 +1,6 @@
 //! Closed-loop scenario runs: plant <-> controller, one record per control tick.
 
-use estimator_core::drive::{Command, Faults, Output, Sample};
+use estimator_core::drive::{Command, DriveConfig, Faults, Output, Sample};
 use estimator_core::rig::Rig;
 
 use crate::controller::{ControlError, Controller};
@@ -89,6 +89,8 @@ pub enum RunError {
     },
     /// The scenario did not finish within its time budget.
     Timeout(f64),
+    /// The scenario does not fit the drive or the plant (checked before the run).
+    Scenario(String),
 }
 
 impl std::fmt::Display for RunError {
@@ -101,6 +103,7 @@ impl std::fmt::Display for RunError {
             RunError::Timeout(t) => {
                 write!(f, "scenario still moving after {t:.1} s of simulated time")
             }
+            RunError::Scenario(e) => write!(f, "{e}"),
         }
     }
 }
@@ -118,17 +121,11 @@ pub const KEEPALIVE_TICKS: u64 = 200;
 
 /// Rough upper bound of a scenario's duration, for the time-out.
 fn budget_s(s: &Scenario) -> f64 {
-    let mut x = s.start_mm;
-    let mut t = 0.0;
-    for m in &s.moves {
-        let d = (m.to_mm - x).abs();
-        t += d / m.velocity_mm_s
-            + 2.0 * m.velocity_mm_s / m.accel_mm_s2
-            + m.dwell_ms as f64 / 1000.0;
-        x = m.to_mm;
-    }
-    2.0 * t + 5.0
+    2.0 * s.duration_estimate_s() + 5.0
 }
+
+/// Records reserved up front (about 10 s at 2 kHz); longer runs grow the buffer as they go.
+const RECORDS_RESERVED: usize = 20_000;
 
 /// What the board samples: the plant's two raw counters.
 pub fn sample(p: &Plant) -> Sample {
@@ -167,12 +164,24 @@ pub fn run(
     cfg: &RunConfig,
     progress: &mut dyn FnMut(f64),
 ) -> Result<Trace, RunError> {
+    // The limits hil-sim's drive runs with, in-process and in the firmware (the paper rig's).
+    scenario
+        .validate()
+        .map_err(|e| format!("{}: {e}", scenario.source()))
+        .and_then(|_| scenario.check_against(&DriveConfig::paper_rig(), plant_params))
+        .map_err(RunError::Scenario)?;
     let dt = 1.0 / cfg.rate_hz;
-    let mut plant = Plant::new(plant_params, scenario.start_mm, cfg.seed);
+    let mut plant =
+        Plant::new(plant_params, scenario.start_mm, cfg.seed).map_err(RunError::Scenario)?;
     home_and_enable(controller, &plant, rig)?;
 
     let budget = budget_s(scenario);
-    let mut records = Vec::with_capacity((budget * cfg.rate_hz * 0.6) as usize);
+    let expected = budget * cfg.rate_hz * 0.6;
+    let mut records = Vec::with_capacity(if expected < RECORDS_RESERVED as f64 {
+        expected as usize
+    } else {
+        RECORDS_RESERVED
+    });
     let mut move_starts = Vec::with_capacity(scenario.moves.len());
     let mut next = 0usize; // next move to command
     let mut next_at: Option<f64> = Some(0.0); // time it is due, None = when the drive is at rest

@@ -11,7 +11,14 @@
 //! retarget_after_ms = 150 # optional: start the next move this long after this one starts
 //! ```
 
+use estimator_core::drive::DriveConfig;
 use serde::Deserialize;
+
+use crate::plant::PlantParams;
+
+/// Longest scenario a run accepts, simulated seconds (its duration estimated from the moves):
+/// a run records every tick, about 0.25 GB per simulated hour at 2 kHz.
+pub const MAX_DURATION_S: f64 = 3600.0;
 
 /// One commanded move.
 #[derive(Clone, Debug, Deserialize, PartialEq)]
@@ -42,6 +49,9 @@ pub struct Scenario {
     /// The moves, in order.
     #[serde(rename = "move")]
     pub moves: Vec<Move>,
+    /// Where it came from (a file path or `preset NAME`), for error messages.
+    #[serde(skip)]
+    pub source: String,
 }
 
 /// The shipped presets, by name, mirroring the paper's experiments.
@@ -63,15 +73,17 @@ pub const PRESETS: &[(&str, &str)] = &[
 impl Scenario {
     /// Parses and validates a scenario; errors name the move and field.
     pub fn from_toml_str(text: &str) -> Result<Scenario, String> {
-        let s: Scenario = toml::from_str(text).map_err(|e| format!("scenario: {e}"))?;
+        let s: Scenario = crate::input::from_toml(text)?;
         s.validate()?;
         Ok(s)
     }
 
     /// Loads a file path, or a shipped preset by name (`fig18`, `reversals`, ...).
     pub fn load(path_or_preset: &str) -> Result<Scenario, String> {
-        if let Some((_, text)) = PRESETS.iter().find(|(n, _)| *n == path_or_preset) {
-            return Scenario::from_toml_str(text);
+        if let Some((name, text)) = PRESETS.iter().find(|(n, _)| *n == path_or_preset) {
+            let mut s = Scenario::from_toml_str(text).map_err(|e| format!("preset {name}: {e}"))?;
+            s.source = format!("preset {name}");
+            return Ok(s);
         }
         let text = std::fs::read_to_string(path_or_preset).map_err(|e| {
             format!(
@@ -79,7 +91,96 @@ impl Scenario {
                 preset_names()
             )
         })?;
-        Scenario::from_toml_str(&text).map_err(|e| format!("{path_or_preset}: {e}"))
+        let mut s = Scenario::from_toml_str(&text).map_err(|e| format!("{path_or_preset}: {e}"))?;
+        s.source = path_or_preset.to_string();
+        Ok(s)
+    }
+
+    /// Where the scenario came from, for messages.
+    pub fn source(&self) -> &str {
+        if self.source.is_empty() {
+            "scenario"
+        } else {
+            &self.source
+        }
+    }
+
+    /// Estimated duration, seconds: each move at its cruise speed plus its ramps, its dwell.
+    /// An upper bound of a run's length up to a factor of two (the run's time-out).
+    pub fn duration_estimate_s(&self) -> f64 {
+        let mut x = self.start_mm;
+        let mut t = 0.0;
+        for m in &self.moves {
+            let d = (m.to_mm - x).abs();
+            t += d / m.velocity_mm_s
+                + 2.0 * m.velocity_mm_s / m.accel_mm_s2
+                + m.dwell_ms as f64 / 1000.0;
+            x = m.to_mm;
+        }
+        t
+    }
+
+    /// Checks the scenario against the drive's limits (the checks `Drive::command` makes, in
+    /// the units it receives) and the plant's travel, before anything runs. Errors name the
+    /// scenario, the move (counted from 1) and the field.
+    pub fn check_against(&self, drive: &DriveConfig, plant: &PlantParams) -> Result<(), String> {
+        let src = self.source();
+        let plant_mm = (
+            plant.carriage.travel_min_m * 1e3,
+            plant.carriage.travel_max_m * 1e3,
+        );
+        let in_plant = |v: f64| (plant_mm.0..=plant_mm.1).contains(&v);
+        let in_drive = |v: f64| (drive.travel_min_mm..=drive.travel_max_mm).contains(&v);
+        let plant_name = plant.name();
+        if !in_plant(self.start_mm) {
+            return Err(format!(
+                "{src}: start_mm = {} mm is outside the plant's travel {}..={} mm \
+                 (carriage.travel_min_m, carriage.travel_max_m of {plant_name})",
+                show(self.start_mm),
+                plant_mm.0,
+                plant_mm.1
+            ));
+        }
+        for (i, m) in self.moves.iter().enumerate() {
+            let n = i + 1;
+            if !in_drive(m.to_mm) {
+                return Err(format!(
+                    "{src}: move {n}: to_mm = {} mm is outside the drive's travel {}..={} mm",
+                    show(m.to_mm),
+                    drive.travel_min_mm,
+                    drive.travel_max_mm
+                ));
+            }
+            if !in_plant(m.to_mm) {
+                return Err(format!(
+                    "{src}: move {n}: to_mm = {} mm is outside the plant's travel {}..={} mm \
+                     (carriage.travel_min_m, carriage.travel_max_m of {plant_name})",
+                    show(m.to_mm),
+                    plant_mm.0,
+                    plant_mm.1
+                ));
+            }
+            // The drive takes whole um/s and um/s^2.
+            let v_um_s = (m.velocity_mm_s * 1000.0).round();
+            if v_um_s < 1.0 || m.velocity_mm_s > drive.max_velocity_mm_s {
+                return Err(format!(
+                    "{src}: move {n}: velocity_mm_s = {} must be in 0.001..={} mm/s (the drive's \
+                     limit; it takes whole um/s)",
+                    show(m.velocity_mm_s),
+                    drive.max_velocity_mm_s
+                ));
+            }
+            let a_um_s2 = (m.accel_mm_s2 * 1000.0).round();
+            if a_um_s2 < 1.0 || m.accel_mm_s2 > drive.max_accel_mm_s2 {
+                return Err(format!(
+                    "{src}: move {n}: accel_mm_s2 = {} must be in 0.001..={} mm/s^2 (the drive's \
+                     limit; it takes whole um/s^2)",
+                    show(m.accel_mm_s2),
+                    drive.max_accel_mm_s2
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// Checks ranges: finite numbers, positive speeds, travel within 0..=2000 mm.
@@ -88,7 +189,7 @@ impl Scenario {
         if !travel(self.start_mm) {
             return Err(format!(
                 "start_mm = {} is outside 0..=2000 mm",
-                self.start_mm
+                show(self.start_mm)
             ));
         }
         if self.moves.is_empty() {
@@ -99,27 +200,68 @@ impl Scenario {
             if !travel(m.to_mm) {
                 return Err(format!(
                     "move {n}: to_mm = {} is outside 0..=2000 mm",
-                    m.to_mm
+                    show(m.to_mm)
                 ));
             }
-            if !(m.velocity_mm_s.is_finite() && m.velocity_mm_s > 0.0 && m.velocity_mm_s <= 1000.0)
-            {
+            // The drive takes whole um/s and um/s^2: 0.001 is the least it can be asked for.
+            if !(m.velocity_mm_s.is_finite() && (0.001..=1000.0).contains(&m.velocity_mm_s)) {
                 return Err(format!(
-                    "move {n}: velocity_mm_s = {} must be in (0, 1000]",
-                    m.velocity_mm_s
+                    "move {n}: velocity_mm_s = {} must be in 0.001..=1000",
+                    show(m.velocity_mm_s)
                 ));
             }
-            if !(m.accel_mm_s2.is_finite() && m.accel_mm_s2 > 0.0 && m.accel_mm_s2 <= 50_000.0) {
+            if !(m.accel_mm_s2.is_finite() && (0.001..=50_000.0).contains(&m.accel_mm_s2)) {
                 return Err(format!(
-                    "move {n}: accel_mm_s2 = {} must be in (0, 50000]",
-                    m.accel_mm_s2
+                    "move {n}: accel_mm_s2 = {} must be in 0.001..=50000",
+                    show(m.accel_mm_s2)
                 ));
             }
             if m.retarget_after_ms == Some(0) {
                 return Err(format!("move {n}: retarget_after_ms must be > 0"));
             }
+            if m.retarget_after_ms.is_some() && n == self.moves.len() {
+                return Err(format!(
+                    "move {n}: retarget_after_ms on the last move: there is no next move to \
+                     start (the run would end mid-move); remove it"
+                ));
+            }
+        }
+        let t = self.duration_estimate_s();
+        if t > MAX_DURATION_S {
+            // Name the move that takes longest, and what makes it long.
+            let mut x = self.start_mm;
+            let mut worst = (0usize, 0.0f64, "");
+            for (i, m) in self.moves.iter().enumerate() {
+                let parts = [
+                    ((m.to_mm - x).abs() / m.velocity_mm_s, "velocity_mm_s"),
+                    (2.0 * m.velocity_mm_s / m.accel_mm_s2, "accel_mm_s2"),
+                    (m.dwell_ms as f64 / 1000.0, "dwell_ms"),
+                ];
+                let (ti, field) = parts
+                    .iter()
+                    .fold((0.0, ""), |a, &(t, f)| if t > a.0 { (t, f) } else { a });
+                let total: f64 = parts.iter().map(|p| p.0).sum();
+                if total > worst.1 {
+                    worst = (i + 1, total, if ti > 0.0 { field } else { "" });
+                }
+                x = m.to_mm;
+            }
+            return Err(format!(
+                "the moves and dwells take about {t:.3e} s of simulated time; a run is limited to \
+                 {MAX_DURATION_S:.0} s; the longest is move {} ({:.3e} s, mostly its {})",
+                worst.0, worst.1, worst.2
+            ));
         }
         Ok(())
+    }
+}
+
+/// A number as a person reads it: plain, or in scientific notation when very large or small.
+fn show(v: f64) -> String {
+    if v == 0.0 || (1e-4..1e9).contains(&v.abs()) || !v.is_finite() {
+        format!("{v}")
+    } else {
+        format!("{v:e}")
     }
 }
 

@@ -107,7 +107,7 @@ mod harness {
 
     impl Drive {
         pub fn new(params: &PlantParams, start_mm: f64, seed: u64) -> Drive {
-            let plant = Plant::new(params, start_mm, seed);
+            let plant = Plant::new(params, start_mm, seed).unwrap();
             let rad_per_count = core::f64::consts::TAU / (4.0 * params.encoder.lines as f64);
             let rad_per_mm = plant.counts_per_mm() * rad_per_count;
             // Inertia at the motor: rotor + pulley + carriage and belt through the drive.

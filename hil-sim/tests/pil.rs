@@ -163,7 +163,7 @@ accel_mm_s2 = 1500.0
             .into_iter()
             .map(|p| (p.name, p.positioning))
             .collect();
-        eval::to_json(&scenario.name, 0, &[], &rows)
+        eval::to_json(&scenario.name, 0, &[], &rows).unwrap()
     };
     let host = hil_sim::placement::compare(&scenario, &cal.params, &mut |model| {
         hil_sim::placement::run_carriage_space(

@@ -107,7 +107,7 @@ pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilEr
     };
     let host = Drive::new(&cfg).map_err(|e| PilError::Link(format!("drive config: {e}")))?;
     let fw = PilController::start(opts)?;
-    let plant = Plant::new(&PlantParams::paper_rig(), START_MM, 1);
+    let plant = Plant::new(&PlantParams::paper_rig(), START_MM, 1).map_err(PilError::Link)?;
     let mut ls = Lockstep {
         host,
         fw,
@@ -145,8 +145,8 @@ pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilEr
             let out = ls.step()?;
             if !out.telemetry.faults.is_clear() {
                 return Err(PilError::Link(format!(
-                    "drive fault {:#04x}",
-                    out.telemetry.faults.0
+                    "drive fault {}",
+                    out.telemetry.faults
                 )));
             }
             if ls.first_mismatch.is_some() {

@@ -47,7 +47,7 @@ pub enum PilError {
 impl std::fmt::Display for PilError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            PilError::Refused(e) => write!(f, "command refused: {e:?}"),
+            PilError::Refused(e) => write!(f, "command refused: {e}"),
             PilError::Link(e) => write!(f, "PIL link: {e}"),
         }
     }
