@@ -37,9 +37,9 @@ mod app {
     use belt_drive::outbox::Outbox;
     use belt_drive::postmortem::{self, reset_cause};
     use belt_drive::stack;
+    use belt_link::{LinkError, Message, Receiver, Reply, Request, WireTelemetry};
     use estimator_core::blob::{self, BlobError};
-    use estimator_core::link::{answer, Effect, Endpoint, Event as LinkEvent};
-    use estimator_core::link::{LinkError, Message, Receiver, Reply, Request, WireTelemetry};
+    use estimator_core::endpoint::{answer, Effect, Endpoint, Event as LinkEvent};
 
     /// Received bytes waiting for `link` (one slot stays free): more than one largest frame
     /// (77 bytes) plus a status request, 2.7 ms of a saturated 460800 Bd line. Hosts wait for

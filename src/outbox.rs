@@ -1,7 +1,7 @@
 //! Outgoing link frames: a byte ring drained by the USART's TXE interrupt, so that no task ever
 //! waits for the wire (at 460800 baud a telemetry frame takes about 1 ms to send).
 
-use estimator_core::link::{encode, Message, MAX_FRAME};
+use belt_link::{encode, Message, MAX_FRAME};
 
 use crate::hardware::LinkTx;
 

@@ -7,7 +7,7 @@ use core::mem::MaybeUninit;
 use core::ptr;
 
 /// Reset-cause bits, as reported in the status reply.
-pub use estimator_core::link::reset_cause;
+pub use belt_link::reset_cause;
 
 /// Logs the reset cause by name, one line ("unknown" when no flag is set, e.g. under QEMU).
 pub fn log_reset_cause(bits: u8) {

@@ -42,7 +42,8 @@ fn load(
 #[cfg(target_os = "none")]
 #[inline(never)]
 fn endpoint_transfer(drive: &mut estimator_core::drive::Drive, blob: &[u8]) -> bool {
-    use estimator_core::link::{crc32, Effect, Endpoint, Reply, Request, CHUNK_MAX};
+    use belt_link::{crc32, Reply, Request, CHUNK_MAX};
+    use estimator_core::endpoint::{Effect, Endpoint};
     let Some(endpoint) = cortex_m::singleton!(: Endpoint = Endpoint::new()) else {
         defmt::panic!("twice")
     };

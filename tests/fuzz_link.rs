@@ -12,7 +12,8 @@ use belt_drive as _;
 #[cfg(target_os = "none")]
 use {
     belt_drive::drive::{Drive, DriveConfig, Sample},
-    estimator_core::link::{encode, Endpoint, Message, Receiver, Request, MAX_FRAME},
+    belt_link::{encode, Command, Message, Receiver, Request, MAX_FRAME},
+    estimator_core::endpoint::Endpoint,
 };
 
 /// Frames fed to the link.
@@ -42,7 +43,7 @@ mod tests {
 
         // Enable through the link itself, so the drive could move if a frame got through.
         let mut wire = [0u8; MAX_FRAME];
-        let n = encode(1, &Request::Enable, &mut wire);
+        let n = encode(1, &Request::Command(Command::Enable), &mut wire);
         for &b in &wire[..n] {
             if let Some(Ok(f)) = rx.push::<Request>(b) {
                 let _ = endpoint.handle_inline(&f.msg, &mut drive);

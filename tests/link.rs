@@ -9,8 +9,8 @@ fn main() {}
 use belt_drive as _;
 
 #[cfg(target_os = "none")]
-use estimator_core::link::{
-    cobs_encode, crc32, encode, kind, Frame, LinkError, Message, Receiver, Reply, Request,
+use belt_link::{
+    cobs_encode, crc32, encode, kind, Command, Frame, LinkError, Message, Receiver, Reply, Request,
     WireStatus, WireTelemetry, CHUNK_MAX, MAX_ENCODED, MAX_FRAME, MAX_RAW, MODEL_MAX,
 };
 
@@ -55,11 +55,11 @@ mod tests {
     #[test]
     fn known_move_bytes() {
         let mut out = [0u8; MAX_FRAME];
-        let req = Request::MoveMotor {
+        let req = Request::Command(Command::MoveMotorTo {
             target_um: -250_000,
             velocity_um_s: 50_000,
             accel_um_s2: 200_000,
-        };
+        });
         let n = encode(9, &req, &mut out);
         defmt::assert_eq!(&out[..n], &KNOWN_MOVE_MOTOR[..]);
         let mut rx = Receiver::new();

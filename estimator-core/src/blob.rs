@@ -29,6 +29,8 @@ use crate::model::{
 };
 use crate::rig::Rig;
 use crate::ConfigError;
+use belt_link::bytes::{Reader, Short, Writer};
+use belt_link::Crc32;
 
 /// First four bytes of every blob.
 pub const MAGIC: [u8; 4] = *b"BDCB";
@@ -96,97 +98,52 @@ impl core::fmt::Display for BlobError {
 #[cfg(feature = "std")]
 impl std::error::Error for BlobError {}
 
-/// CRC-32 (IEEE 802.3, reflected, as zlib), nibble-table: small flash, fast enough for a 3 KiB blob.
+/// The blob's CRC-32 over `chunks` in order: the link's CRC (`belt_link::Crc32`, IEEE, as
+/// zlib), one implementation for both.
 pub fn crc32(chunks: &[&[u8]]) -> u32 {
-    const T: [u32; 16] = [
-        0x0000_0000,
-        0x1DB7_1064,
-        0x3B6E_20C8,
-        0x26D9_30AC,
-        0x76DC_4190,
-        0x6B6B_51F4,
-        0x4DB2_6158,
-        0x5005_713C,
-        0xEDB8_8320,
-        0xF00F_9344,
-        0xD6D6_A3E8,
-        0xCB61_B38C,
-        0x9B64_C2B0,
-        0x86D3_D2D4,
-        0xA00A_E278,
-        0xBDBD_F21C,
-    ];
-    let mut c = !0u32;
+    let mut c = Crc32::new();
     for chunk in chunks {
-        for &b in *chunk {
-            c = (c >> 4) ^ T[((c ^ b as u32) & 0xf) as usize];
-            c = (c >> 4) ^ T[((c ^ (b as u32 >> 4)) & 0xf) as usize];
-        }
+        c.update(chunk);
     }
-    !c
+    c.finish()
 }
 
 fn rig_q16(rig: &Rig) -> u32 {
     (rig.counts_per_mm() * 65536.0 + 0.5) as u32
 }
 
-struct Writer<'a> {
-    buf: &'a mut [u8],
-    at: usize,
+impl From<Short> for BlobError {
+    fn from(_: Short) -> Self {
+        BlobError::Truncated
+    }
 }
 
-impl Writer<'_> {
-    fn bytes(&mut self, b: &[u8]) -> Result<(), BlobError> {
-        let end = self
-            .at
-            .checked_add(b.len())
-            .ok_or(BlobError::BufferTooSmall)?;
-        self.buf
-            .get_mut(self.at..end)
-            .ok_or(BlobError::BufferTooSmall)?
-            .copy_from_slice(b);
-        self.at = end;
-        Ok(())
+/// The blob's fixed-point fields on the shared reader and writer.
+trait ReadFixed {
+    /// An `i32` read as a value with `frac` fraction bits.
+    fn fixed(&mut self, frac: u32) -> Result<f64, BlobError>;
+}
+
+impl ReadFixed for Reader<'_> {
+    fn fixed(&mut self, frac: u32) -> Result<f64, BlobError> {
+        Ok(self.i32()? as f64 / (1u64 << frac) as f64)
     }
-    fn u16(&mut self, v: u16) -> Result<(), BlobError> {
-        self.bytes(&v.to_le_bytes())
-    }
-    fn u32(&mut self, v: u32) -> Result<(), BlobError> {
-        self.bytes(&v.to_le_bytes())
-    }
-    /// `v * 2^frac` rounded to an i32.
+}
+
+trait WriteFixed {
+    /// `v * 2^frac` rounded to an i32, or `Unrepresentable(field)`.
+    fn fixed(&mut self, v: f64, frac: u32, field: &'static str) -> Result<(), BlobError>;
+}
+
+impl WriteFixed for Writer<'_> {
     fn fixed(&mut self, v: f64, frac: u32, field: &'static str) -> Result<(), BlobError> {
         let q = v * (1u64 << frac) as f64;
         let q = if q >= 0.0 { q + 0.5 } else { q - 0.5 };
         if !(q.is_finite() && q >= i32::MIN as f64 && q <= i32::MAX as f64) {
             return Err(BlobError::Unrepresentable(field));
         }
-        self.bytes(&(q as i32).to_le_bytes())
-    }
-}
-
-struct Reader<'a> {
-    buf: &'a [u8],
-    at: usize,
-}
-
-impl Reader<'_> {
-    fn take<const N: usize>(&mut self) -> Result<[u8; N], BlobError> {
-        let end = self.at.checked_add(N).ok_or(BlobError::Truncated)?;
-        let s = self.buf.get(self.at..end).ok_or(BlobError::Truncated)?;
-        self.at = end;
-        let mut a = [0u8; N];
-        a.copy_from_slice(s);
-        Ok(a)
-    }
-    fn u16(&mut self) -> Result<u16, BlobError> {
-        Ok(u16::from_le_bytes(self.take()?))
-    }
-    fn u32(&mut self) -> Result<u32, BlobError> {
-        Ok(u32::from_le_bytes(self.take()?))
-    }
-    fn fixed(&mut self, frac: u32) -> Result<f64, BlobError> {
-        Ok(i32::from_le_bytes(self.take()?) as f64 / (1u64 << frac) as f64)
+        self.i32(q as i32);
+        Ok(())
     }
 }
 
@@ -197,9 +154,9 @@ const Q24: u32 = 24;
 /// to the blob's formats: load the decoded blob on the host too, so host and firmware agree.
 pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, BlobError> {
     params.build(rig).map_err(BlobError::Invalid)?;
-    let mut w = Writer { buf, at: HEADER };
-    w.u32(rig_q16(rig))?;
-    w.u32(params.reversal_deadband_counts)?;
+    let mut w = Writer::at(&mut *buf, HEADER);
+    w.u32(rig_q16(rig));
+    w.u32(params.reversal_deadband_counts);
     let m1 = &params.model1;
     w.fixed(m1.m_mm_per_mm * 1000.0, Q16, "model1.m_mm_per_mm")?;
     w.fixed(m1.offset_mm * 1000.0, Q16, "model1.offset_mm")?;
@@ -230,8 +187,8 @@ pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, 
         (&m3.reverse_band, "model3.reverse_band"),
     ] {
         let n = band.len.min(MAX_BAND_POINTS);
-        w.u16(n as u16)?;
-        w.u16(0)?;
+        w.u16(n as u16);
+        w.u16(0);
         for i in 0..n {
             w.fixed(band.x_mm[i] * 1000.0, 0, name)?;
             w.fixed(band.y_um[i], Q16, name)?;
@@ -242,8 +199,8 @@ pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, 
         (&m3.reverse_transition, "model3.reverse_transition"),
     ] {
         let (nd, ng) = (t.n_d.min(MAX_TRANSITION_D), t.n_g0.min(MAX_TRANSITION_G0));
-        w.u16(nd as u16)?;
-        w.u16(ng as u16)?;
+        w.u16(nd as u16);
+        w.u16(ng as u16);
         w.fixed(t.d_step_mm * 1000.0, Q16, name)?;
         w.fixed(t.g0_step_um, Q16, name)?;
         for row in t.gap_um.iter().take(nd) {
@@ -252,7 +209,7 @@ pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, 
                 if !(q >= 0.0 && q <= u16::MAX as f64) {
                     return Err(BlobError::Unrepresentable(name));
                 }
-                w.u16(q as u16)?;
+                w.u16(q as u16);
             }
         }
     }
@@ -260,22 +217,21 @@ pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, 
     w.fixed(params.backlash.backlash_um, Q16, "backlash.backlash_um")?;
     let t = &params.bidir_table;
     let rows = t.rows.min(MAX_BIDIR_ROWS);
-    w.u16(rows as u16)?;
-    w.u16(0)?;
+    w.u16(rows as u16);
+    w.u16(0);
     w.fixed(t.x0_mm * 1000.0, 0, "bidir_table.x0_mm")?;
     w.fixed(t.step_mm * 1000.0, 8, "bidir_table.step_mm")?;
     for i in 0..rows {
         w.fixed(t.forward_um[i], Q16, "bidir_table.forward_um")?;
         w.fixed(t.reverse_um[i], Q16, "bidir_table.reverse_um")?;
     }
-    let len = w.at;
+    let len = w.finish().map_err(|_| BlobError::BufferTooSmall)?;
     let payload_len = (len - HEADER) as u32;
     let mut head = [0u8; 12];
     head[..4].copy_from_slice(&MAGIC);
     head[4..6].copy_from_slice(&VERSION.to_le_bytes());
     head[8..12].copy_from_slice(&payload_len.to_le_bytes());
-    let crc = crc32(&[&head, &w.buf[HEADER..len]]);
-    let buf = w.buf;
+    let crc = crc32(&[&head, &buf[HEADER..len]]);
     buf[..12].copy_from_slice(&head);
     buf[12..16].copy_from_slice(&crc.to_le_bytes());
     Ok(len)
@@ -352,15 +308,6 @@ impl Model3Source for BlobModel3<'_> {
     }
 }
 
-impl<'a> Reader<'a> {
-    fn slice(&mut self, n: usize) -> Result<&'a [u8], BlobError> {
-        let end = self.at.checked_add(n).ok_or(BlobError::Truncated)?;
-        let s = self.buf.get(self.at..end).ok_or(BlobError::Truncated)?;
-        self.at = end;
-        Ok(s)
-    }
-}
-
 fn parse<'a>(blob: &'a [u8], rig: &Rig) -> Result<Parsed<'a>, BlobError> {
     if blob.len() < HEADER {
         return Err(BlobError::Truncated);
@@ -387,10 +334,7 @@ fn parse<'a>(blob: &'a [u8], rig: &Rig) -> Result<Parsed<'a>, BlobError> {
     if crc32(&[&blob[..12], &blob[HEADER..]]) != crc {
         return Err(BlobError::BadChecksum);
     }
-    let mut r = Reader {
-        buf: &blob[HEADER..],
-        at: 0,
-    };
+    let mut r = Reader::new(&blob[HEADER..]);
     if r.u32()? != rig_q16(rig) {
         return Err(BlobError::RigMismatch);
     }
@@ -458,7 +402,7 @@ fn parse<'a>(blob: &'a [u8], rig: &Rig) -> Result<Parsed<'a>, BlobError> {
         step_mm,
         values: r.slice(8 * rows)?,
     };
-    if r.at != r.buf.len() {
+    if r.remaining() != 0 {
         return Err(BlobError::TooLong);
     }
     Ok(Parsed {

@@ -23,7 +23,7 @@ pub mod blob;
 pub mod drive;
 pub mod fault;
 
-pub mod link;
+pub mod endpoint;
 
 #[cfg(feature = "std")]
 pub mod reference;

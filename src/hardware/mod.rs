@@ -52,7 +52,7 @@ pub struct Board {
     pub sysclk_hz: u32,
     /// The crystal did not start (or the PLL did not lock): running from the internal RC.
     pub clock_fallback: bool,
-    /// Why the chip last reset: `estimator_core::link::reset_cause` bits, 0 = unknown.
+    /// Why the chip last reset: `belt_link::reset_cause` bits, 0 = unknown.
     pub reset_cause: u8,
 }
 

@@ -5,7 +5,7 @@
 //!   SysTick run at 168 MHz whatever RCC says, so the monotonic is started at 168 MHz.
 //! - Time: SysTick only; QEMU's TIM2-5 do not keep time.
 //! - The plant: `hil-sim`, in lockstep: each
-//!   [`Request::Sample`](estimator_core::link::Request::Sample) is handed to `control` by pending
+//!   [`Request::Sample`](belt_link::Request::Sample) is handed to `control` by pending
 //!   TIM7, and `control` answers with the current and telemetry. No sample, no tick.
 //! - The link: USART2 (QEMU's second `-serial`), or, when QEMU's semihosting command line holds
 //!   `--pipe IN OUT`, two host FIFOs read and written through semihosting ([`IdleIo`]): one call

@@ -25,20 +25,22 @@ impl Rng {
 }
 
 /// A well-formed request of a random kind.
-fn valid_request(rng: &mut Rng) -> estimator_core::link::Request {
-    use estimator_core::link::Request;
+fn valid_request(rng: &mut Rng) -> belt_link::Request {
+    use belt_link::{Command, Request};
     match rng.below(6) {
-        0 => Request::MoveMotor {
+        0 => Request::Command(Command::MoveMotorTo {
             target_um: rng.next() as i32,
             velocity_um_s: 1 + rng.below(100_000),
             accel_um_s2: 1 + rng.below(1_000_000),
-        },
-        1 => Request::SelectModel(rng.below(estimator_core::link::MODEL_MAX as u32 + 1) as u8),
-        2 => Request::Stop,
-        3 => Request::Home {
+        }),
+        1 => Request::Command(Command::SelectModel(
+            belt_link::ModelKind::ALL[rng.below(belt_link::ModelKind::ALL.len() as u32) as usize],
+        )),
+        2 => Request::Command(Command::Stop),
+        3 => Request::Command(Command::Home {
             position_um: rng.next() as i32,
             scale_um: rng.next() as i32,
-        },
+        }),
         4 => Request::CalBegin {
             total_len: 1 + rng.below(4096),
             crc32: rng.next(),
@@ -51,26 +53,26 @@ fn valid_request(rng: &mut Rng) -> estimator_core::link::Request {
 }
 
 /// COBS-wraps `raw` with a delimiter; returns the wire length.
-fn wrap(raw: &[u8], out: &mut [u8; estimator_core::link::MAX_FRAME + 16]) -> usize {
-    use estimator_core::link::cobs_encode;
+fn wrap(raw: &[u8], out: &mut [u8; belt_link::MAX_FRAME + 16]) -> usize {
+    use belt_link::cobs_encode;
     let n = cobs_encode(raw, &mut out[..]).unwrap_or(0);
     out[n] = 0;
     n + 1
 }
 
 /// Raw frame (kind, seq, payload) with a correct CRC appended; returns its length.
-fn seal(raw: &mut [u8; estimator_core::link::MAX_RAW + 8], body_len: usize) -> usize {
-    use estimator_core::link::crc32;
+fn seal(raw: &mut [u8; belt_link::MAX_RAW + 8], body_len: usize) -> usize {
+    use belt_link::crc32;
     let crc = crc32(&raw[..body_len]);
     raw[body_len..body_len + 4].copy_from_slice(&crc.to_le_bytes());
     body_len + 4
 }
 
 /// One bad frame on the wire (exactly one delimiter, at the end).
-pub fn bad_frame(rng: &mut Rng, out: &mut [u8; estimator_core::link::MAX_FRAME + 16]) -> usize {
-    use estimator_core::link::{
-        cobs_decode_in_place, encode, kind, Message, Request, CHUNK_MAX, MAX_ENCODED, MAX_FRAME,
-        MAX_RAW,
+pub fn bad_frame(rng: &mut Rng, out: &mut [u8; belt_link::MAX_FRAME + 16]) -> usize {
+    use belt_link::{
+        cobs_decode_in_place, encode, kind, Command, Message, Request, CHUNK_MAX, MAX_ENCODED,
+        MAX_FRAME, MAX_RAW,
     };
     let mut raw = [0u8; MAX_RAW + 8];
     match rng.below(6) {
@@ -131,26 +133,34 @@ pub fn bad_frame(rng: &mut Rng, out: &mut [u8; estimator_core::link::MAX_FRAME +
         }
         // Correct CRC and length, a value out of range.
         4 => {
-            let req = match rng.below(4) {
-                0 => Request::MoveMotor {
-                    target_um: rng.next() as i32,
-                    velocity_um_s: 0,
-                    accel_um_s2: 1 + rng.below(1000),
-                },
-                1 => Request::MoveMotor {
-                    target_um: rng.next() as i32,
-                    velocity_um_s: 1 + rng.below(1000),
-                    accel_um_s2: 0,
-                },
-                2 => Request::SelectModel(estimator_core::link::MODEL_MAX + 1 + rng.below(255 - estimator_core::link::MODEL_MAX as u32) as u8),
-                _ => Request::CalBegin {
-                    total_len: 0,
-                    crc32: rng.next(),
-                },
+            let k = rng.below(4);
+            let len = if k == 2 {
+                // A compensator number past the last (no `ModelKind` carries it): raw bytes.
+                raw[0] = belt_link::kind::SELECT_MODEL;
+                raw[1] = 0;
+                raw[2] = belt_link::MODEL_MAX + 1 + rng.below(255 - belt_link::MODEL_MAX as u32) as u8;
+                1
+            } else {
+                let req = match k {
+                    0 => Request::Command(Command::MoveMotorTo {
+                        target_um: rng.next() as i32,
+                        velocity_um_s: 0,
+                        accel_um_s2: 1 + rng.below(1000),
+                    }),
+                    1 => Request::Command(Command::MoveMotorTo {
+                        target_um: rng.next() as i32,
+                        velocity_um_s: 1 + rng.below(1000),
+                        accel_um_s2: 0,
+                    }),
+                    _ => Request::CalBegin {
+                        total_len: 0,
+                        crc32: rng.next(),
+                    },
+                };
+                raw[0] = req.kind();
+                raw[1] = 0;
+                req.write_payload(&mut raw[2..2 + MAX_RAW - 6])
             };
-            raw[0] = req.kind();
-            raw[1] = 0;
-            let len = req.write_payload(&mut raw[2..2 + MAX_RAW - 6]);
             let n = seal(&mut raw, 2 + len);
             wrap(&raw[..n], out)
         }

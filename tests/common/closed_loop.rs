@@ -25,7 +25,8 @@ pub struct RunDigest {
 #[inline(never)]
 pub fn closed_loop(model: estimator_core::model::ModelKind) -> RunDigest {
     use estimator_core::drive::{Command, Drive, DriveConfig, Sample};
-    use estimator_core::link::{answer, Crc32, Message, MAX_PAYLOAD};
+    use belt_link::{Crc32, Message, MAX_PAYLOAD};
+    use estimator_core::endpoint::answer;
 
     let mut drive = match Drive::new(&DriveConfig::paper_rig()) {
         Ok(d) => d,

@@ -112,76 +112,8 @@ use crate::ConfigError;
 /// Positions within +-2^24 counts are covered by the accuracy guarantee (see the module docs).
 pub const ACCURATE_RANGE_COUNTS: i32 = 1 << 24;
 
-/// Which model [`estimate`] evaluates.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Default)]
-#[repr(u8)]
-pub enum ModelKind {
-    /// No compensation: the estimate is 0.
-    #[default]
-    None = 0,
-    /// Model 1: linear transition (eq. 14).
-    Linear = 1,
-    /// Model 2: exponential transition (eq. 17).
-    Exponential = 2,
-    /// Model 3: lookup tables (eq. 18).
-    Table = 3,
-    /// Baseline: constant backlash by direction (LinuxCNC `BACKLASH`, Marlin `M425`).
-    Backlash = 4,
-    /// Baseline: bidirectional position table (LinuxCNC `COMP_FILE`).
-    BidirTable = 5,
-}
-
-impl ModelKind {
-    /// Every kind, in numeric order.
-    pub const ALL: [ModelKind; 6] = [
-        ModelKind::None,
-        ModelKind::Linear,
-        ModelKind::Exponential,
-        ModelKind::Table,
-        ModelKind::Backlash,
-        ModelKind::BidirTable,
-    ];
-
-    /// The paper's three models.
-    pub const PAPER_MODELS: [ModelKind; 3] =
-        [ModelKind::Linear, ModelKind::Exponential, ModelKind::Table];
-
-    /// The kind with this number (`0..=5`), e.g. from a command byte.
-    pub const fn from_u8(v: u8) -> Option<ModelKind> {
-        match v {
-            0 => Some(ModelKind::None),
-            1 => Some(ModelKind::Linear),
-            2 => Some(ModelKind::Exponential),
-            3 => Some(ModelKind::Table),
-            4 => Some(ModelKind::Backlash),
-            5 => Some(ModelKind::BidirTable),
-            _ => None,
-        }
-    }
-
-    /// `"none"`, `"model1"`, `"model2"`, `"model3"`, `"backlash"` or `"bidir_table"`.
-    pub const fn as_str(self) -> &'static str {
-        match self {
-            ModelKind::None => "none",
-            ModelKind::Linear => "model1",
-            ModelKind::Exponential => "model2",
-            ModelKind::Table => "model3",
-            ModelKind::Backlash => "backlash",
-            ModelKind::BidirTable => "bidir_table",
-        }
-    }
-
-    /// The inverse of [`ModelKind::as_str`].
-    pub fn parse(s: &str) -> Option<ModelKind> {
-        ModelKind::ALL.into_iter().find(|k| k.as_str() == s)
-    }
-}
-
-impl core::fmt::Display for ModelKind {
-    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
+/// Which model [`estimate`] evaluates: the compensator numbers of the link.
+pub use belt_link::ModelKind;
 
 /// Direction of motion as registered by the reversal detector.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]

@@ -3,8 +3,8 @@
 //! drive, enabled and at rest, must answer every tick exactly like an in-process core that never
 //! saw the garbage.
 
+use belt_link::MAX_FRAME;
 use estimator_core::drive::{Command, Drive, DriveConfig, Sample};
-use estimator_core::link::MAX_FRAME;
 
 use super::{PilController, PilError, PilOptions};
 

@@ -25,14 +25,14 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::{Duration, Instant};
 
-use estimator_core::drive::{Command, Output, Sample};
-use estimator_core::link::{
-    command_error_from_code, encode, from_command, kind, output_of, LinkError, Message, Receiver,
-    Reply, Request, WireStatus, CHUNK_MAX, MAX_FRAME,
+use belt_link::{
+    encode, kind, Command, CommandError, LinkError, Message, Receiver, Reply, Request, WireStatus,
+    CHUNK_MAX, MAX_FRAME,
 };
+use estimator_core::drive::{Output, Sample};
+use estimator_core::endpoint::output_of;
 
 use crate::controller::{ControlError, Controller};
-use estimator_core::drive::CommandError;
 use qemu::{LogSink, Qemu, QemuOptions};
 
 /// Why a PIL call failed.
@@ -397,7 +397,7 @@ impl PilController {
 
     /// Sends a calibration blob (begin, chunks, commit).
     pub fn load_calibration(&mut self, blob: &[u8]) -> Result<(), PilError> {
-        let crc32 = estimator_core::link::crc32(blob);
+        let crc32 = belt_link::crc32(blob);
         self.expect_ack(&Request::CalBegin {
             total_len: blob.len() as u32,
             crc32,
@@ -422,7 +422,7 @@ impl PilController {
                 reason: LinkError::Refused,
                 detail,
                 ..
-            } => match command_error_from_code(detail) {
+            } => match CommandError::from_code(detail) {
                 Some(e) => Err(PilError::Refused(e)),
                 None => Err(link_err(format!("refused with unknown code {detail}"))),
             },
@@ -443,7 +443,7 @@ impl PilController {
 
     /// Sends a drive command; `Ok` once the firmware acknowledged it.
     pub fn send_command(&mut self, cmd: Command) -> Result<(), PilError> {
-        self.expect_ack(&from_command(&cmd))
+        self.expect_ack(&Request::Command(cmd))
     }
 
     /// Runs one control tick in the firmware on `sample`.

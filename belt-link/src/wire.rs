@@ -1,0 +1,671 @@
+//! The messages: kinds, [`Request`], [`Reply`], their fixed-size payloads and the hand codec.
+
+use crate::bytes::{Reader, Short, Writer};
+use crate::command::{Command, ModelKind};
+
+/// Largest payload of any message (a calibration chunk: offset + [`CHUNK_MAX`] bytes).
+pub const MAX_PAYLOAD: usize = 4 + CHUNK_MAX;
+/// Largest raw (un-stuffed) frame: kind, seq, payload, CRC.
+pub const MAX_RAW: usize = 2 + MAX_PAYLOAD + 4;
+/// Largest COBS-encoded frame, without the delimiter.
+pub const MAX_ENCODED: usize = MAX_RAW + MAX_RAW.div_ceil(254);
+/// Largest frame on the wire, delimiter included: the size of an encode buffer.
+pub const MAX_FRAME: usize = MAX_ENCODED + 1;
+/// Largest data part of one calibration chunk.
+pub const CHUNK_MAX: usize = 64;
+/// Raw bytes around a payload: kind, seq and CRC.
+pub(crate) const OVERHEAD: usize = 6;
+
+/// Message kinds (the first raw byte).
+pub mod kind {
+    /// [`crate::Command::MoveMotorTo`]
+    pub const MOVE_MOTOR: u8 = 0x01;
+    /// [`crate::Command::Stop`]
+    pub const STOP: u8 = 0x02;
+    /// [`crate::Command::Enable`]
+    pub const ENABLE: u8 = 0x03;
+    /// [`crate::Command::Disable`]
+    pub const DISABLE: u8 = 0x04;
+    /// [`crate::Command::ClearFaults`]
+    pub const CLEAR_FAULTS: u8 = 0x05;
+    /// [`crate::Command::SelectModel`]
+    pub const SELECT_MODEL: u8 = 0x06;
+    /// [`super::Request::CalBegin`]
+    pub const CAL_BEGIN: u8 = 0x07;
+    /// [`super::Request::CalChunk`]
+    pub const CAL_CHUNK: u8 = 0x08;
+    /// [`super::Request::CalCommit`]
+    pub const CAL_COMMIT: u8 = 0x09;
+    /// [`super::Request::Status`]
+    pub const STATUS: u8 = 0x0a;
+    /// [`super::Request::Telemetry`]
+    pub const TELEMETRY: u8 = 0x0b;
+    /// [`super::Request::Sample`]
+    pub const SAMPLE: u8 = 0x0c;
+    /// [`super::Request::Shutdown`]
+    pub const SHUTDOWN: u8 = 0x0d;
+    /// [`crate::Command::Home`]
+    pub const HOME: u8 = 0x0e;
+    /// [`crate::Command::MoveTo`]
+    pub const MOVE: u8 = 0x0f;
+
+    /// [`super::Reply::Ack`]
+    pub const ACK: u8 = 0x80;
+    /// [`super::Reply::Error`]
+    pub const ERROR: u8 = 0x81;
+    /// [`super::Reply::Status`]
+    pub const STATUS_REPLY: u8 = 0x82;
+    /// [`super::Reply::Telemetry`]
+    pub const TELEMETRY_FRAME: u8 = 0x83;
+    /// [`super::Reply::Answer`]
+    pub const ANSWER: u8 = 0x84;
+
+    /// Stands for "kind unknown" in an error reply (the frame was too damaged to read it).
+    pub const UNKNOWN: u8 = 0xff;
+}
+
+/// Why a frame was rejected; the `u8` is its code in [`Reply::Error`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u8)]
+pub enum LinkError {
+    /// The COBS stuffing is invalid (a code byte points past the frame end).
+    Framing = 1,
+    /// More bytes than [`MAX_ENCODED`] arrived before a delimiter.
+    Oversize = 2,
+    /// Fewer bytes than kind, seq and CRC need.
+    TooShort = 3,
+    /// The CRC does not match.
+    Crc = 4,
+    /// The kind is not one this receiver knows.
+    UnknownKind = 5,
+    /// The payload length does not match the kind.
+    BadLength = 6,
+    /// A field is outside its valid range (zero speed, unknown model, bad flag...).
+    OutOfRange = 7,
+    /// The drive refused a well-formed command; `detail` names the reason.
+    Refused = 8,
+    /// A calibration transfer step was refused; `detail` names the reason.
+    Calibration = 9,
+    /// The message is valid but this build does not accept it (e.g. a PIL sample on the board).
+    NotSupported = 10,
+}
+
+impl LinkError {
+    /// Decodes an error code; `None` for codes this version does not know.
+    pub fn from_code(code: u8) -> Option<Self> {
+        Some(match code {
+            1 => LinkError::Framing,
+            2 => LinkError::Oversize,
+            3 => LinkError::TooShort,
+            4 => LinkError::Crc,
+            5 => LinkError::UnknownKind,
+            6 => LinkError::BadLength,
+            7 => LinkError::OutOfRange,
+            8 => LinkError::Refused,
+            9 => LinkError::Calibration,
+            10 => LinkError::NotSupported,
+            _ => return None,
+        })
+    }
+}
+
+/// Highest compensator number a `SelectModel` command may carry (0 none, 1-3 Models 1-3, 4
+/// constant backlash, 5 bidirectional table; see [`ModelKind`]).
+pub const MODEL_MAX: u8 = ModelKind::ALL.len() as u8 - 1;
+
+/// Host -> drive messages.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Request {
+    /// A drive command, one kind per variant: `MoveMotorTo` 0x01, `MoveTo` 0x0f, `Stop` 0x02,
+    /// `Enable` 0x03, `Disable` 0x04, `ClearFaults` 0x05, `SelectModel` 0x06, `Home` 0x0e
+    /// (payloads: moves 12 bytes, `SelectModel` 1, `Home` 8, the others 0). Answered with
+    /// [`Reply::Ack`], or [`Reply::Error`] with [`LinkError::Refused`] and the
+    /// [`CommandError::code`] of the refusal.
+    Command(Command),
+    /// Start a calibration transfer of `total_len` bytes whose CRC-32 is `crc32` (payload 8).
+    CalBegin {
+        /// Blob length, bytes (> 0).
+        total_len: u32,
+        /// CRC-32/ISO-HDLC of the whole blob.
+        crc32: u32,
+    },
+    /// One piece of the calibration blob (payload 4 + `len`).
+    CalChunk {
+        /// Offset of `data[0]` in the blob.
+        offset: u32,
+        /// Valid bytes in `data`, `1..=CHUNK_MAX`.
+        len: u8,
+        /// The bytes; only `data[..len]` is meaningful (the rest is zero).
+        data: [u8; CHUNK_MAX],
+    },
+    /// Check the transfer's length and CRC and hand the blob to the drive (payload 0).
+    CalCommit,
+    /// Ask for a [`Reply::Status`] (payload 0).
+    Status,
+    /// Stream [`Reply::Telemetry`] every `every_n_ticks` ticks; 0 stops it (payload 2).
+    Telemetry {
+        /// Decimation; 0 = off.
+        every_n_ticks: u16,
+    },
+    /// PIL only: the raw counters for one control tick (payload 4); answered with
+    /// [`Reply::Answer`].
+    Sample {
+        /// Raw 16-bit motor encoder counter.
+        motor_counter: u16,
+        /// Raw 16-bit linear-scale counter.
+        scale_counter: u16,
+    },
+    /// QEMU only: log the run's statistics and end the emulator with exit status `code`
+    /// (payload 1).
+    Shutdown {
+        /// Exit status.
+        code: u8,
+    },
+}
+
+/// One tick's telemetry in wire form ([`TELEMETRY_LEN`] bytes).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct WireTelemetry {
+    /// Tick counter since start.
+    pub tick: u32,
+    /// Unwrapped motor position, counts.
+    pub motor_counts: i32,
+    /// Unwrapped linear-scale position, scale counts.
+    pub scale_counts: i32,
+    /// Trajectory set-point, counts.
+    pub setpoint_counts: i32,
+    /// Following error, counts.
+    pub following_error_counts: i32,
+    /// Estimated transmission error, micrometres, bits of an `I16F16`.
+    pub est_error_um_bits: i32,
+    /// Current command, amperes, bits of an `I16F16`.
+    pub current_a_bits: i32,
+    /// Fault bits (`Faults` in the drive names them).
+    pub faults: u16,
+    /// Active model number.
+    pub model: u8,
+    /// A move is in progress.
+    pub moving: bool,
+    /// The amplifier enable line is high.
+    pub amplifier_enabled: bool,
+    /// The drive is homed.
+    pub homed: bool,
+}
+
+/// Wire size of [`WireTelemetry`].
+pub const TELEMETRY_LEN: usize = 32;
+
+/// Bits of the last telemetry byte.
+mod telemetry_flags {
+    pub const MOVING: u8 = 1 << 0;
+    pub const AMPLIFIER_ENABLED: u8 = 1 << 1;
+    pub const HOMED: u8 = 1 << 2;
+    pub const ALL: u8 = MOVING | AMPLIFIER_ENABLED | HOMED;
+}
+
+/// Bits of [`WireStatus::reset_cause`]: why the microcontroller last started (RCC_CSR on the
+/// STM32F405; 0 where the board cannot tell, e.g. under QEMU).
+pub mod reset_cause {
+    /// Low-power management reset.
+    pub const LOW_POWER: u8 = 1 << 0;
+    /// Window watchdog.
+    pub const WINDOW_WATCHDOG: u8 = 1 << 1;
+    /// Independent watchdog: the control loop stopped completing ticks.
+    pub const INDEPENDENT_WATCHDOG: u8 = 1 << 2;
+    /// Software reset (SYSRESETREQ).
+    pub const SOFTWARE: u8 = 1 << 3;
+    /// Power-on / power-down reset.
+    pub const POWER_ON: u8 = 1 << 4;
+    /// The NRST pin.
+    pub const PIN: u8 = 1 << 5;
+    /// Brown-out reset.
+    pub const BROWNOUT: u8 = 1 << 6;
+    /// The previous run left a panic or HardFault record.
+    pub const PANIC_RECORD: u8 = 1 << 7;
+    /// Every bit with its name.
+    pub const NAMES: [(u8, &str); 8] = [
+        (LOW_POWER, "low_power"),
+        (WINDOW_WATCHDOG, "window_watchdog"),
+        (INDEPENDENT_WATCHDOG, "independent_watchdog"),
+        (SOFTWARE, "software"),
+        (POWER_ON, "power_on"),
+        (PIN, "pin"),
+        (BROWNOUT, "brownout"),
+        (PANIC_RECORD, "panic_record"),
+    ];
+}
+
+/// Snapshot of the drive and the link ([`STATUS_LEN`] bytes).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct WireStatus {
+    /// Control ticks since start.
+    pub tick: u32,
+    /// Unwrapped motor position, counts.
+    pub motor_counts: i32,
+    /// Fault bits (`Faults` in the drive names them).
+    pub faults: u16,
+    /// Active model number.
+    pub model: u8,
+    /// [`status_flags`] bits.
+    pub flags: u8,
+    /// Code of the last [`LinkError`] (0 = none yet).
+    pub last_error: u8,
+    /// [`reset_cause`] bits of this boot.
+    pub reset_cause: u8,
+    /// Late or missed control ticks since boot.
+    pub missed_ticks: u32,
+    /// Linear-scale samples refused as implausible since boot.
+    pub scale_glitches: u32,
+    /// Frames accepted.
+    pub frames_ok: u32,
+    /// Frames rejected.
+    pub frames_bad: u32,
+    /// Deepest stack use seen so far, bytes (0 where not measured).
+    pub stack_peak_bytes: u32,
+    /// Where the last move sends the carriage, micrometres of travel.
+    pub carriage_target_um: i32,
+    /// Estimated carriage position (motor position plus the active compensator's estimate),
+    /// micrometres of travel.
+    pub carriage_estimate_um: i32,
+}
+
+/// Bits of [`WireStatus::flags`].
+pub mod status_flags {
+    /// A move is in progress.
+    pub const MOVING: u8 = 1 << 0;
+    /// Current output enabled.
+    pub const ENABLED: u8 = 1 << 1;
+    /// A calibration blob is loaded.
+    pub const CALIBRATED: u8 = 1 << 2;
+    /// Telemetry streaming is on.
+    pub const STREAMING: u8 = 1 << 3;
+    /// The drive is homed (moves are refused before).
+    pub const HOMED: u8 = 1 << 4;
+    /// The amplifier enable line is high.
+    pub const AMPLIFIER_ENABLED: u8 = 1 << 5;
+    /// All defined bits.
+    pub const ALL: u8 = MOVING | ENABLED | CALIBRATED | STREAMING | HOMED | AMPLIFIER_ENABLED;
+}
+
+/// Wire size of [`WireStatus`].
+pub const STATUS_LEN: usize = 42;
+
+/// Drive -> host messages.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Reply {
+    /// Request `of` (a kind) was accepted (payload 1).
+    Ack {
+        /// Kind of the accepted request.
+        of: u8,
+    },
+    /// Request `of` was rejected (payload 3).
+    Error {
+        /// Kind of the rejected request, [`kind::UNKNOWN`] if unreadable.
+        of: u8,
+        /// Why.
+        reason: LinkError,
+        /// Reason-specific detail (e.g. the drive's refusal code), 0 if none.
+        detail: u8,
+    },
+    /// Answer to [`Request::Status`] (payload [`STATUS_LEN`]).
+    Status(WireStatus),
+    /// Streamed telemetry (payload [`TELEMETRY_LEN`]).
+    Telemetry(WireTelemetry),
+    /// PIL: answer to [`Request::Sample`] (payload 4 + [`TELEMETRY_LEN`] + 4).
+    Answer {
+        /// Current command, amperes, bits of an `I16F16`.
+        current_a_bits: i32,
+        /// The tick's telemetry.
+        telemetry: WireTelemetry,
+        /// Instructions `Drive::step` took (QEMU instruction counter; 0 where not measured).
+        step_instructions: u32,
+    },
+}
+
+/// A message type with a wire form.
+pub trait Message: Sized {
+    /// Its kind byte.
+    fn kind(&self) -> u8;
+    /// Writes the payload into `out` (at least [`MAX_PAYLOAD`] long) and returns its length.
+    fn write_payload(&self, out: &mut [u8]) -> usize;
+    /// Parses a payload of kind `kind`.
+    fn parse(kind: u8, payload: &[u8]) -> Result<Self, LinkError>;
+}
+
+impl From<Short> for LinkError {
+    fn from(_: Short) -> Self {
+        LinkError::BadLength
+    }
+}
+
+fn expect_len(payload: &[u8], len: usize) -> Result<Reader<'_>, LinkError> {
+    if payload.len() == len {
+        Ok(Reader::new(payload))
+    } else {
+        Err(LinkError::BadLength)
+    }
+}
+
+impl WireTelemetry {
+    fn write(&self, w: &mut Writer<'_>) {
+        w.u32(self.tick);
+        w.i32(self.motor_counts);
+        w.i32(self.scale_counts);
+        w.i32(self.setpoint_counts);
+        w.i32(self.following_error_counts);
+        w.i32(self.est_error_um_bits);
+        w.i32(self.current_a_bits);
+        w.u16(self.faults);
+        w.u8(self.model);
+        let mut flags = 0;
+        if self.moving {
+            flags |= telemetry_flags::MOVING;
+        }
+        if self.amplifier_enabled {
+            flags |= telemetry_flags::AMPLIFIER_ENABLED;
+        }
+        if self.homed {
+            flags |= telemetry_flags::HOMED;
+        }
+        w.u8(flags);
+    }
+    fn read(r: &mut Reader<'_>) -> Result<Self, LinkError> {
+        Ok(WireTelemetry {
+            tick: r.u32()?,
+            motor_counts: r.i32()?,
+            scale_counts: r.i32()?,
+            setpoint_counts: r.i32()?,
+            following_error_counts: r.i32()?,
+            est_error_um_bits: r.i32()?,
+            current_a_bits: r.i32()?,
+            faults: r.u16()?,
+            model: r.u8()?,
+            moving: false,
+            amplifier_enabled: false,
+            homed: false,
+        })
+        .and_then(|mut t| {
+            let flags = r.u8()?;
+            if flags & !telemetry_flags::ALL != 0 {
+                return Err(LinkError::OutOfRange);
+            }
+            t.moving = flags & telemetry_flags::MOVING != 0;
+            t.amplifier_enabled = flags & telemetry_flags::AMPLIFIER_ENABLED != 0;
+            t.homed = flags & telemetry_flags::HOMED != 0;
+            Ok(t)
+        })
+    }
+}
+
+impl Message for Request {
+    fn kind(&self) -> u8 {
+        match self {
+            Request::Command(c) => match c {
+                Command::MoveMotorTo { .. } => kind::MOVE_MOTOR,
+                Command::MoveTo { .. } => kind::MOVE,
+                Command::Stop => kind::STOP,
+                Command::Enable => kind::ENABLE,
+                Command::Disable => kind::DISABLE,
+                Command::ClearFaults => kind::CLEAR_FAULTS,
+                Command::SelectModel(_) => kind::SELECT_MODEL,
+                Command::Home { .. } => kind::HOME,
+            },
+            Request::CalBegin { .. } => kind::CAL_BEGIN,
+            Request::CalChunk { .. } => kind::CAL_CHUNK,
+            Request::CalCommit => kind::CAL_COMMIT,
+            Request::Status => kind::STATUS,
+            Request::Telemetry { .. } => kind::TELEMETRY,
+            Request::Sample { .. } => kind::SAMPLE,
+            Request::Shutdown { .. } => kind::SHUTDOWN,
+        }
+    }
+
+    fn write_payload(&self, out: &mut [u8]) -> usize {
+        let mut w = Writer::new(out);
+        match *self {
+            Request::Command(
+                Command::MoveMotorTo {
+                    target_um,
+                    velocity_um_s,
+                    accel_um_s2,
+                }
+                | Command::MoveTo {
+                    target_um,
+                    velocity_um_s,
+                    accel_um_s2,
+                },
+            ) => {
+                w.i32(target_um);
+                w.u32(velocity_um_s);
+                w.u32(accel_um_s2);
+            }
+            Request::Command(
+                Command::Stop | Command::Enable | Command::Disable | Command::ClearFaults,
+            )
+            | Request::CalCommit
+            | Request::Status => {}
+            Request::Command(Command::SelectModel(m)) => w.u8(m as u8),
+            Request::Command(Command::Home {
+                position_um,
+                scale_um,
+            }) => {
+                w.i32(position_um);
+                w.i32(scale_um);
+            }
+            Request::CalBegin { total_len, crc32 } => {
+                w.u32(total_len);
+                w.u32(crc32);
+            }
+            Request::CalChunk {
+                offset,
+                len,
+                ref data,
+            } => {
+                w.u32(offset);
+                w.put(&data[..(len as usize).min(CHUNK_MAX)]);
+            }
+            Request::Telemetry { every_n_ticks } => w.u16(every_n_ticks),
+            Request::Sample {
+                motor_counter,
+                scale_counter,
+            } => {
+                w.u16(motor_counter);
+                w.u16(scale_counter);
+            }
+            Request::Shutdown { code } => w.u8(code),
+        }
+        // Cannot overflow: every payload fits MAX_PAYLOAD.
+        w.len()
+    }
+
+    fn parse(k: u8, payload: &[u8]) -> Result<Self, LinkError> {
+        let command = |c| Ok(Request::Command(c));
+        match k {
+            kind::MOVE_MOTOR | kind::MOVE => {
+                let mut r = expect_len(payload, 12)?;
+                let (target_um, velocity_um_s, accel_um_s2) = (r.i32()?, r.u32()?, r.u32()?);
+                if velocity_um_s == 0 || accel_um_s2 == 0 {
+                    return Err(LinkError::OutOfRange);
+                }
+                command(if k == kind::MOVE_MOTOR {
+                    Command::MoveMotorTo {
+                        target_um,
+                        velocity_um_s,
+                        accel_um_s2,
+                    }
+                } else {
+                    Command::MoveTo {
+                        target_um,
+                        velocity_um_s,
+                        accel_um_s2,
+                    }
+                })
+            }
+            kind::STOP => expect_len(payload, 0).and_then(|_| command(Command::Stop)),
+            kind::ENABLE => expect_len(payload, 0).and_then(|_| command(Command::Enable)),
+            kind::DISABLE => expect_len(payload, 0).and_then(|_| command(Command::Disable)),
+            kind::CLEAR_FAULTS => {
+                expect_len(payload, 0).and_then(|_| command(Command::ClearFaults))
+            }
+            kind::SELECT_MODEL => {
+                let m = expect_len(payload, 1)?.u8()?;
+                command(Command::SelectModel(
+                    ModelKind::from_u8(m).ok_or(LinkError::OutOfRange)?,
+                ))
+            }
+            kind::HOME => {
+                let mut r = expect_len(payload, 8)?;
+                command(Command::Home {
+                    position_um: r.i32()?,
+                    scale_um: r.i32()?,
+                })
+            }
+            kind::CAL_COMMIT => expect_len(payload, 0).map(|_| Request::CalCommit),
+            kind::STATUS => expect_len(payload, 0).map(|_| Request::Status),
+            kind::CAL_BEGIN => {
+                let mut r = expect_len(payload, 8)?;
+                let (total_len, crc32) = (r.u32()?, r.u32()?);
+                if total_len == 0 {
+                    return Err(LinkError::OutOfRange);
+                }
+                Ok(Request::CalBegin { total_len, crc32 })
+            }
+            kind::CAL_CHUNK => {
+                if payload.len() < 4 + 1 || payload.len() > 4 + CHUNK_MAX {
+                    return Err(LinkError::BadLength);
+                }
+                let mut r = Reader::new(payload);
+                let offset = r.u32()?;
+                let mut data = [0u8; CHUNK_MAX];
+                let n = payload.len() - 4;
+                data[..n].copy_from_slice(&payload[4..]);
+                Ok(Request::CalChunk {
+                    offset,
+                    len: n as u8,
+                    data,
+                })
+            }
+            kind::TELEMETRY => Ok(Request::Telemetry {
+                every_n_ticks: expect_len(payload, 2)?.u16()?,
+            }),
+            kind::SAMPLE => {
+                let mut r = expect_len(payload, 4)?;
+                Ok(Request::Sample {
+                    motor_counter: r.u16()?,
+                    scale_counter: r.u16()?,
+                })
+            }
+            kind::SHUTDOWN => Ok(Request::Shutdown {
+                code: expect_len(payload, 1)?.u8()?,
+            }),
+            _ => Err(LinkError::UnknownKind),
+        }
+    }
+}
+
+impl Message for Reply {
+    fn kind(&self) -> u8 {
+        match self {
+            Reply::Ack { .. } => kind::ACK,
+            Reply::Error { .. } => kind::ERROR,
+            Reply::Status(_) => kind::STATUS_REPLY,
+            Reply::Telemetry(_) => kind::TELEMETRY_FRAME,
+            Reply::Answer { .. } => kind::ANSWER,
+        }
+    }
+
+    fn write_payload(&self, out: &mut [u8]) -> usize {
+        let mut w = Writer::new(out);
+        match *self {
+            Reply::Ack { of } => w.u8(of),
+            Reply::Error { of, reason, detail } => {
+                w.u8(of);
+                w.u8(reason as u8);
+                w.u8(detail);
+            }
+            Reply::Status(s) => {
+                w.u32(s.tick);
+                w.i32(s.motor_counts);
+                w.u16(s.faults);
+                w.u8(s.model);
+                w.u8(s.flags);
+                w.u8(s.last_error);
+                w.u8(s.reset_cause);
+                w.u32(s.missed_ticks);
+                w.u32(s.scale_glitches);
+                w.u32(s.frames_ok);
+                w.u32(s.frames_bad);
+                w.u32(s.stack_peak_bytes);
+                w.i32(s.carriage_target_um);
+                w.i32(s.carriage_estimate_um);
+            }
+            Reply::Telemetry(t) => t.write(&mut w),
+            Reply::Answer {
+                current_a_bits,
+                telemetry,
+                step_instructions,
+            } => {
+                w.i32(current_a_bits);
+                telemetry.write(&mut w);
+                w.u32(step_instructions);
+            }
+        }
+        w.len()
+    }
+
+    fn parse(k: u8, payload: &[u8]) -> Result<Self, LinkError> {
+        Ok(match k {
+            kind::ACK => Reply::Ack {
+                of: expect_len(payload, 1)?.u8()?,
+            },
+            kind::ERROR => {
+                let mut r = expect_len(payload, 3)?;
+                let of = r.u8()?;
+                let reason = LinkError::from_code(r.u8()?).ok_or(LinkError::OutOfRange)?;
+                Reply::Error {
+                    of,
+                    reason,
+                    detail: r.u8()?,
+                }
+            }
+            kind::STATUS_REPLY => {
+                let mut r = expect_len(payload, STATUS_LEN)?;
+                let s = WireStatus {
+                    tick: r.u32()?,
+                    motor_counts: r.i32()?,
+                    faults: r.u16()?,
+                    model: r.u8()?,
+                    flags: r.u8()?,
+                    last_error: r.u8()?,
+                    reset_cause: r.u8()?,
+                    missed_ticks: r.u32()?,
+                    scale_glitches: r.u32()?,
+                    frames_ok: r.u32()?,
+                    frames_bad: r.u32()?,
+                    stack_peak_bytes: r.u32()?,
+                    carriage_target_um: r.i32()?,
+                    carriage_estimate_um: r.i32()?,
+                };
+                if s.flags & !status_flags::ALL != 0 {
+                    return Err(LinkError::OutOfRange);
+                }
+                Reply::Status(s)
+            }
+            kind::TELEMETRY_FRAME => Reply::Telemetry(WireTelemetry::read(&mut expect_len(
+                payload,
+                TELEMETRY_LEN,
+            )?)?),
+            kind::ANSWER => {
+                let mut r = expect_len(payload, 4 + TELEMETRY_LEN + 4)?;
+                let current_a_bits = r.i32()?;
+                let telemetry = WireTelemetry::read(&mut r)?;
+                Reply::Answer {
+                    current_a_bits,
+                    telemetry,
+                    step_instructions: r.u32()?,
+                }
+            }
+            _ => return Err(LinkError::UnknownKind),
+        })
+    }
+}

@@ -1,0 +1,658 @@
+//! The drive's end of the link: what each [`Request`] does to the [`Drive`] (commands,
+//! calibration transfer, status, the PIL tick), kept beside the drive. The protocol itself
+//! (wire types, codec, framing) is the `belt-link` crate, which knows nothing of the drive.
+
+use belt_link::{
+    kind, status_flags, Command, CommandError, Crc32, LinkError, Message, ModelKind, Receiver,
+    Reply, Request, WireStatus, WireTelemetry,
+};
+use fixed::types::I16F16;
+
+use crate::blob::{self, BlobError};
+use crate::drive::{Drive, Faults, Output, Sample, Telemetry};
+
+/// `detail` codes of [`LinkError::Calibration`].
+pub mod cal_error {
+    /// A chunk or commit without a transfer in progress.
+    pub const NOT_STARTED: u8 = 1;
+    /// A chunk not at the next expected offset.
+    pub const OFFSET: u8 = 2;
+    /// The blob (or a chunk's end) is longer than the drive accepts.
+    pub const TOO_LONG: u8 = 3;
+    /// Commit before all bytes arrived.
+    pub const INCOMPLETE: u8 = 4;
+    /// The received bytes do not match the announced CRC.
+    pub const CRC: u8 = 5;
+    /// The drive rejected the blob's contents: this bit plus [`super::blob_error_code`].
+    pub const REJECTED: u8 = 0x10;
+}
+
+/// Wire code of a blob refusal (low bits of a [`cal_error::REJECTED`] detail).
+pub fn blob_error_code(e: BlobError) -> u8 {
+    match e {
+        BlobError::Truncated => 1,
+        BlobError::TooLong => 2,
+        BlobError::BadMagic => 3,
+        BlobError::UnsupportedVersion(_) => 4,
+        BlobError::BadChecksum => 5,
+        BlobError::RigMismatch => 6,
+        BlobError::BadCount(_) => 7,
+        BlobError::Invalid(_) => 8,
+        BlobError::Busy => 9,
+        BlobError::BufferTooSmall => 10,
+        BlobError::Unrepresentable(_) => 11,
+    }
+}
+
+impl From<&Telemetry> for WireTelemetry {
+    fn from(t: &Telemetry) -> Self {
+        WireTelemetry {
+            tick: t.tick,
+            motor_counts: t.motor_counts,
+            scale_counts: t.scale_counts,
+            setpoint_counts: t.setpoint_counts,
+            following_error_counts: t.following_error_counts,
+            est_error_um_bits: t.est_error_um.to_bits(),
+            current_a_bits: t.current_a.to_bits(),
+            faults: t.faults.0,
+            model: t.model as u8,
+            moving: t.moving,
+            amplifier_enabled: t.amplifier_enabled,
+            homed: t.homed,
+        }
+    }
+}
+
+impl TryFrom<WireTelemetry> for Telemetry {
+    type Error = LinkError;
+    fn try_from(w: WireTelemetry) -> Result<Self, LinkError> {
+        Ok(Telemetry {
+            tick: w.tick,
+            motor_counts: w.motor_counts,
+            scale_counts: w.scale_counts,
+            setpoint_counts: w.setpoint_counts,
+            following_error_counts: w.following_error_counts,
+            est_error_um: I16F16::from_bits(w.est_error_um_bits),
+            current_a: I16F16::from_bits(w.current_a_bits),
+            faults: Faults(w.faults),
+            model: ModelKind::from_u8(w.model).ok_or(LinkError::OutOfRange)?,
+            moving: w.moving,
+            amplifier_enabled: w.amplifier_enabled,
+            homed: w.homed,
+        })
+    }
+}
+
+/// The PIL answer for one tick's output.
+pub fn answer(out: &Output, step_instructions: u32) -> Reply {
+    Reply::Answer {
+        current_a_bits: out.current_a.to_bits(),
+        telemetry: WireTelemetry::from(&out.telemetry),
+        step_instructions,
+    }
+}
+
+/// The output a PIL answer carries, or `None` if the reply is not an answer or is invalid.
+pub fn output_of(reply: &Reply) -> Option<(Output, u32)> {
+    match *reply {
+        Reply::Answer {
+            current_a_bits,
+            telemetry,
+            step_instructions,
+        } => Some((
+            Output {
+                current_a: I16F16::from_bits(current_a_bits),
+                telemetry: Telemetry::try_from(telemetry).ok()?,
+            },
+            step_instructions,
+        )),
+        _ => None,
+    }
+}
+
+/// What the firmware must do after [`Endpoint::handle`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Effect {
+    /// Send this reply.
+    Reply(Reply),
+    /// PIL: run one control tick on this sample (the control task sends the answer).
+    Tick(Sample),
+    /// Send a [`Reply::Status`] (built with [`Endpoint::status`]).
+    Status,
+    /// Stream telemetry every `n` ticks (0 = off); then acknowledge.
+    Stream(u16),
+    /// QEMU: log the statistics and exit with this status.
+    Shutdown(u8),
+    /// A complete, CRC-checked calibration of this many bytes awaits: decode it
+    /// ([`Endpoint::calibration`], [`crate::blob::decode_coeffs`]) outside any lock the control
+    /// task needs, install it with [`Drive::set_models`], then report with
+    /// [`Endpoint::calibration_done`].
+    Calibrate(usize),
+}
+
+/// An event worth a log line, reported by [`Endpoint::handle`] (the core has no logger).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Event {
+    /// Nothing to report.
+    None,
+    /// A command was applied.
+    Applied(Command),
+    /// A command was refused.
+    Refused(Command, CommandError),
+    /// A calibration transfer began.
+    CalibrationBegun {
+        /// Announced length, bytes.
+        total_len: u32,
+    },
+    /// A calibration step was refused (see [`cal_error`]).
+    CalibrationRefused(u8),
+    /// A calibration blob was loaded.
+    CalibrationLoaded {
+        /// Its length, bytes.
+        len: u32,
+    },
+    /// The drive rejected a blob.
+    CalibrationRejected(BlobError),
+}
+
+/// The drive's end of the link: turns requests into drive commands, assembles calibration
+/// blobs, and says what to answer. Frame decoding stays in [`Receiver`].
+pub struct Endpoint {
+    blob: [u8; blob::MAX_BYTES],
+    /// Transfer in progress: announced length and CRC, bytes received, running CRC.
+    transfer: Option<(usize, u32, usize, Crc32)>,
+    calibrated: bool,
+    streaming: bool,
+}
+
+impl Default for Endpoint {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Endpoint {
+    /// A fresh endpoint (drive disabled, nothing loaded).
+    pub const fn new() -> Self {
+        Endpoint {
+            blob: [0; blob::MAX_BYTES],
+            transfer: None,
+            calibrated: false,
+            streaming: false,
+        }
+    }
+
+    /// The assembled calibration blob of an [`Effect::Calibrate`] (`len` bytes).
+    pub fn calibration(&self, len: usize) -> &[u8] {
+        &self.blob[..len.min(self.blob.len())]
+    }
+
+    /// Reports the outcome of installing a calibration of `len` bytes.
+    pub fn calibration_done(
+        &mut self,
+        len: usize,
+        result: Result<(), BlobError>,
+    ) -> (Reply, Event) {
+        match result {
+            Ok(()) => {
+                self.calibrated = true;
+                (
+                    Reply::Ack {
+                        of: kind::CAL_COMMIT,
+                    },
+                    Event::CalibrationLoaded { len: len as u32 },
+                )
+            }
+            Err(e) => (
+                Reply::Error {
+                    of: kind::CAL_COMMIT,
+                    reason: LinkError::Calibration,
+                    detail: cal_error::REJECTED | blob_error_code(e),
+                },
+                Event::CalibrationRejected(e),
+            ),
+        }
+    }
+
+    /// [`Endpoint::handle`] with a calibration decoded and installed in line: for hosts and
+    /// tests, where no control task waits on the drive.
+    pub fn handle_inline(&mut self, req: &Request, drive: &mut Drive) -> (Effect, Event) {
+        match self.handle(req, drive) {
+            (Effect::Calibrate(len), _) => {
+                let result = crate::blob::decode_coeffs(self.calibration(len), drive.rig())
+                    .and_then(|c| drive.set_models(c));
+                let (reply, event) = self.calibration_done(len, result);
+                (Effect::Reply(reply), event)
+            }
+            other => other,
+        }
+    }
+
+    /// Acts on one decoded request. Drive commands are applied here; what the firmware must
+    /// still do (send a reply, run a tick, ...) comes back as an [`Effect`], and anything worth
+    /// logging as an [`Event`].
+    pub fn handle(&mut self, req: &Request, drive: &mut Drive) -> (Effect, Event) {
+        // Any valid frame keeps the link watchdog fed.
+        drive.link_alive();
+        let k = req.kind();
+        let ack = Effect::Reply(Reply::Ack { of: k });
+        let refuse = |reason: LinkError, detail: u8| {
+            Effect::Reply(Reply::Error {
+                of: k,
+                reason,
+                detail,
+            })
+        };
+        match *req {
+            Request::Command(cmd) => match drive.command(cmd) {
+                Ok(()) => (ack, Event::Applied(cmd)),
+                Err(e) => (refuse(LinkError::Refused, e.code()), Event::Refused(cmd, e)),
+            },
+            Request::Sample {
+                motor_counter,
+                scale_counter,
+            } => (
+                Effect::Tick(Sample {
+                    motor_counter,
+                    scale_counter,
+                }),
+                Event::None,
+            ),
+            Request::Status => (Effect::Status, Event::None),
+            Request::Telemetry { every_n_ticks } => {
+                self.streaming = every_n_ticks != 0;
+                (Effect::Stream(every_n_ticks), Event::None)
+            }
+            Request::Shutdown { code } => (Effect::Shutdown(code), Event::None),
+            Request::CalBegin { total_len, crc32 } => {
+                if total_len as usize > blob::MAX_BYTES {
+                    self.transfer = None;
+                    let d = cal_error::TOO_LONG;
+                    return (
+                        refuse(LinkError::Calibration, d),
+                        Event::CalibrationRefused(d),
+                    );
+                }
+                self.transfer = Some((total_len as usize, crc32, 0, Crc32::new()));
+                (ack, Event::CalibrationBegun { total_len })
+            }
+            Request::CalChunk {
+                offset,
+                len,
+                ref data,
+            } => {
+                let d = match &mut self.transfer {
+                    None => cal_error::NOT_STARTED,
+                    Some((_, _, got, _)) if offset as usize != *got => cal_error::OFFSET,
+                    Some((total, _, got, _)) if *got + len as usize > *total => cal_error::TOO_LONG,
+                    Some((_, _, got, crc)) => {
+                        let piece = &data[..len as usize];
+                        self.blob[*got..*got + piece.len()].copy_from_slice(piece);
+                        crc.update(piece);
+                        *got += piece.len();
+                        return (ack, Event::None);
+                    }
+                };
+                (
+                    refuse(LinkError::Calibration, d),
+                    Event::CalibrationRefused(d),
+                )
+            }
+            Request::CalCommit => {
+                let d = match self.transfer {
+                    None => cal_error::NOT_STARTED,
+                    Some((total, _, got, _)) if got != total => cal_error::INCOMPLETE,
+                    Some((_, want, _, crc)) if crc.finish() != want => cal_error::CRC,
+                    Some((total, ..)) => {
+                        self.transfer = None;
+                        // Decoding takes milliseconds of soft-float: the caller does it outside
+                        // the drive's lock (see `Effect::Calibrate`).
+                        return (Effect::Calibrate(total), Event::None);
+                    }
+                };
+                if d == cal_error::CRC {
+                    self.transfer = None;
+                }
+                (
+                    refuse(LinkError::Calibration, d),
+                    Event::CalibrationRefused(d),
+                )
+            }
+        }
+    }
+
+    /// The status reply: the drive's latest telemetry and state, and the link counters.
+    pub fn status(
+        &self,
+        drive: &Drive,
+        rx: &Receiver,
+        stack_peak_bytes: u32,
+        reset_cause: u8,
+    ) -> WireStatus {
+        let last = drive.telemetry();
+        let mut flags = 0;
+        if last.moving {
+            flags |= status_flags::MOVING;
+        }
+        if drive.is_enabled() {
+            flags |= status_flags::ENABLED;
+        }
+        if self.calibrated {
+            flags |= status_flags::CALIBRATED;
+        }
+        if self.streaming {
+            flags |= status_flags::STREAMING;
+        }
+        if drive.is_homed() {
+            flags |= status_flags::HOMED;
+        }
+        if last.amplifier_enabled {
+            flags |= status_flags::AMPLIFIER_ENABLED;
+        }
+        WireStatus {
+            tick: last.tick,
+            motor_counts: last.motor_counts,
+            faults: last.faults.0,
+            model: last.model as u8,
+            flags,
+            last_error: rx.last_error.map_or(0, |e| e as u8),
+            reset_cause,
+            missed_ticks: drive.missed_tick_count(),
+            scale_glitches: drive.scale_glitch_count(),
+            frames_ok: rx.frames_ok,
+            frames_bad: rx.frames_bad,
+            stack_peak_bytes,
+            carriage_target_um: drive.carriage_target_um(),
+            carriage_estimate_um: drive.carriage_estimate_um(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    // ---- the endpoint, against the real drive ----
+
+    use crate::drive::{DriveConfig, Output as DriveOutput};
+    use belt_link::{crc32, CHUNK_MAX, MODEL_MAX};
+
+    fn drive() -> Drive {
+        Drive::new(&DriveConfig::paper_rig()).unwrap()
+    }
+
+    fn refused(e: Effect) -> Option<(LinkError, u8)> {
+        match e {
+            Effect::Reply(Reply::Error { reason, detail, .. }) => Some((reason, detail)),
+            _ => None,
+        }
+    }
+
+    const ACK_ENABLE: Effect = Effect::Reply(Reply::Ack { of: kind::ENABLE });
+
+    #[test]
+    fn refusal_codes_round_trip() {
+        for e in CommandError::ALL {
+            assert_eq!(CommandError::from_code(e.code()), Some(e));
+        }
+        assert_eq!(CommandError::from_code(0), None);
+        for code in 0..=255u8 {
+            if let Some(e) = CommandError::from_code(code) {
+                assert_eq!(e.code(), code);
+            }
+        }
+    }
+
+    #[test]
+    fn telemetry_and_answers_convert_exactly() {
+        let mut d = drive();
+        let out = d.step(Sample {
+            motor_counter: 7,
+            scale_counter: 9,
+        });
+        let reply = answer(&out, 42);
+        assert_eq!(output_of(&reply), Some((out, 42)));
+        let mut w = WireTelemetry::from(&out.telemetry);
+        w.model = MODEL_MAX + 1;
+        assert_eq!(Telemetry::try_from(w), Err(LinkError::OutOfRange));
+        assert_eq!(output_of(&Reply::Ack { of: 1 }), None::<(DriveOutput, u32)>);
+    }
+
+    #[test]
+    fn endpoint_applies_commands_and_reports_refusals() {
+        let mut d = drive();
+        let mut ep = Endpoint::new();
+        let mv = Request::Command(Command::MoveMotorTo {
+            target_um: 10_000,
+            velocity_um_s: 50_000,
+            accel_um_s2: 500_000,
+        });
+        let (e, ev) = ep.handle_inline(&mv, &mut d);
+        assert_eq!(
+            refused(e),
+            Some((LinkError::Refused, CommandError::NotEnabled.code()))
+        );
+        assert!(matches!(ev, Event::Refused(_, CommandError::NotEnabled)));
+        assert_eq!(
+            ep.handle_inline(&Request::Command(Command::Enable), &mut d)
+                .0,
+            ACK_ENABLE
+        );
+        assert!(d.is_enabled());
+        let (e, ev) = ep.handle_inline(&mv, &mut d);
+        assert_eq!(
+            refused(e),
+            Some((LinkError::Refused, CommandError::NotHomed.code()))
+        );
+        assert!(matches!(ev, Event::Refused(_, CommandError::NotHomed)));
+        let home = Request::Command(Command::Home {
+            position_um: 0,
+            scale_um: 0,
+        });
+        assert_eq!(
+            ep.handle_inline(&home, &mut d).0,
+            Effect::Reply(Reply::Ack { of: kind::HOME })
+        );
+        let (e, ev) = ep.handle_inline(&mv, &mut d);
+        assert_eq!(
+            e,
+            Effect::Reply(Reply::Ack {
+                of: kind::MOVE_MOTOR
+            })
+        );
+        assert!(matches!(ev, Event::Applied(Command::MoveMotorTo { .. })));
+        let far = Request::Command(Command::MoveMotorTo {
+            target_um: 10_000_000,
+            velocity_um_s: 1,
+            accel_um_s2: 1,
+        });
+        let code = CommandError::TargetOutOfTravel.code();
+        assert_eq!(
+            refused(ep.handle_inline(&far, &mut d).0),
+            Some((LinkError::Refused, code))
+        );
+
+        let s = Request::Sample {
+            motor_counter: 3,
+            scale_counter: 4,
+        };
+        let tick = Effect::Tick(Sample {
+            motor_counter: 3,
+            scale_counter: 4,
+        });
+        assert_eq!(ep.handle_inline(&s, &mut d).0, tick);
+        assert_eq!(ep.handle_inline(&Request::Status, &mut d).0, Effect::Status);
+        assert_eq!(
+            ep.handle_inline(&Request::Telemetry { every_n_ticks: 20 }, &mut d)
+                .0,
+            Effect::Stream(20)
+        );
+        assert_eq!(
+            ep.handle_inline(&Request::Shutdown { code: 3 }, &mut d).0,
+            Effect::Shutdown(3)
+        );
+
+        let _ = d.step(Sample::default());
+        let mut rx = Receiver::new();
+        rx.reject(LinkError::Crc);
+        let st = ep.status(&d, &rx, 1234, 0);
+        assert_eq!(st.flags & status_flags::ENABLED, status_flags::ENABLED);
+        assert_eq!(st.flags & status_flags::STREAMING, status_flags::STREAMING);
+        assert_eq!(st.flags & status_flags::CALIBRATED, 0);
+        assert_eq!(
+            (st.frames_bad, st.last_error, st.stack_peak_bytes),
+            (1, LinkError::Crc as u8, 1234)
+        );
+        assert_eq!(st.tick, d.telemetry().tick);
+    }
+
+    fn paper_blob() -> Vec<u8> {
+        let mut buf = vec![0u8; blob::MAX_BYTES];
+        let n = blob::encode(
+            &crate::model::ModelParams::PAPER,
+            &DriveConfig::paper_rig().rig,
+            &mut buf,
+        )
+        .unwrap();
+        buf.truncate(n);
+        buf
+    }
+
+    fn chunk(offset: usize, piece: &[u8]) -> Request {
+        let mut data = [0u8; CHUNK_MAX];
+        data[..piece.len()].copy_from_slice(piece);
+        Request::CalChunk {
+            offset: offset as u32,
+            len: piece.len() as u8,
+            data,
+        }
+    }
+
+    #[test]
+    fn calibration_transfer_checks_every_step() {
+        let blob = paper_blob();
+        let mut d = drive();
+        let mut ep = Endpoint::new();
+        let cal = |d: u8| Some((LinkError::Calibration, d));
+        // Nothing started.
+        assert_eq!(
+            refused(ep.handle_inline(&chunk(0, &blob[..8]), &mut d).0),
+            cal(cal_error::NOT_STARTED)
+        );
+        assert_eq!(
+            refused(ep.handle_inline(&Request::CalCommit, &mut d).0),
+            cal(cal_error::NOT_STARTED)
+        );
+        // Too long for the drive.
+        let huge = Request::CalBegin {
+            total_len: blob::MAX_BYTES as u32 + 1,
+            crc32: 0,
+        };
+        assert_eq!(
+            refused(ep.handle_inline(&huge, &mut d).0),
+            cal(cal_error::TOO_LONG)
+        );
+        // A good transfer with one out-of-order chunk refused on the way (and then resent).
+        let begin = Request::CalBegin {
+            total_len: blob.len() as u32,
+            crc32: crc32(&blob),
+        };
+        assert!(matches!(
+            ep.handle_inline(&begin, &mut d).0,
+            Effect::Reply(Reply::Ack { .. })
+        ));
+        assert_eq!(
+            refused(ep.handle_inline(&chunk(64, &blob[64..128]), &mut d).0),
+            cal(cal_error::OFFSET)
+        );
+        for (i, piece) in blob.chunks(CHUNK_MAX).enumerate() {
+            if i == 2 {
+                // Commit before the end.
+                assert_eq!(
+                    refused(ep.handle_inline(&Request::CalCommit, &mut d).0),
+                    cal(cal_error::INCOMPLETE)
+                );
+            }
+            assert!(matches!(
+                ep.handle_inline(&chunk(i * CHUNK_MAX, piece), &mut d).0,
+                Effect::Reply(Reply::Ack { .. })
+            ));
+        }
+        // Past the announced end.
+        assert_eq!(
+            refused(ep.handle_inline(&chunk(blob.len(), &[1]), &mut d).0),
+            cal(cal_error::TOO_LONG)
+        );
+        let (e, ev) = ep.handle_inline(&Request::CalCommit, &mut d);
+        assert!(matches!(e, Effect::Reply(Reply::Ack { .. })), "{e:?}");
+        assert_eq!(
+            ev,
+            Event::CalibrationLoaded {
+                len: blob.len() as u32
+            }
+        );
+        assert_ne!(
+            ep.status(&d, &Receiver::new(), 0, 0).flags & status_flags::CALIBRATED,
+            0
+        );
+
+        // Bytes that do not match the announced CRC.
+        let begin = Request::CalBegin {
+            total_len: 8,
+            crc32: crc32(&blob[..8]) ^ 1,
+        };
+        assert!(matches!(
+            ep.handle_inline(&begin, &mut d).0,
+            Effect::Reply(Reply::Ack { .. })
+        ));
+        assert!(matches!(
+            ep.handle_inline(&chunk(0, &blob[..8]), &mut d).0,
+            Effect::Reply(Reply::Ack { .. })
+        ));
+        assert_eq!(
+            refused(ep.handle_inline(&Request::CalCommit, &mut d).0),
+            cal(cal_error::CRC)
+        );
+        // A transfer that arrives intact but holds no valid blob: the drive refuses it.
+        let begin = Request::CalBegin {
+            total_len: 8,
+            crc32: crc32(&blob[..8]),
+        };
+        assert!(matches!(
+            ep.handle_inline(&begin, &mut d).0,
+            Effect::Reply(Reply::Ack { .. })
+        ));
+        assert!(matches!(
+            ep.handle_inline(&chunk(0, &blob[..8]), &mut d).0,
+            Effect::Reply(Reply::Ack { .. })
+        ));
+        let (e, ev) = ep.handle_inline(&Request::CalCommit, &mut d);
+        let code = cal_error::REJECTED | blob_error_code(BlobError::Truncated);
+        assert_eq!(refused(e), cal(code));
+        assert_eq!(ev, Event::CalibrationRejected(BlobError::Truncated));
+
+        // Without the inline helper, a complete transfer is handed back for decoding outside
+        // the drive's lock, with exactly the bytes that arrived; the drive is untouched.
+        let before = d.models().clone();
+        let begin = Request::CalBegin {
+            total_len: blob.len() as u32,
+            crc32: crc32(&blob),
+        };
+        assert!(matches!(
+            ep.handle(&begin, &mut d).0,
+            Effect::Reply(Reply::Ack { .. })
+        ));
+        for (i, piece) in blob.chunks(CHUNK_MAX).enumerate() {
+            assert!(matches!(
+                ep.handle(&chunk(i * CHUNK_MAX, piece), &mut d).0,
+                Effect::Reply(Reply::Ack { .. })
+            ));
+        }
+        assert_eq!(
+            ep.handle(&Request::CalCommit, &mut d).0,
+            Effect::Calibrate(blob.len())
+        );
+        assert_eq!(ep.calibration(blob.len()), &blob[..]);
+        assert_eq!(d.models(), &before);
+    }
+}
