@@ -455,6 +455,23 @@ fn main() -> ExitCode {
                 "reversal dead band: {} counts",
                 cal.params.reversal_deadband_counts
             );
+            // A transition that never meets the far band edge leaves the estimate inside the
+            // band after long strokes: worth knowing before the tables go to a machine.
+            for (name, c) in [
+                ("model1", cal.params.model1.closing()),
+                ("model2", cal.params.model2.closing()),
+            ] {
+                for (dir, d) in [("forward", c.forward_mm), ("reverse", c.reverse_mm)] {
+                    match d {
+                        Some(mm) => eprintln!("{name} {dir} transition closes after {mm} mm"),
+                        None => eprintln!(
+                            "warning: {name}'s {dir} transition never meets the far band edge \
+                             within {} mm: its estimate stays inside the band after long strokes",
+                            estimator_core::model::Closing::LIMIT_MM
+                        ),
+                    }
+                }
+            }
             for (k, rms) in cal.fit_rms_um {
                 eprintln!(
                     "fit {:<7} RMS {:6.2} um on {} calibration samples",

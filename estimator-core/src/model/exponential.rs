@@ -78,6 +78,7 @@ impl Model2Params {
             amp_b_um,
             rate_a,
             rate_b,
+            #[cfg(feature = "std")]
             closing: self.closing(),
         })
     }
@@ -147,12 +148,14 @@ pub struct Model2Coeffs {
     /// Exponent of the forward transition per count, `t_q32 = rate_a.apply(d)`.
     pub(crate) rate_a: Scale,
     pub(crate) rate_b: Scale,
+    #[cfg(feature = "std")]
     pub(crate) closing: Closing,
 }
 
 impl Model2Coeffs {
-    /// Closing distances computed at build time; `None` means the firmware should warn that the
-    /// transition never reaches that band edge with these parameters.
+    /// Closing distances computed at build time (host only); `None` means the transition never
+    /// reaches that band edge with these parameters (`hil-sim calibrate` warns).
+    #[cfg(feature = "std")]
     pub fn closing(&self) -> Closing {
         self.closing
     }

@@ -64,6 +64,7 @@ impl Model1Params {
             h_g_um,
             slope_a_um_per_count: a,
             slope_b_um_per_count: b,
+            #[cfg(feature = "std")]
             closing: self.closing(),
         })
     }
@@ -137,10 +138,12 @@ pub struct Model1Coeffs {
     pub(crate) h_g_um: I16F16,
     pub(crate) slope_a_um_per_count: I1F31,
     pub(crate) slope_b_um_per_count: I1F31,
+    #[cfg(feature = "std")]
     pub(crate) closing: Closing,
 }
 
 impl Model1Coeffs {
+    #[cfg(feature = "std")]
     /// Closing distances computed at build time (see [`Model1Params::closing`]).
     pub fn closing(&self) -> Closing {
         self.closing

@@ -281,7 +281,9 @@ impl ModelCoeffs {
     }
 
     /// Closing distances of `kind` (both `Some(0)` for [`ModelKind::None`]); `None` in either
-    /// direction is worth a warning at start-up.
+    /// direction is worth a warning (`hil-sim calibrate` gives it). Host only: the firmware has
+    /// no use for them, and Model 2's bisection through `exp` is 4 KB of soft-float.
+    #[cfg(feature = "std")]
     pub fn closing(&self, kind: ModelKind) -> Closing {
         match kind {
             ModelKind::None | ModelKind::Backlash | ModelKind::BidirTable => {

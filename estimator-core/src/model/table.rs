@@ -38,7 +38,9 @@ use fixed::types::{I16F16, U11F5};
 use super::convert::{finite, um_q16, MAX_ABS_UM};
 use super::fixmath::{lerp_q32, round_i32, Recip};
 use super::linear::Model1Params;
-use super::{Closing, Direction, ModelState};
+#[cfg(feature = "std")]
+use super::Closing;
+use super::{Direction, ModelState};
 use crate::ConfigError;
 
 /// Most points of one band table (`Λ_f` or `Λ_r`).
@@ -227,6 +229,7 @@ pub struct Model3Coeffs {
     reverse_band: BandCoeffs,
     forward_transition: TransitionCoeffs,
     reverse_transition: TransitionCoeffs,
+    #[cfg(feature = "std")]
     closing: Closing,
 }
 
@@ -341,6 +344,8 @@ pub fn build_model3(
     check_band_order(src)?;
     let forward_transition = build_transition(src, 0, counts_per_mm, &FWD_TRANSITION)?;
     let reverse_transition = build_transition(src, 1, counts_per_mm, &REV_TRANSITION)?;
+    // Reported by the host (hil-sim); the firmware has no use for them.
+    #[cfg(feature = "std")]
     let closing = Closing::from_mm(
         forward_transition.closing_mm(counts_per_mm),
         reverse_transition.closing_mm(counts_per_mm),
@@ -350,6 +355,7 @@ pub fn build_model3(
         reverse_band,
         forward_transition,
         reverse_transition,
+        #[cfg(feature = "std")]
         closing,
     })
 }
@@ -636,6 +642,7 @@ impl TransitionCoeffs {
 
     /// Travel after which every row is zero (all transitions have closed), in mm; `None` if the
     /// last row holds a non-zero gap.
+    #[cfg(feature = "std")]
     fn closing_mm(&self, counts_per_mm: f64) -> Option<f64> {
         let mut first_zero = self.n_d();
         while first_zero > 0 {
@@ -728,7 +735,8 @@ impl Model3Coeffs {
         }
     }
 
-    /// Travel after which the tables' transitions have closed, per direction.
+    /// Travel after which the tables' transitions have closed, per direction (host only).
+    #[cfg(feature = "std")]
     pub fn closing(&self) -> Closing {
         self.closing
     }
