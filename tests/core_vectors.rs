@@ -10,7 +10,7 @@ use belt_drive as _;
 
 #[cfg(target_os = "none")]
 mod vectors {
-    include!("common/closed_loop.rs");
+    pub use estimator_core::vectors::*;
     include!(concat!(env!("OUT_DIR"), "/core_vectors.rs"));
 }
 

@@ -21,7 +21,7 @@ use {
 const FRAMES: u32 = 10_000;
 
 #[cfg(target_os = "none")]
-include!("common/bad_frames.rs");
+use belt_link::testing::{bad_frame, Rng};
 
 #[cfg(target_os = "none")]
 #[defmt_test::tests]

@@ -45,6 +45,8 @@ pub mod cobs;
 pub mod command;
 pub mod crc;
 pub mod frame;
+#[cfg(feature = "testing")]
+pub mod testing;
 pub mod wire;
 
 pub use cobs::{cobs_decode_in_place, cobs_encode};

@@ -25,6 +25,9 @@ pub mod fault;
 
 pub mod endpoint;
 
+#[cfg(feature = "vectors")]
+pub mod vectors;
+
 #[cfg(feature = "std")]
 pub mod reference;
 

@@ -324,22 +324,6 @@ fn home_is_refused_while_moving_and_model_select_applies() {
 }
 
 #[test]
-fn same_inputs_same_outputs() {
-    let go = || {
-        let (mut d, mut m) = homed(30.0);
-        d.command(Command::Enable).unwrap();
-        d.command(Command::SelectModel(ModelKind::Exponential))
-            .unwrap();
-        d.command(mv(90.0)).unwrap();
-        let mut outs = run(&mut d, &mut m, 1500);
-        d.command(mv(40.0)).unwrap();
-        outs.extend(run(&mut d, &mut m, 3000));
-        outs
-    };
-    assert_eq!(go(), go());
-}
-
-#[test]
 fn bad_configuration_names_the_field() {
     let mut c = DriveConfig::paper_rig();
     c.travel_max_mm = f64::NAN;

@@ -77,9 +77,10 @@ fn coeffs_size_and_layout() {
         core::mem::size_of::<ModelState>(),
         core::mem::size_of::<ModelParams>(),
     );
-    assert!(m3 <= 5 * 1024 + 128, "Model 3 storage {m3} B");
-    assert!(size <= 5 * 1024 + 256, "ModelCoeffs {size} B");
-    assert!(core::mem::size_of::<ModelState>() <= 80);
+    // What is used today (host build, closing distances included): growth must be deliberate.
+    assert!(m3 <= 2608, "Model 3 storage {m3} B");
+    assert!(size <= 4788, "ModelCoeffs {size} B");
+    assert!(core::mem::size_of::<ModelState>() <= 72);
 }
 
 #[test]

@@ -214,10 +214,3 @@ pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, String> {
         samples: 0,
     })
 }
-
-/// The parameters exactly as the firmware will hold them (through the blob's formats).
-pub fn quantised(params: &ModelParams, rig: &Rig) -> Result<ModelParams, String> {
-    let mut buf = vec![0u8; blob::MAX_BYTES];
-    let n = blob::encode(params, rig, &mut buf).map_err(|e| e.to_string())?;
-    blob::decode(&buf[..n], rig).map_err(|e| e.to_string())
-}

@@ -13,6 +13,7 @@
 //!    from those of the linear model");
 //! 5. the two baselines of today's controllers from the same data.
 
+use estimator_core::blob;
 use estimator_core::model::{
     BandParams, Model1Params, Model2Params, Model3Params, ModelKind, ModelParams, TransitionParams,
     MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
@@ -439,8 +440,8 @@ pub fn calibrate(
         .ok_or("no approached samples for the table")?
         .to_params();
     // From here on, exactly what the firmware will hold: the blob's fixed-point formats.
-    let params = crate::calfile::quantised(&params, rig)
-        .map_err(|e| format!("calibrated parameters rejected: {e}"))?;
+    let params =
+        quantised(&params, rig).map_err(|e| format!("calibrated parameters rejected: {e}"))?;
     progress("Model 3 tables", 1.0);
 
     let rms = |kind| {
@@ -457,4 +458,11 @@ pub fn calibrate(
         fit_rms_um,
         samples: runs.iter().map(|r| r.x_counts.len()).sum(),
     })
+}
+
+/// The parameters exactly as the firmware will hold them (through the blob's formats).
+pub fn quantised(params: &ModelParams, rig: &Rig) -> Result<ModelParams, String> {
+    let mut buf = vec![0u8; blob::MAX_BYTES];
+    let n = blob::encode(params, rig, &mut buf).map_err(|e| e.to_string())?;
+    blob::decode(&buf[..n], rig).map_err(|e| e.to_string())
 }

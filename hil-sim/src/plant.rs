@@ -74,7 +74,7 @@
 //! lumped belt and the pulley) and dampers: `paper-rig` has `omega_max ~ 16000 rad/s`, and
 //! `PlantParams::validate` enforces `omega_max h < 0.5` and `c h / m < 1`. The default 20 us
 //! (25 substeps per 2 kHz tick) stays within 0.5 um of a 5 us run (`substep_convergence`) and
-//! runs ~300 times faster than real time (`simulation_speed`).
+//! runs ~300 times faster than real time (`cargo bench -p hil-sim --bench sim_speed`).
 
 mod rng;
 

@@ -7,7 +7,7 @@
 //! the plant alone.
 //!
 //! Every test prints its figures: `cargo test -p hil-sim --release --test fidelity -- --nocapture`.
-//! Speed: `cargo test -p hil-sim --release --test fidelity -- --ignored --nocapture simulation_speed`.
+//! Speed is a benchmark, not a test: `cargo bench -p hil-sim --bench sim_speed`.
 
 use hil_sim::PlantParams;
 
@@ -806,38 +806,4 @@ fn substep_convergence() {
         rms_d * 1e3
     );
     within("max dx difference (mm)", max, 0.0, 0.001);
-}
-
-/// CPU time of this thread (Linux), so the benchmark means something on a busy machine.
-fn thread_cpu_s() -> Option<f64> {
-    let stat = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
-    Some(stat.split_whitespace().next()?.parse::<f64>().ok()? * 1e-9)
-}
-
-/// Simulated seconds per second of CPU (and of wall clock) at the 2 kHz tick, best of three runs
-/// of a 53 s cycle.
-#[test]
-#[ignore = "benchmark: run with --release --ignored --nocapture"]
-fn simulation_speed() {
-    let p = paper();
-    let (mut best_wall, mut best_cpu) = (0.0f64, 0.0f64);
-    let mut simulated = 0.0;
-    for _ in 0..3 {
-        let (t0, c0) = (std::time::Instant::now(), thread_cpu_s());
-        let mut d = Drive::new(&p, 0.0, 1);
-        d.run(&cycle(20.0, 200.0));
-        let wall = t0.elapsed().as_secs_f64();
-        simulated = d.plant.time_s();
-        best_wall = best_wall.max(simulated / wall);
-        if let (Some(c0), Some(c1)) = (c0, thread_cpu_s()) {
-            best_cpu = best_cpu.max(simulated / (c1 - c0));
-        }
-    }
-    let substeps = (TICK_S / p.integration.max_substep_s).ceil();
-    let speed = if best_cpu > 0.0 { best_cpu } else { best_wall };
-    println!(
-        "{simulated:.1} s simulated: {best_cpu:.0}x real time per CPU second ({best_wall:.0}x by wall clock) at a 2 kHz tick; {substeps} substeps per tick, {:.0} ns per substep incl. harness",
-        1e9 / (speed * substeps / TICK_S)
-    );
-    assert!(speed > 50.0, "{speed}x");
 }

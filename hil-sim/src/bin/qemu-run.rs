@@ -17,106 +17,113 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
 
+use clap::Parser;
 use hil_sim::pil::qemu::{LogSink, Qemu, QemuError, QemuOptions, LEVELS};
 use hil_sim::pil::{bench, PilOptions, Transport};
 
-/// What the command line asks for.
-enum Mode {
-    Run,
-    /// With the checked-in figures to hold the measurement against, if any.
-    Bench(Option<PathBuf>),
-    Fuzz(u32),
-}
-
-fn usage() -> ExitCode {
-    eprintln!(
-        "usage: qemu-run [--timeout SECS] [--icount SHIFT] [--log-level trace|debug|info|warn|error] \
-         [--log-file PATH] ELF [ignored...]"
-    );
-    ExitCode::from(2)
+/// The command line.
+#[derive(Parser)]
+#[command(
+    name = "qemu-run",
+    about = "Runs a belt-drive firmware ELF under QEMU (netduinoplus2) with its defmt log decoded; \
+             or benchmarks it (--bench) or fuzzes its link (--pil-fuzz)"
+)]
+struct Args {
+    /// Wall-clock limit of a plain run, seconds (exit 124 when reached).
+    #[arg(long, default_value_t = 120.0)]
+    timeout: f64,
+    /// QEMU `-icount` shift of a plain run (0 counts instructions exactly), or `off`.
+    #[arg(long, default_value = "4")]
+    icount: String,
+    /// Lowest defmt level shown (default: trace for a run, warn for --bench and --pil-fuzz).
+    #[arg(long, value_parser = LEVELS)]
+    log_level: Option<String>,
+    /// Write the decoded log to this file instead of standard output.
+    #[arg(long)]
+    log_file: Option<PathBuf>,
+    /// PIL runs per compensator: instructions per tick, host/firmware equality, stack, flash,
+    /// static RAM; the last line is one JSON object.
+    #[arg(long)]
+    bench: bool,
+    /// With --bench: fail when a figure exceeds this checked-in JSON file.
+    #[arg(long, requires = "bench")]
+    check: Option<PathBuf>,
+    /// N bad frames through USART2 in PIL mode (the emulated serial line, byte by byte).
+    #[arg(long, value_name = "N", conflicts_with = "bench")]
+    pil_fuzz: Option<u32>,
+    /// The firmware ELF (default for --bench and --pil-fuzz: the `cargo fw-qemu` output).
+    elf: Option<PathBuf>,
+    /// Cargo appends the test binary's own arguments (filters, --nocapture): defmt-test runs
+    /// every test, so they are ignored.
+    #[arg(trailing_var_arg = true, allow_hyphen_values = true, hide = true)]
+    ignored: Vec<String>,
 }
 
 fn main() -> ExitCode {
-    let mut args = std::env::args().skip(1);
-    let mut timeout = Duration::from_secs(120);
-    let mut icount = Some(4u8);
-    let mut level: &'static str = "trace";
-    let mut log = LogSink::Stdout;
-    let mut elf: Option<PathBuf> = None;
-    let mut mode = Mode::Run;
-    let mut level_set = false;
-    while let Some(a) = args.next() {
-        match a.as_str() {
-            "--bench" => mode = Mode::Bench(None),
-            "--check" => match (args.next(), &mode) {
-                (Some(p), Mode::Bench(_)) => mode = Mode::Bench(Some(p.into())),
-                _ => return usage(),
-            },
-            "--pil-fuzz" => match args.next().and_then(|v| v.parse().ok()) {
-                Some(n) => mode = Mode::Fuzz(n),
-                None => return usage(),
-            },
-            "--timeout" => match args.next().and_then(|v| v.parse::<f64>().ok()) {
-                Some(s) if s > 0.0 => timeout = Duration::from_secs_f64(s),
-                _ => return usage(),
-            },
-            "--icount" => match args.next().as_deref() {
-                Some("off") => icount = None,
-                Some(v) => match v.parse() {
-                    Ok(s) => icount = Some(s),
-                    Err(_) => return usage(),
-                },
-                None => return usage(),
-            },
-            "--log-level" => match args.next().and_then(|v| LEVELS.iter().find(|l| **l == v)) {
-                Some(l) => {
-                    level = l;
-                    level_set = true;
-                }
-                None => return usage(),
-            },
-            "--log-file" => match args.next() {
-                Some(p) => log = LogSink::File(p.into()),
-                None => return usage(),
-            },
-            "-h" | "--help" => {
-                usage();
-                return ExitCode::SUCCESS;
+    let args = match Args::try_parse() {
+        Ok(a) => a,
+        Err(e) => {
+            let _ = e.print();
+            return ExitCode::from(if e.use_stderr() { 2 } else { 0 });
+        }
+    };
+    if !(args.timeout.is_finite() && args.timeout > 0.0) {
+        eprintln!(
+            "qemu-run: --timeout {}: must be a positive number of seconds",
+            args.timeout
+        );
+        return ExitCode::from(2);
+    }
+    let icount = match args.icount.as_str() {
+        "off" => None,
+        v => match v.parse::<u8>() {
+            Ok(s) => Some(s),
+            Err(_) => {
+                eprintln!("qemu-run: --icount {v}: use a shift of 0-255 or `off`");
+                return ExitCode::from(2);
             }
-            _ if elf.is_none() => elf = Some(a.into()),
-            // Cargo appends the test binary's own arguments (filters, --nocapture): defmt-test
-            // runs every test, so they are ignored.
-            _ => {}
-        }
+        },
+    };
+    let level_of = |default: &'static str| -> &'static str {
+        args.log_level
+            .as_deref()
+            .and_then(|l| LEVELS.iter().find(|x| **x == l).copied())
+            .unwrap_or(default)
+    };
+    let log = match &args.log_file {
+        Some(p) => LogSink::File(p.clone()),
+        None => LogSink::Stdout,
+    };
+    if args.bench || args.pil_fuzz.is_some() {
+        let elf = args
+            .elf
+            .clone()
+            .unwrap_or_else(|| PilOptions::default_elf(None));
+        let mut opts = PilOptions::new(elf);
+        opts.min_level = level_of("warn");
+        opts.log = log;
+        return match args.pil_fuzz {
+            // The fuzz goes through the emulated USART2, the board's byte-by-byte path.
+            Some(n) => run_fuzz(
+                &PilOptions {
+                    transport: Transport::Usart,
+                    ..opts
+                },
+                n,
+            ),
+            None => run_bench(&opts, args.check.as_deref()),
+        };
     }
-    match mode {
-        Mode::Run => {}
-        Mode::Bench(_) | Mode::Fuzz(_) => {
-            let elf = elf.unwrap_or_else(|| PilOptions::default_elf(None));
-            let mut opts = PilOptions::new(elf);
-            opts.min_level = if level_set { level } else { "warn" };
-            opts.log = log;
-            return match mode {
-                Mode::Bench(check) => run_bench(&opts, check.as_deref()),
-                // The fuzz goes through the emulated USART2, the board's byte-by-byte path.
-                Mode::Fuzz(n) => run_fuzz(
-                    &PilOptions {
-                        transport: Transport::Usart,
-                        ..opts
-                    },
-                    n,
-                ),
-                Mode::Run => unreachable!(),
-            };
-        }
-    }
-    let Some(elf) = elf else { return usage() };
+    let Some(elf) = args.elf else {
+        eprintln!("qemu-run: no firmware ELF given (see --help)");
+        return ExitCode::from(2);
+    };
 
     let mut opts = QemuOptions::new(elf);
-    opts.timeout = timeout;
+    opts.timeout = Duration::from_secs_f64(args.timeout);
     opts.icount_shift = icount;
     opts.log = log;
-    opts.min_level = level;
+    opts.min_level = level_of("trace");
     opts.keep_lines = 0;
     let result = Qemu::spawn(&opts).and_then(|mut q| q.wait());
     match result {

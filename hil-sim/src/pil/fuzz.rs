@@ -8,10 +8,7 @@ use estimator_core::drive::{Command, Drive, DriveConfig, Sample};
 
 use super::{PilController, PilError, PilOptions};
 
-#[allow(dead_code)]
-mod gen {
-    include!("../../../tests/common/bad_frames.rs");
-}
+use belt_link::testing as gen;
 
 /// Bad frames between two ticks (keeps the error replies flowing back in small batches).
 const FRAMES_PER_TICK: u32 = 10;

@@ -1,14 +1,15 @@
-// Shared by tests/fuzz_link.rs (Cortex-M4) and hil-sim's PIL fuzzer (host) through `include!`:
-// one generator of bad link frames. Each call yields exactly one frame (one delimiter, at the
-// end) that the drive must reject: random bytes, bit flips under the CRC, wrong lengths, unknown
-// kinds, out-of-range values, broken COBS. Frames that carry a sequence number use 0, which the
-// PIL controller never uses for its own requests.
+//! One generator of bad link frames, for the on-target link fuzz (`tests/fuzz_link.rs`) and
+//! hil-sim's PIL fuzzer (feature `testing`). Each call yields exactly one frame (one delimiter,
+//! at the end) that the drive must reject: random bytes, bit flips under the CRC, wrong lengths,
+//! unknown kinds, out-of-range values, broken COBS. Frames that carry a sequence number use 0,
+//! which the PIL controller never uses for its own requests.
 
 /// xorshift32: deterministic, so a failure reproduces.
 pub struct Rng(pub u32);
 
 impl Rng {
-    fn next(&mut self) -> u32 {
+    /// The next 32 random bits.
+    pub fn next_u32(&mut self) -> u32 {
         let mut x = self.0;
         x ^= x << 13;
         x ^= x >> 17;
@@ -16,61 +17,63 @@ impl Rng {
         self.0 = x;
         x
     }
-    fn below(&mut self, n: u32) -> u32 {
-        self.next() % n
+    /// Uniform-ish in `0..n` (`n > 0`).
+    pub fn below(&mut self, n: u32) -> u32 {
+        self.next_u32() % n
     }
-    fn nonzero_byte(&mut self) -> u8 {
+    /// A byte in `1..=255`.
+    pub fn nonzero_byte(&mut self) -> u8 {
         1 + self.below(255) as u8
     }
 }
 
 /// A well-formed request of a random kind.
-fn valid_request(rng: &mut Rng) -> belt_link::Request {
-    use belt_link::{Command, Request};
+pub fn valid_request(rng: &mut Rng) -> crate::Request {
+    use crate::{Command, Request};
     match rng.below(6) {
         0 => Request::Command(Command::MoveMotorTo {
-            target_um: rng.next() as i32,
+            target_um: rng.next_u32() as i32,
             velocity_um_s: 1 + rng.below(100_000),
             accel_um_s2: 1 + rng.below(1_000_000),
         }),
         1 => Request::Command(Command::SelectModel(
-            belt_link::ModelKind::ALL[rng.below(belt_link::ModelKind::ALL.len() as u32) as usize],
+            crate::ModelKind::ALL[rng.below(crate::ModelKind::ALL.len() as u32) as usize],
         )),
         2 => Request::Command(Command::Stop),
         3 => Request::Command(Command::Home {
-            position_um: rng.next() as i32,
-            scale_um: rng.next() as i32,
+            position_um: rng.next_u32() as i32,
+            scale_um: rng.next_u32() as i32,
         }),
         4 => Request::CalBegin {
             total_len: 1 + rng.below(4096),
-            crc32: rng.next(),
+            crc32: rng.next_u32(),
         },
         _ => Request::Sample {
-            motor_counter: rng.next() as u16,
-            scale_counter: rng.next() as u16,
+            motor_counter: rng.next_u32() as u16,
+            scale_counter: rng.next_u32() as u16,
         },
     }
 }
 
 /// COBS-wraps `raw` with a delimiter; returns the wire length.
-fn wrap(raw: &[u8], out: &mut [u8; belt_link::MAX_FRAME + 16]) -> usize {
-    use belt_link::cobs_encode;
+fn wrap(raw: &[u8], out: &mut [u8; crate::MAX_FRAME + 16]) -> usize {
+    use crate::cobs_encode;
     let n = cobs_encode(raw, &mut out[..]).unwrap_or(0);
     out[n] = 0;
     n + 1
 }
 
 /// Raw frame (kind, seq, payload) with a correct CRC appended; returns its length.
-fn seal(raw: &mut [u8; belt_link::MAX_RAW + 8], body_len: usize) -> usize {
-    use belt_link::crc32;
+fn seal(raw: &mut [u8; crate::MAX_RAW + 8], body_len: usize) -> usize {
+    use crate::crc32;
     let crc = crc32(&raw[..body_len]);
     raw[body_len..body_len + 4].copy_from_slice(&crc.to_le_bytes());
     body_len + 4
 }
 
 /// One bad frame on the wire (exactly one delimiter, at the end).
-pub fn bad_frame(rng: &mut Rng, out: &mut [u8; belt_link::MAX_FRAME + 16]) -> usize {
-    use belt_link::{
+pub fn bad_frame(rng: &mut Rng, out: &mut [u8; crate::MAX_FRAME + 16]) -> usize {
+    use crate::{
         cobs_decode_in_place, encode, kind, Command, Message, Request, CHUNK_MAX, MAX_ENCODED,
         MAX_FRAME, MAX_RAW,
     };
@@ -110,7 +113,7 @@ pub fn bad_frame(rng: &mut Rng, out: &mut [u8; belt_link::MAX_FRAME + 16]) -> us
                 len += 1;
             }
             for b in raw[2 + good.min(len)..2 + len].iter_mut() {
-                *b = rng.next() as u8;
+                *b = rng.next_u32() as u8;
             }
             let n = seal(&mut raw, 2 + len);
             wrap(&raw[..n], out)
@@ -126,7 +129,7 @@ pub fn bad_frame(rng: &mut Rng, out: &mut [u8; belt_link::MAX_FRAME + 16]) -> us
             raw[1] = 0;
             let len = rng.below(20) as usize;
             for b in raw[2..2 + len].iter_mut() {
-                *b = rng.next() as u8;
+                *b = rng.next_u32() as u8;
             }
             let n = seal(&mut raw, 2 + len);
             wrap(&raw[..n], out)
@@ -136,25 +139,25 @@ pub fn bad_frame(rng: &mut Rng, out: &mut [u8; belt_link::MAX_FRAME + 16]) -> us
             let k = rng.below(4);
             let len = if k == 2 {
                 // A compensator number past the last (no `ModelKind` carries it): raw bytes.
-                raw[0] = belt_link::kind::SELECT_MODEL;
+                raw[0] = crate::kind::SELECT_MODEL;
                 raw[1] = 0;
-                raw[2] = belt_link::MODEL_MAX + 1 + rng.below(255 - belt_link::MODEL_MAX as u32) as u8;
+                raw[2] = crate::MODEL_MAX + 1 + rng.below(255 - crate::MODEL_MAX as u32) as u8;
                 1
             } else {
                 let req = match k {
                     0 => Request::Command(Command::MoveMotorTo {
-                        target_um: rng.next() as i32,
+                        target_um: rng.next_u32() as i32,
                         velocity_um_s: 0,
                         accel_um_s2: 1 + rng.below(1000),
                     }),
                     1 => Request::Command(Command::MoveMotorTo {
-                        target_um: rng.next() as i32,
+                        target_um: rng.next_u32() as i32,
                         velocity_um_s: 1 + rng.below(1000),
                         accel_um_s2: 0,
                     }),
                     _ => Request::CalBegin {
                         total_len: 0,
-                        crc32: rng.next(),
+                        crc32: rng.next_u32(),
                     },
                 };
                 raw[0] = req.kind();

@@ -1,6 +1,6 @@
-// Shared by build.rs (host) and tests/core_vectors.rs (Cortex-M4) through `include!`: the same
-// closed-loop run of `Drive::step` on both, with an integer stand-in for the plant so that the
-// only arithmetic that could differ is the core's own. Not a module: plain items.
+//! The closed-loop run behind the on-target core vectors (feature `vectors`): `build.rs` runs it
+//! on the host for the expected digests and `tests/core_vectors.rs` on the Cortex-M4, with an
+//! integer stand-in for the plant so that the only arithmetic that could differ is the core's.
 
 /// Ticks digested per block.
 pub const BLOCK_TICKS: usize = 256;
@@ -23,10 +23,10 @@ pub struct RunDigest {
 /// Runs the paper rig through three moves (out, back, and a short reversal) with `model`.
 /// Never inlined: its frame (drive and configuration) must not stay on the caller's stack.
 #[inline(never)]
-pub fn closed_loop(model: estimator_core::model::ModelKind) -> RunDigest {
-    use estimator_core::drive::{Command, Drive, DriveConfig, Sample};
+pub fn closed_loop(model: crate::model::ModelKind) -> RunDigest {
+    use crate::drive::{Command, Drive, DriveConfig, Sample};
+    use crate::endpoint::answer;
     use belt_link::{Crc32, Message, MAX_PAYLOAD};
-    use estimator_core::endpoint::answer;
 
     let mut drive = match Drive::new(&DriveConfig::paper_rig()) {
         Ok(d) => d,
