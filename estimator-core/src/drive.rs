@@ -559,7 +559,7 @@ impl Drive {
         // Every compensator goes through the same inverse: the baselines' estimates are the
         // LinuxCNC corrections, applied to the move's end point so that the motor's trapezoid
         // takes up the backlash within the move's limits.
-        let here = (profile.position_counts().to_bits() >> 24) as i32;
+        let here = profile.position_floor_counts();
         let stop = profile.stopping_point_counts();
         let moving_up = stop >= here;
         let mut m = carriage_counts;
@@ -687,12 +687,12 @@ impl Drive {
         if self.enabled && self.faults.is_clear() {
             let sp = self.trajectory.tick();
             let out = self.pid.update(&mut self.pid_state, &sp, x);
-            following_error_counts = out.following_error_counts.to_bits() >> 8;
-            setpoint_counts = (sp.position_counts().to_bits() >> 24)
-                .clamp(i32::MIN as i64, i32::MAX as i64) as i32;
+            // The floor of the I24F8 error (always within i32).
+            following_error_counts = out.following_error_counts.to_num::<i32>();
+            setpoint_counts = sp.position_floor_counts();
             let limit = self
                 .monitor
-                .following_error_limit_counts(sp.velocity_counts_per_tick().to_bits());
+                .following_error_limit_counts(sp.velocity_counts_per_tick());
             if following_error_counts.unsigned_abs() > limit {
                 self.faults.0 |= Faults::FOLLOWING_ERROR;
             } else {

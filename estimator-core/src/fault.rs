@@ -10,7 +10,7 @@
 //! Coeffs`, state in [`State`]. It sees the motor position measured this tick and the current
 //! commanded on the previous tick (the current that produced this tick's motion).
 
-use fixed::types::I16F16;
+use fixed::types::{I16F16, I40F24};
 
 use crate::rig::Rig;
 use crate::ConfigError;
@@ -326,11 +326,11 @@ pub struct Coeffs {
 }
 
 impl Coeffs {
-    /// The following-error limit, counts, at a set-point speed of `speed_f24` (counts per tick,
-    /// I40F24 bits, any sign). 32-bit arithmetic: the speed to 1/16 count per tick.
+    /// The following-error limit, counts, at a set-point speed of `speed` (counts per tick, any
+    /// sign). 32-bit arithmetic: the speed to 1/16 count per tick.
     #[inline]
-    pub fn following_error_limit_counts(&self, speed_f24: i64) -> u32 {
-        let v_q4 = (speed_f24.unsigned_abs() >> 20).min(1 << 15) as u32;
+    pub fn following_error_limit_counts(&self, speed: I40F24) -> u32 {
+        let v_q4 = (speed.to_bits().unsigned_abs() >> (I40F24::FRAC_NBITS - 4)).min(1 << 15) as u32;
         self.fe_rest_counts
             .saturating_add(v_q4.wrapping_mul(self.fe_slope_q8) >> 12)
     }

@@ -340,8 +340,8 @@ impl Coeffs {
     pub fn update(&self, state: &mut State, setpoint: &Setpoint, measured_counts: i32) -> Output {
         // Following error: whole counts (the setpoint's floor; within `i32` by the `Setpoint`
         // invariant) saturating, then the setpoint's top 8 fractional bits.
-        let setpoint_counts = (setpoint.position >> 24) as i32;
-        let setpoint_frac_f8 = ((setpoint.position as u32) >> 16) as i32 & 0xff;
+        let setpoint_counts = setpoint.position_floor_counts();
+        let setpoint_frac_f8 = setpoint.position_frac_q8();
         let error_counts = ssat::<ERROR_BITS>(setpoint_counts.saturating_sub(measured_counts));
         let error_f8 = (error_counts << 8) | setpoint_frac_f8;
         let error_pi_f8 = ssat::<ERROR_PI_BITS>(error_f8);
@@ -365,12 +365,12 @@ impl Coeffs {
         let p = mul_shr(error_pi_f8, self.kp_a_per_count.to_bits(), 16);
         let d = mul_shr(velocity_f16, self.kd_a_tick_per_count.to_bits(), 16).wrapping_neg();
         let v_ff = mul_shr(
-            (setpoint.velocity >> 8) as i32,
+            setpoint.velocity_q16(),
             self.kff_vel_a_tick_per_count.to_bits(),
             16,
         );
         let a_ff = mul_shr(
-            setpoint.acceleration as i32,
+            setpoint.acceleration_q24(),
             self.kff_acc_a_tick2_per_count.to_bits(),
             24,
         );

@@ -172,15 +172,16 @@ fn following_error_limit_grows_with_speed() {
         following_error_at_max_velocity_mm: 3.0,
         ..quiet()
     });
-    let rest = c.following_error_limit_counts(0);
+    use estimator_core::fixed::types::I40F24;
+    let rest = c.following_error_limit_counts(I40F24::ZERO);
     assert_eq!(rest, (1.0 * cpm()) as u32);
-    let vmax_f24 = (VMAX_MM_S * cpm() / RATE_HZ * (1u64 << 24) as f64) as i64;
-    let at_max = c.following_error_limit_counts(vmax_f24);
+    let vmax = I40F24::from_num(VMAX_MM_S * cpm() / RATE_HZ);
+    let at_max = c.following_error_limit_counts(vmax);
     // The speed is taken to 1/16 count per tick: within 2 counts of the exact line.
     assert!(at_max.abs_diff((3.0 * cpm()) as u32) <= 2, "{at_max}");
-    let half = c.following_error_limit_counts(-vmax_f24 / 2);
+    let half = c.following_error_limit_counts(-vmax / 2);
     assert!(half.abs_diff((2.0 * cpm()) as u32) <= 2, "{half}");
-    assert!(c.following_error_limit_counts(i64::MAX) > at_max);
+    assert!(c.following_error_limit_counts(I40F24::MAX) > at_max);
 }
 
 // ---- drive level ----------------------------------------------------------------------------
