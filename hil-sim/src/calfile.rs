@@ -172,8 +172,22 @@ fn first_difference(path: &str, want: &toml::Value, found: &toml::Value) -> Opti
 pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, String> {
     let bin = dir.join("calibration.bin");
     let bytes = std::fs::read(&bin).map_err(|e| format!("{}: {e}", bin.display()))?;
-    let params: ModelParams =
-        blob::decode(&bytes, rig).map_err(|e| format!("{}: {e}", bin.display()))?;
+    let params: ModelParams = blob::decode(&bytes, rig).map_err(|e| match e {
+        // Say which geometries differ: the blob records the counts per mm it was made for.
+        blob::BlobError::RigMismatch => {
+            let made_for = bytes
+                .get(16..20)
+                .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64 / 65536.0)
+                .unwrap_or(f64::NAN);
+            format!(
+                "{}: calibrated for {made_for:.1} counts/mm; this plant has {}: calibrate \
+                 again on it",
+                bin.display(),
+                crate::eval::describe_rig(rig)
+            )
+        }
+        e => format!("{}: {e}", bin.display()),
+    })?;
     let path = dir.join("calibration.toml");
     let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
     let mut found: toml::Table =

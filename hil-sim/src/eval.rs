@@ -27,13 +27,44 @@ pub const ESTIMATORS: &[&str] = &[
     "bidir_table",
 ];
 
-/// The drive configuration used by simulations: the paper rig with `params` loaded.
-pub fn drive_config(params: &ModelParams, model: ModelKind) -> DriveConfig<'_> {
+/// The drive configuration used by simulations: the paper rig's limits, gains and thresholds
+/// (all in millimetres and seconds), the plant's geometry (`rig`: encoder lines, gearbox, pulley,
+/// pitch), and `params` loaded.
+pub fn drive_config(params: &ModelParams, model: ModelKind, rig: Rig) -> DriveConfig<'_> {
     DriveConfig {
+        rig,
         model: estimator_core::drive::Models::Params(params),
         initial_model: model,
         ..DriveConfig::paper_rig()
     }
+}
+
+/// The firmware under QEMU boots configured for the paper rig (configuration over the link is
+/// not there yet): a plant of another geometry cannot run with it in the loop.
+pub fn check_pil_geometry(plant: &PlantParams) -> Result<(), String> {
+    let (want, have) = (Rig::PAPER, plant.rig());
+    if want == have {
+        return Ok(());
+    }
+    Err(format!(
+        "PIL: the QEMU firmware is configured for the paper rig ({}); {} has {}: run it \
+         in-process (without --pil) until the drive takes its configuration over the link",
+        describe_rig(&want),
+        plant.name(),
+        describe_rig(&have)
+    ))
+}
+
+/// `2000 encoder lines, gear 23.7222:1, 20-tooth pulley, 5.08 mm pitch (1866.4 counts/mm)`.
+pub fn describe_rig(r: &Rig) -> String {
+    format!(
+        "{} encoder lines, gear {}:1, {}-tooth pulley, {} mm pitch ({:.1} counts/mm)",
+        r.encoder_lines,
+        r.gear_ratio,
+        r.pulley_teeth,
+        r.belt_pitch_mm,
+        r.counts_per_mm()
+    )
 }
 
 /// Runs `scenario` with the core in-process.
@@ -45,7 +76,7 @@ pub fn run_in_process(
     seed: u64,
     progress: &mut dyn FnMut(f64),
 ) -> Result<Trace, RunError> {
-    let cfg = drive_config(params, model);
+    let cfg = drive_config(params, model, plant.rig());
     let drive = Drive::new(&cfg).map_err(|e| {
         RunError::Control(crate::controller::ControlError::Link(format!(
             "drive configuration: {e}"
@@ -121,7 +152,7 @@ pub fn calibrate_plant(
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Calibration, String> {
     let traces = record_calibration(plant, progress)?;
-    calibrate(&traces, &Rig::PAPER, progress)
+    calibrate(&traces, &plant.rig(), progress)
 }
 
 /// Every estimator's y along `trace`, um, in `ESTIMATORS` order: every compensator of the drive
@@ -220,6 +251,7 @@ pub fn run_pil(
     opts: &crate::pil::PilOptions,
     progress: &mut dyn FnMut(f64),
 ) -> Result<Trace, String> {
+    check_pil_geometry(plant)?;
     let rig = Rig::PAPER;
     let mut buf = vec![0u8; estimator_core::blob::MAX_BYTES];
     let n = estimator_core::blob::encode(params, &rig, &mut buf).map_err(|e| e.to_string())?;

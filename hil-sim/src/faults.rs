@@ -336,7 +336,7 @@ pub fn run_class_in_process(
     plant: &PlantParams,
     seed: u64,
 ) -> Result<ClassResult, String> {
-    let cfg = drive_config(&ModelParams::PAPER, ModelKind::None);
+    let cfg = drive_config(&ModelParams::PAPER, ModelKind::None, plant.rig());
     let drive = Drive::new(&cfg).map_err(|e| format!("drive configuration: {e}"))?;
     run_class(injection, plant, &cfg.rig, &mut InProcess(drive), seed)
 }

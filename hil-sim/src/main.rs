@@ -5,7 +5,6 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 use estimator_core::model::ModelKind;
-use estimator_core::rig::Rig;
 use hil_sim::calibrate::Calibration;
 use hil_sim::pil::PilOptions;
 use hil_sim::plant::PlantParams;
@@ -67,7 +66,7 @@ impl Common {
         params: &estimator_core::model::ModelParams,
         progress: &mut Progress,
     ) -> Result<Vec<hil_sim::placement::Placement>, String> {
-        hil_sim::placement::compare(scenario, params, &mut |model| {
+        hil_sim::placement::compare(scenario, params, &plant.rig(), &mut |model| {
             self.run_as(scenario, plant, params, model, true, progress)
         })
     }
@@ -217,7 +216,7 @@ fn calibration(
     match &common.calibration {
         Some(dir) => {
             eprintln!("model parameters: {}", dir.display());
-            calfile::load(dir, &Rig::PAPER)
+            calfile::load(dir, &plant.rig())
         }
         None => {
             eprintln!(
@@ -279,7 +278,7 @@ fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), String> {
         trace,
         mut progress,
     } = session(scenario, common)?;
-    let coeffs = cal.params.build(&Rig::PAPER).map_err(|e| e.to_string())?;
+    let coeffs = cal.params.build(&plant.rig()).map_err(|e| e.to_string())?;
     let est = eval::estimates(&trace, &coeffs);
     let table = eval::table3(&trace, &est);
     // Placement: the scenario again in carriage space, once per compensator the drive has.
@@ -347,6 +346,7 @@ fn faults_campaign(
     }
     let mut pil_same = Vec::new();
     if pil {
+        eval::check_pil_geometry(&plant)?;
         let elf = elf.clone().unwrap_or_else(|| PilOptions::default_elf(None));
         if !elf.exists() {
             return Err(format!(
@@ -367,7 +367,7 @@ fn faults_campaign(
             opts.min_level = "warn";
             let mut c =
                 hil_sim::pil::PilController::start(&opts).map_err(|e| format!("PIL: {e}"))?;
-            let r = faults::run_class(host.injection, &plant, &Rig::PAPER, &mut c, seed)
+            let r = faults::run_class(host.injection, &plant, &plant.rig(), &mut c, seed)
                 .map_err(|e| format!("PIL {}: {e}", host.injection.name()))?;
             let status = c.shutdown(0).map_err(|e| format!("PIL: {e}"))?;
             if status != 0 {
@@ -450,7 +450,7 @@ fn main() -> ExitCode {
             let mut progress = Progress::new();
             let cal = eval::calibrate_plant(&plant, &mut |s, f| progress.stage(s, f))?;
             progress.finish();
-            calfile::save(&out, &cal, &Rig::PAPER)?;
+            calfile::save(&out, &cal, &plant.rig())?;
             eprintln!(
                 "reversal dead band: {} counts",
                 cal.params.reversal_deadband_counts

@@ -84,7 +84,7 @@ pub fn arrival_errors_in_process(
     moves: &[Move],
     seed: u64,
 ) -> Result<Vec<f64>, String> {
-    let cfg = drive_config(params, model);
+    let cfg = drive_config(params, model, plant.rig());
     let drive = Drive::new(&cfg).map_err(|e| format!("drive configuration: {e}"))?;
     arrival_errors(
         &mut InProcess(drive),
@@ -163,10 +163,11 @@ pub struct Placement {
 pub fn compare(
     scenario: &crate::scenario::Scenario,
     params: &ModelParams,
+    rig: &Rig,
     run: &mut dyn FnMut(ModelKind) -> Result<crate::run::Trace, String>,
 ) -> Result<Vec<Placement>, String> {
     let coeffs = params
-        .build(&Rig::PAPER)
+        .build(rig)
         .map_err(|e| format!("drive configuration: {e}"))?;
     let mut out = Vec::new();
     for model in ModelKind::ALL {
@@ -188,7 +189,7 @@ pub fn compare_in_process(
     seed: u64,
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Vec<Placement>, String> {
-    compare(scenario, params, &mut |model| {
+    compare(scenario, params, &plant.rig(), &mut |model| {
         let label = format!("placement {model}");
         run_carriage_space(scenario, plant, params, model, seed, &mut |f| {
             progress(&label, f)
@@ -290,7 +291,7 @@ pub fn run_carriage_space(
     seed: u64,
     progress: &mut dyn FnMut(f64),
 ) -> Result<crate::run::Trace, String> {
-    let cfg = drive_config(params, model);
+    let cfg = drive_config(params, model, plant.rig());
     let drive = Drive::new(&cfg).map_err(|e| format!("drive configuration: {e}"))?;
     let rc = crate::run::RunConfig {
         seed,

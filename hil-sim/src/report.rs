@@ -4,7 +4,6 @@ use std::io::Write;
 use std::path::Path;
 
 use estimator_core::model::{ModelKind, ModelParams};
-use estimator_core::rig::Rig;
 
 use crate::calibrate::Calibration;
 use crate::eval;
@@ -143,7 +142,7 @@ pub fn write(
     let Setting { plant, how, .. } = *setting;
     let paper = eval::paper_setting(setting.scenario, plant);
     std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
-    let coeffs = cal.params.build(&Rig::PAPER).map_err(|e| e.to_string())?;
+    let coeffs = cal.params.build(&plant.rig()).map_err(|e| e.to_string())?;
     let est = eval::estimates(trace, &coeffs);
     let table = eval::table3(trace, &est);
 

@@ -165,7 +165,7 @@ accel_mm_s2 = 1500.0
             .collect();
         eval::to_json(&scenario.name, 0, &[], &rows).unwrap()
     };
-    let host = hil_sim::placement::compare(&scenario, &cal.params, &mut |model| {
+    let host = hil_sim::placement::compare(&scenario, &cal.params, &plant.rig(), &mut |model| {
         hil_sim::placement::run_carriage_space(
             &scenario,
             &plant,
@@ -184,7 +184,7 @@ accel_mm_s2 = 1500.0
     let mut opts = PilOptions::new(elf);
     opts.log = LogSink::Discard;
     let pil = json(
-        hil_sim::placement::compare(&scenario, &cal.params, &mut |model| {
+        hil_sim::placement::compare(&scenario, &cal.params, &plant.rig(), &mut |model| {
             eval::run_pil(
                 &scenario,
                 &plant,
