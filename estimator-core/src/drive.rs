@@ -15,6 +15,7 @@ pub use crate::fault::Faults;
 use crate::model::{self, ModelCoeffs, ModelKind, ModelParams, ModelState};
 use crate::rig::Rig;
 use crate::trajectory::{self, Trajectory};
+use crate::BuildContext;
 use crate::{encoder, pid, ConfigError};
 
 /// What the board samples at the start of every tick.
@@ -104,7 +105,7 @@ pub struct DriveConfig<'a> {
     pub polarity: Polarity,
     /// Fastest believable motion between two samples (encoder plausibility), mm/s.
     pub encoder_max_speed_mm_s: f64,
-    /// Position-loop gains (its `rate_hz` is replaced by the drive's).
+    /// Position-loop gains (built for the drive's rig and `rate_hz`).
     pub pid: pid::Config,
     /// Error-model parameters (Table 2 presets or a calibration).
     pub model: Models<'a>,
@@ -258,11 +259,9 @@ impl Drive {
     /// Checks `cfg` and builds a disabled drive at position 0 (home it with `Command::Home`).
     pub fn new(cfg: &DriveConfig) -> Result<Drive, ConfigError> {
         use ConfigError as E;
-        cfg.rig.validate()?;
-        let rate_hz = finite(cfg.rate_hz, "drive.rate_hz")?;
-        if !(100.0..=100_000.0).contains(&rate_hz) {
-            return Err(E::OutOfRange("drive.rate_hz"));
-        }
+        // The geometry and the rate, checked once; every builder below takes them from here.
+        let ctx = BuildContext::new(cfg.rig, cfg.rate_hz)?;
+        let rate_hz = ctx.rate_hz();
         let cpm = cfg.rig.counts_per_mm();
         let lo = finite(cfg.travel_min_mm, "drive.travel_min_mm")?;
         let hi = finite(cfg.travel_max_mm, "drive.travel_max_mm")?;
@@ -295,26 +294,24 @@ impl Drive {
             accel_bits_per_um_s2_q32: (cpm / 1000.0 / (rate_hz * rate_hz)
                 * 72_057_594_037_927_936.0) as u64,
         };
-        let monitor = cfg.faults.build(&cfg.rig, rate_hz, vmax)?;
+        let monitor = cfg.faults.build(&ctx, vmax)?;
         let enc = encoder::Config {
             max_speed_mm_s: cfg.encoder_max_speed_mm_s,
-            rate_hz,
         };
-        let motor = enc.build::<u16>(&cfg.rig)?;
+        let motor = enc.build::<u16>(&ctx)?;
         let scale_per_tick = finite(cfg.encoder_max_speed_mm_s, "encoder.max_speed_mm_s")?
             * 1000.0
             * SCALE_COUNTS_PER_UM as f64
             / rate_hz;
         let scale = encoder::Coeffs::<u16>::from_max_delta_counts(scale_per_tick as u32 + 1)
             .map_err(|_| E::OutOfRange("encoder.max_speed_mm_s"))?;
-        let pid = pid::Config { rate_hz, ..cfg.pid }.build(&cfg.rig)?;
+        let pid = cfg.pid.build(&ctx)?;
         let start = trajectory::Config {
             velocity_mm_s: vmax,
             acceleration_mm_s2: amax,
             deceleration_mm_s2: amax,
-            rate_hz,
         };
-        let trajectory = Trajectory::new(start.build(&cfg.rig)?, 0);
+        let trajectory = Trajectory::new(start.build(&ctx)?, 0);
         let models = match cfg.model {
             Models::Params(p) => p.build(&cfg.rig)?,
             Models::Blob(b) => blob::decode_coeffs(b, &cfg.rig).map_err(|e| match e {

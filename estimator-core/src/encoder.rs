@@ -21,8 +21,7 @@
 
 use core::marker::PhantomData;
 
-use crate::rig::Rig;
-use crate::ConfigError;
+use crate::{BuildContext, ConfigError};
 
 mod sealed {
     pub trait Sealed {}
@@ -67,8 +66,6 @@ pub struct Config {
     /// (missed sample, counter glitch, encoder cable). Choose it well above the fastest move but
     /// well below half the counter range per tick.
     pub max_speed_mm_s: f64,
-    /// Sampling (control) rate.
-    pub rate_hz: f64,
 }
 
 impl Config {
@@ -77,23 +74,15 @@ impl Config {
     /// per tick, far below the 32767 a 16-bit counter can resolve.
     pub const PAPER_RIG: Config = Config {
         max_speed_mm_s: 1000.0,
-        rate_hz: 2000.0,
     };
 
-    /// Converts the limit into counts per tick (rounded up, so the configured speed itself is
-    /// accepted) for counter type `C`.
-    pub fn build<C: Counter>(&self, rig: &Rig) -> Result<Coeffs<C>, ConfigError> {
-        rig.validate()?;
-        if !self.rate_hz.is_finite() {
-            return Err(ConfigError::NotFinite("encoder.rate_hz"));
-        }
-        if !(100.0..=100_000.0).contains(&self.rate_hz) {
-            return Err(ConfigError::OutOfRange("encoder.rate_hz"));
-        }
+    /// Converts the limit into counts per sample of `ctx` (rounded up, so the configured speed
+    /// itself is accepted) for counter type `C`.
+    pub fn build<C: Counter>(&self, ctx: &BuildContext) -> Result<Coeffs<C>, ConfigError> {
         if !self.max_speed_mm_s.is_finite() {
             return Err(ConfigError::NotFinite("encoder.max_speed_mm_s"));
         }
-        let per_tick = self.max_speed_mm_s * rig.counts_per_mm() / self.rate_hz;
+        let per_tick = self.max_speed_mm_s * ctx.rig().counts_per_mm() / ctx.rate_hz();
         if !(per_tick > 0.0 && per_tick <= C::MAX_DELTA_COUNTS as f64) {
             return Err(ConfigError::OutOfRange("encoder.max_speed_mm_s"));
         }
@@ -420,7 +409,7 @@ mod tests {
 
     #[test]
     fn build_from_si() {
-        let rig = Rig::PAPER;
+        let rig = BuildContext::PAPER;
         let c: Coeffs<u16> = Config::PAPER_RIG.build(&rig).unwrap();
         // 1000 mm/s * 1867.89 counts/mm / 2000 Hz = 933.9 -> 934
         assert_eq!(c.max_delta_counts(), 934);
@@ -430,25 +419,17 @@ mod tests {
             Coeffs::<u32>::default()
         );
 
-        let bad = |max_speed_mm_s, rate_hz| Config {
-            max_speed_mm_s,
-            rate_hz,
-        };
+        let bad = |max_speed_mm_s| Config { max_speed_mm_s };
         let field = |cfg: Config| cfg.build::<u16>(&rig).unwrap_err().field();
-        assert_eq!(field(bad(f64::NAN, 2000.0)), "encoder.max_speed_mm_s");
-        assert_eq!(field(bad(0.0, 2000.0)), "encoder.max_speed_mm_s");
-        assert_eq!(field(bad(-1.0, 2000.0)), "encoder.max_speed_mm_s");
+        assert_eq!(field(bad(f64::NAN)), "encoder.max_speed_mm_s");
+        assert_eq!(field(bad(0.0)), "encoder.max_speed_mm_s");
+        assert_eq!(field(bad(-1.0)), "encoder.max_speed_mm_s");
         // 40 m/s at 2 kHz is 37358 counts per tick: more than a 16-bit counter can tell.
-        assert_eq!(field(bad(40_000.0, 2000.0)), "encoder.max_speed_mm_s");
-        assert!(bad(40_000.0, 2000.0).build::<u32>(&rig).is_ok());
-        assert_eq!(field(bad(1000.0, f64::INFINITY)), "encoder.rate_hz");
-        assert_eq!(field(bad(1000.0, 0.0)), "encoder.rate_hz");
-        let mut broken = rig;
-        broken.gear_ratio = f64::NAN;
-        assert_eq!(
-            Config::PAPER_RIG.build::<u16>(&broken).unwrap_err().field(),
-            "rig.gear_ratio"
-        );
+        assert_eq!(field(bad(40_000.0)), "encoder.max_speed_mm_s");
+        assert!(bad(40_000.0).build::<u32>(&rig).is_ok());
+        // The same speed at 20 kHz is 3736 counts per sample: within 16 bits.
+        let fast = BuildContext::new(crate::rig::Rig::PAPER, 20_000.0).unwrap();
+        assert!(bad(40_000.0).build::<u16>(&fast).is_ok());
         assert!(Coeffs::<u16>::from_max_delta_counts(0).is_err());
         assert!(Coeffs::<u16>::from_max_delta_counts(32768).is_err());
         assert!(Coeffs::<u32>::from_max_delta_counts(1 << 31).is_err());

@@ -12,8 +12,7 @@
 
 use fixed::types::{I16F16, I40F24};
 
-use crate::rig::Rig;
-use crate::ConfigError;
+use crate::{BuildContext, ConfigError};
 
 /// Latched fault bits: any set bit forces zero current and a low amplifier enable until
 /// `Command::ClearFaults` and `Command::Enable`.
@@ -186,13 +185,9 @@ impl Config {
 
     /// Converts the thresholds into per-tick integers for a drive whose maximum velocity is
     /// `max_velocity_mm_s`, ticking at `rate_hz`.
-    pub fn build(
-        &self,
-        rig: &Rig,
-        rate_hz: f64,
-        max_velocity_mm_s: f64,
-    ) -> Result<Coeffs, ConfigError> {
+    pub fn build(&self, ctx: &BuildContext, max_velocity_mm_s: f64) -> Result<Coeffs, ConfigError> {
         use ConfigError as E;
+        let (rig, rate_hz) = (ctx.rig(), ctx.rate_hz());
         let cpm = rig.counts_per_mm();
         let fin = |v: f64, f: &'static str| {
             if v.is_finite() {
@@ -500,7 +495,7 @@ mod tests {
 
     #[test]
     fn build_refuses_bad_values_by_name() {
-        let rig = Rig::PAPER;
+        let ctx = BuildContext::PAPER;
         let bad = [
             (
                 Config {
@@ -539,8 +534,8 @@ mod tests {
             ),
         ];
         for (cfg, field) in bad {
-            assert_eq!(cfg.build(&rig, 2000.0, 250.0).unwrap_err().field(), field);
+            assert_eq!(cfg.build(&ctx, 250.0).unwrap_err().field(), field);
         }
-        assert!(Config::PAPER_RIG.build(&rig, 2000.0, 250.0).is_ok());
+        assert!(Config::PAPER_RIG.build(&ctx, 250.0).is_ok());
     }
 }

@@ -33,6 +33,46 @@ pub mod reference;
 
 pub use fixed;
 
+/// What every per-tick configuration is built for: the drive train's geometry and the control
+/// rate, given once (as quartiq idsp passes the sample period to its builders) rather than a
+/// `rate_hz` in each sub-configuration. Only [`BuildContext::new`] makes one, so a builder can
+/// rely on a valid rig and rate.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BuildContext {
+    rig: rig::Rig,
+    rate_hz: f64,
+}
+
+impl BuildContext {
+    /// The paper's rig at 2 kHz.
+    pub const PAPER: BuildContext = BuildContext {
+        rig: rig::Rig::PAPER,
+        rate_hz: 2000.0,
+    };
+
+    /// Checks the geometry and the rate (`100..=100_000` Hz, named `drive.rate_hz`).
+    pub fn new(rig: rig::Rig, rate_hz: f64) -> Result<BuildContext, ConfigError> {
+        rig.validate()?;
+        if !rate_hz.is_finite() {
+            return Err(ConfigError::NotFinite("drive.rate_hz"));
+        }
+        if !(100.0..=100_000.0).contains(&rate_hz) {
+            return Err(ConfigError::OutOfRange("drive.rate_hz"));
+        }
+        Ok(BuildContext { rig, rate_hz })
+    }
+
+    /// The drive train's geometry.
+    pub fn rig(&self) -> &rig::Rig {
+        &self.rig
+    }
+
+    /// Control ticks per second.
+    pub fn rate_hz(&self) -> f64 {
+        self.rate_hz
+    }
+}
+
 /// A configuration value that `build` refused, naming the field.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ConfigError {
@@ -71,3 +111,30 @@ impl core::fmt::Display for ConfigError {
 
 #[cfg(feature = "std")]
 impl std::error::Error for ConfigError {}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_build_context_refuses_a_bad_rate_or_rig_by_name() {
+        let paper = rig::Rig::PAPER;
+        assert_eq!(BuildContext::new(paper, 2000.0), Ok(BuildContext::PAPER));
+        for rate in [f64::NAN, f64::INFINITY, 0.0, 50.0, 200_000.0] {
+            let e = BuildContext::new(paper, rate).unwrap_err();
+            assert_eq!(e.field(), "drive.rate_hz", "{rate}");
+        }
+        let mut broken = paper;
+        broken.gear_ratio = f64::NAN;
+        assert_eq!(
+            BuildContext::new(broken, 2000.0).unwrap_err().field(),
+            "rig.gear_ratio"
+        );
+        let mut broken = paper;
+        broken.pulley_teeth = 0;
+        assert_eq!(
+            BuildContext::new(broken, 2000.0).unwrap_err().field(),
+            "rig.pulley_teeth"
+        );
+    }
+}

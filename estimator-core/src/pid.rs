@@ -39,9 +39,10 @@
 
 use fixed::types::{I16F16, I1F31, I24F8, I8F24};
 
+#[cfg(test)]
 use crate::rig::Rig;
 use crate::trajectory::Setpoint;
-use crate::ConfigError;
+use crate::{BuildContext, ConfigError};
 
 /// Gains and limits in SI units, converted by [`Config::build`]. All gains are `>= 0`; a zero
 /// gain switches its term off.
@@ -61,8 +62,6 @@ pub struct Config {
     pub kff_acc_a_s2_per_mm: f64,
     /// Output limit, amperes (symmetric).
     pub max_current_a: f64,
-    /// Control rate.
-    pub rate_hz: f64,
 }
 
 impl Config {
@@ -89,20 +88,12 @@ impl Config {
         kff_vel_a_s_per_mm: 0.12,
         kff_acc_a_s2_per_mm: 0.00092,
         max_current_a: 8.0,
-        rate_hz: 2000.0,
     };
 
-    /// Converts the SI gains into per-tick, per-count fixed-point coefficients.
-    pub fn build(&self, rig: &Rig) -> Result<Coeffs, ConfigError> {
-        rig.validate()?;
-        let rate = self.rate_hz;
-        if !rate.is_finite() {
-            return Err(ConfigError::NotFinite("pid.rate_hz"));
-        }
-        if !(100.0..=100_000.0).contains(&rate) {
-            return Err(ConfigError::OutOfRange("pid.rate_hz"));
-        }
-        let counts_per_mm = rig.counts_per_mm();
+    /// Converts the SI gains into per-tick, per-count fixed-point coefficients for `ctx`.
+    pub fn build(&self, ctx: &BuildContext) -> Result<Coeffs, ConfigError> {
+        let rate = ctx.rate_hz();
+        let counts_per_mm = ctx.rig().counts_per_mm();
         let kp_a_per_count = gain::<I8F24>(
             self.kp_a_per_mm,
             1.0 / counts_per_mm,
@@ -214,7 +205,7 @@ pub struct Coeffs {
 
 impl Default for Coeffs {
     fn default() -> Self {
-        match Config::PAPER_RIG.build(&Rig::PAPER) {
+        match Config::PAPER_RIG.build(&BuildContext::PAPER) {
             Ok(c) => c,
             // Unreachable (the defaults are tested); a loop that outputs nothing, not a panic.
             Err(_) => Self {
@@ -430,7 +421,7 @@ mod tests {
             kff_acc_a_s2_per_mm: 0.0,
             ..Config::PAPER_RIG
         }
-        .build(&Rig::PAPER)
+        .build(&BuildContext::PAPER)
         .unwrap()
     }
 
@@ -440,7 +431,7 @@ mod tests {
 
     #[test]
     fn defaults_build_and_convert() {
-        let c = Config::PAPER_RIG.build(&Rig::PAPER).unwrap();
+        let c = Config::PAPER_RIG.build(&BuildContext::PAPER).unwrap();
         assert_eq!(c, Coeffs::default());
         let cpm = Rig::PAPER.counts_per_mm();
         let close = |x: f64, y: f64| (x - y).abs() <= 1e-4 * y.abs();
@@ -462,7 +453,7 @@ mod tests {
     #[test]
     fn config_errors_name_the_field() {
         let ok = Config::PAPER_RIG;
-        let field = |c: Config| c.build(&Rig::PAPER).unwrap_err().field();
+        let field = |c: Config| c.build(&BuildContext::PAPER).unwrap_err().field();
         assert_eq!(
             field(Config {
                 kp_a_per_mm: f64::NAN,
@@ -561,27 +552,13 @@ mod tests {
             }),
             "pid.max_current_a"
         );
-        assert_eq!(
-            field(Config {
-                rate_hz: 50.0,
-                ..ok
-            }),
-            "pid.rate_hz"
-        );
-        assert_eq!(
-            field(Config {
-                rate_hz: f64::NAN,
-                ..ok
-            }),
-            "pid.rate_hz"
-        );
         // Zero switches a term off.
         assert!(Config {
             ki_a_per_mm_s: 0.0,
             kd_a_s_per_mm: 0.0,
             ..ok
         }
-        .build(&Rig::PAPER)
+        .build(&BuildContext::PAPER)
         .is_ok());
     }
 
@@ -691,7 +668,7 @@ mod tests {
             kd_a_s_per_mm: 0.0,
             ..Config::PAPER_RIG
         }
-        .build(&Rig::PAPER)
+        .build(&BuildContext::PAPER)
         .unwrap();
         let mut s = State::new();
         let cpm = Rig::PAPER.counts_per_mm();
@@ -718,11 +695,10 @@ mod tests {
             kff_acc_a_s2_per_mm: 0.0,
             max_current_a: 127.0,
             derivative_cutoff_hz: 1000.0,
-            rate_hz: rate,
         };
         // A few LSBs below each bound.
         let top = |x: f64| x * (1.0 - 1e-5);
-        let build = |c: Config| c.build(&Rig::PAPER).unwrap();
+        let build = |c: Config| c.build(&BuildContext::PAPER).unwrap();
         let big = I40F24::from_num(2_000_000_000);
         let v_max = I40F24::from_num(2048);
         let a_max = I40F24::from_num(63.999);
@@ -797,7 +773,7 @@ mod tests {
             ..zero
         };
         assert_eq!(
-            at_bound.build(&Rig::PAPER).unwrap_err().field(),
+            at_bound.build(&BuildContext::PAPER).unwrap_err().field(),
             "pid.kd_a_s_per_mm"
         );
     }

@@ -4,7 +4,7 @@
 //! counts/tick and counts/tick² with 24 fractional bits. Sharing the grid makes `velocity += dv`
 //! and `position += velocity` exact integer additions, so the setpoint lands on the target count
 //! with no residual and no drift, however long the move. 24 bits resolve 0.013 mm/s²
-//! of acceleration at 20 kHz on [`Rig::PAPER`]. The position never passes its target, so it stays
+//! of acceleration at 20 kHz on [`crate::rig::Rig::PAPER`]. The position never passes its target, so it stays
 //! between the start and the targets: within `i32` counts, and differences never overflow.
 //!
 //! # Algorithm
@@ -34,8 +34,9 @@
 
 use fixed::types::I40F24;
 
+#[cfg(test)]
 use crate::rig::Rig;
-use crate::ConfigError;
+use crate::{BuildContext, ConfigError};
 
 /// Fractional bits of the counts grid shared by position, velocity and acceleration.
 const FRAC_BITS: u32 = 24;
@@ -59,8 +60,6 @@ pub struct Config {
     pub acceleration_mm_s2: f64,
     /// Deceleration limit while slowing down (a positive number).
     pub deceleration_mm_s2: f64,
-    /// Control rate: one profile step per tick.
-    pub rate_hz: f64,
 }
 
 impl Config {
@@ -71,21 +70,13 @@ impl Config {
         velocity_mm_s: 100.0,
         acceleration_mm_s2: 2000.0,
         deceleration_mm_s2: 2000.0,
-        rate_hz: 2000.0,
     };
 
-    /// Converts to per-tick limits in counts, rounding every limit down so the profile never
-    /// exceeds what was asked for.
-    pub fn build(&self, rig: &Rig) -> Result<Coeffs, ConfigError> {
-        rig.validate()?;
-        let rate_hz = self.rate_hz;
-        if !rate_hz.is_finite() {
-            return Err(ConfigError::NotFinite("trajectory.rate_hz"));
-        }
-        if !(100.0..=100_000.0).contains(&rate_hz) {
-            return Err(ConfigError::OutOfRange("trajectory.rate_hz"));
-        }
-        let counts_per_mm = rig.counts_per_mm();
+    /// Converts to per-tick limits in counts (one profile step per control tick of `ctx`),
+    /// rounding every limit down so the profile never exceeds what was asked for.
+    pub fn build(&self, ctx: &BuildContext) -> Result<Coeffs, ConfigError> {
+        let rate_hz = ctx.rate_hz();
+        let counts_per_mm = ctx.rig().counts_per_mm();
         let velocity = grid_floor(
             self.velocity_mm_s,
             counts_per_mm / rate_hz,
@@ -234,7 +225,7 @@ impl Coeffs {
 
 impl Default for Coeffs {
     fn default() -> Self {
-        match Config::PAPER_RIG.build(&Rig::PAPER) {
+        match Config::PAPER_RIG.build(&BuildContext::PAPER) {
             Ok(c) => c,
             // Unreachable: the default configuration is valid (tested). A slow fallback rather
             // than a panic path.
@@ -713,7 +704,7 @@ mod tests {
 
     #[test]
     fn paper_rig_defaults() {
-        let c = Config::PAPER_RIG.build(&Rig::PAPER).unwrap();
+        let c = Config::PAPER_RIG.build(&BuildContext::PAPER).unwrap();
         assert_eq!(c, Coeffs::default());
         // 100 mm/s at 2 kHz: 93.39 counts/tick; 2000 mm/s²: 0.934 counts/tick².
         let v: f64 = c.velocity_counts_per_tick().to_num();
@@ -728,7 +719,7 @@ mod tests {
 
     #[test]
     fn config_errors_name_the_field() {
-        let rig = Rig::PAPER;
+        let rig = BuildContext::PAPER;
         let ok = Config::PAPER_RIG;
         let field = |c: Config| c.build(&rig).unwrap_err().field();
         assert_eq!(
@@ -795,17 +786,6 @@ mod tests {
             }),
             "trajectory.deceleration_mm_s2"
         );
-        assert_eq!(
-            field(Config {
-                rate_hz: f64::NAN,
-                ..ok
-            }),
-            "trajectory.rate_hz"
-        );
-        assert_eq!(field(Config { rate_hz: 1.0, ..ok }), "trajectory.rate_hz");
-        let mut bad_rig = rig;
-        bad_rig.pulley_teeth = 0;
-        assert_eq!(ok.build(&bad_rig).unwrap_err().field(), "rig.pulley_teeth");
         assert!(Coeffs::new(I40F24::ZERO, I40F24::ONE, I40F24::ONE).is_err());
         assert!(Coeffs::new(I40F24::ONE, I40F24::from_num(64), I40F24::ONE).is_err());
         assert!(Coeffs::new(I40F24::from_num(2049), I40F24::ONE, I40F24::ONE).is_err());

@@ -15,7 +15,11 @@ fn cpm() -> f64 {
 }
 
 fn coeffs(cfg: fault::Config) -> fault::Coeffs {
-    cfg.build(&Rig::PAPER, RATE_HZ, VMAX_MM_S).unwrap()
+    cfg.build(
+        &estimator_core::BuildContext::new(Rig::PAPER, RATE_HZ).unwrap(),
+        VMAX_MM_S,
+    )
+    .unwrap()
 }
 
 /// Every timed detector off: each test switches on the one it checks.

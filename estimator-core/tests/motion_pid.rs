@@ -5,6 +5,7 @@ use estimator_core::fixed::types::{I16F16, I40F24};
 use estimator_core::pid::{Coeffs, Config, Output, State};
 use estimator_core::rig::Rig;
 use estimator_core::trajectory::{self, Setpoint, Trajectory};
+use estimator_core::BuildContext;
 use proptest::prelude::*;
 
 /// The carriage as a double integrator with friction, integrated in f64 at 10 sub-steps per tick:
@@ -59,7 +60,7 @@ impl Plant {
 }
 
 fn paper_pid() -> Coeffs {
-    Config::PAPER_RIG.build(&Rig::PAPER).unwrap()
+    Config::PAPER_RIG.build(&BuildContext::PAPER).unwrap()
 }
 
 #[test]
@@ -99,9 +100,10 @@ fn tracks_a_trapezoid_with_feed_forward() {
     let c = paper_pid();
     let mut s = State::new();
     let mut plant = Plant::new(2000.0);
-    let enc_c: encoder::Coeffs<u16> = encoder::Config::PAPER_RIG.build(&rig).unwrap();
+    let ctx = BuildContext::PAPER;
+    let enc_c: encoder::Coeffs<u16> = encoder::Config::PAPER_RIG.build(&ctx).unwrap();
     let mut enc = encoder::State::new(0);
-    let traj_c = trajectory::Config::PAPER_RIG.build(&rig).unwrap();
+    let traj_c = trajectory::Config::PAPER_RIG.build(&ctx).unwrap();
     let mut traj = Trajectory::new(traj_c, 0);
     // 100 mm and back to 20 mm, reversing mid-way; the 16-bit counter wraps three times.
     let target_a = (100.0 * rig.counts_per_mm()) as i32;
@@ -144,10 +146,14 @@ fn same_inputs_same_outputs_bit_for_bit() {
     // only, so the hash is the same on the host and on the Cortex-M4; it changes only if the
     // per-tick arithmetic changes (then update it deliberately).
     fn run() -> (u64, Output) {
-        let rig = Rig::PAPER;
         let c = paper_pid();
         let mut s = State::new();
-        let mut traj = Trajectory::new(trajectory::Config::PAPER_RIG.build(&rig).unwrap(), 0);
+        let mut traj = Trajectory::new(
+            trajectory::Config::PAPER_RIG
+                .build(&BuildContext::PAPER)
+                .unwrap(),
+            0,
+        );
         let mut hash = 0xcbf2_9ce4_8422_2325u64;
         let mut eat = |x: u64| {
             for b in x.to_le_bytes() {
@@ -220,9 +226,8 @@ fn any_config() -> impl Strategy<Value = Coeffs> {
                     kff_vel_a_s_per_mm: spread(kv, 15.9 * cpm / rate_hz),
                     kff_acc_a_s2_per_mm: spread(ka, 511.0 * cpm / (rate_hz * rate_hz)),
                     max_current_a,
-                    rate_hz,
                 }
-                .build(&Rig::PAPER)
+                .build(&BuildContext::new(Rig::PAPER, rate_hz).ok()?)
                 .ok()
             },
         )

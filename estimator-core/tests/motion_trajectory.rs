@@ -3,6 +3,7 @@
 use estimator_core::fixed::types::I40F24;
 use estimator_core::rig::Rig;
 use estimator_core::trajectory::{Coeffs, Config, Setpoint, Trajectory};
+use estimator_core::BuildContext;
 use proptest::prelude::*;
 
 const ONE: f64 = (1u64 << 24) as f64;
@@ -99,13 +100,15 @@ fn si_coeffs() -> impl Strategy<Value = Coeffs> {
         1.0f64..4.0,
         prop::sample::select(vec![500.0, 1000.0, 2000.0, 5000.0, 10_000.0, 20_000.0]),
     )
-        .prop_map(|(v, a, d, rate_hz)| Config {
-            velocity_mm_s: 10f64.powf(v),
-            acceleration_mm_s2: 10f64.powf(a),
-            deceleration_mm_s2: 10f64.powf(d),
-            rate_hz,
+        .prop_filter_map("representable", |(v, a, d, rate_hz)| {
+            Config {
+                velocity_mm_s: 10f64.powf(v),
+                acceleration_mm_s2: 10f64.powf(a),
+                deceleration_mm_s2: 10f64.powf(d),
+            }
+            .build(&BuildContext::new(Rig::PAPER, rate_hz).ok()?)
+            .ok()
         })
-        .prop_filter_map("representable", |c| c.build(&Rig::PAPER).ok())
 }
 
 /// Raw limits over the whole representable range, including lopsided acceleration/deceleration.
@@ -273,9 +276,8 @@ fn fig18_like_abrupt_reversals() {
         velocity_mm_s: 50.0,
         acceleration_mm_s2: 500.0,
         deceleration_mm_s2: 500.0,
-        rate_hz: 2000.0,
     }
-    .build(&rig)
+    .build(&BuildContext::PAPER)
     .unwrap();
     let l = Limits::of(&c);
     let mm = |x: f64| (x * rig.counts_per_mm()).round() as i32;
