@@ -280,10 +280,20 @@ impl Drive {
         if !(amax > 0.0 && amax * 1000.0 <= u32::MAX as f64) {
             return Err(E::OutOfRange("drive.max_accel_mm_s2"));
         }
+        let counts_per_um_q32 = (cpm / 1000.0 * 4_294_967_296.0) as i64;
+        // The travel's ends through the very conversion a move's target takes (whole um, then
+        // counts rounded to nearest), so that a move to either end is accepted.
+        let end_counts = |mm: f64, field| -> Result<i32, ConfigError> {
+            let um = to_i32(mm * 1000.0 + if mm < 0.0 { -0.5 } else { 0.5 }, field)?;
+            let q = (um as i64)
+                .saturating_mul(counts_per_um_q32)
+                .saturating_add(1 << 31);
+            Ok((q >> 32).clamp(i32::MIN as i64, i32::MAX as i64) as i32)
+        };
         let limits = Limits {
-            counts_per_um_q32: (cpm / 1000.0 * 4_294_967_296.0) as i64,
-            target_min_counts: to_i32(lo * cpm, "drive.travel_min_mm")?,
-            target_max_counts: to_i32(hi * cpm, "drive.travel_max_mm")?,
+            counts_per_um_q32,
+            target_min_counts: end_counts(lo, "drive.travel_min_mm")?,
+            target_max_counts: end_counts(hi, "drive.travel_max_mm")?,
             fault_min_counts: to_i32((lo - margin) * cpm, "drive.travel_margin_mm")?,
             fault_max_counts: to_i32((hi + margin) * cpm, "drive.travel_margin_mm")?,
             max_velocity_um_s: (vmax * 1000.0) as u32,
@@ -491,6 +501,40 @@ impl Drive {
         (q >> shift).clamp(i32::MIN as i64, i32::MAX as i64) as i32
     }
 
+    /// The range checks of a move (travel, velocity, acceleration), as a command makes them, for
+    /// a host that checks a plan before sending it. A carriage move is also refused when the
+    /// motor would have to stand beyond the travel's fault limits, which depends on the model's
+    /// state at the time.
+    pub fn check_move(
+        &self,
+        target_um: i32,
+        velocity_um_s: u32,
+        accel_um_s2: u32,
+    ) -> Result<(), CommandError> {
+        self.move_target_counts(target_um, velocity_um_s, accel_um_s2)
+            .map(|_| ())
+    }
+
+    /// [`Drive::check_move`]; the target in counts.
+    fn move_target_counts(
+        &self,
+        target_um: i32,
+        velocity_um_s: u32,
+        accel_um_s2: u32,
+    ) -> Result<i32, CommandError> {
+        let target = self.um_to_counts(target_um);
+        if target < self.limits.target_min_counts || target > self.limits.target_max_counts {
+            return Err(CommandError::TargetOutOfTravel);
+        }
+        if velocity_um_s == 0 || velocity_um_s > self.limits.max_velocity_um_s {
+            return Err(CommandError::VelocityOutOfRange);
+        }
+        if accel_um_s2 == 0 || accel_um_s2 > self.limits.max_accel_um_s2 {
+            return Err(CommandError::AccelOutOfRange);
+        }
+        Ok(target)
+    }
+
     /// Checks and starts a move; `carriage`: `target_um` is where the carriage must arrive. All
     /// work happens on a copy of the profile, committed only when every check passed.
     fn start_move(
@@ -506,16 +550,7 @@ impl Drive {
         if !self.homed {
             return Err(CommandError::NotHomed);
         }
-        let target = self.um_to_counts(target_um);
-        if target < self.limits.target_min_counts || target > self.limits.target_max_counts {
-            return Err(CommandError::TargetOutOfTravel);
-        }
-        if velocity_um_s == 0 || velocity_um_s > self.limits.max_velocity_um_s {
-            return Err(CommandError::VelocityOutOfRange);
-        }
-        if accel_um_s2 == 0 || accel_um_s2 > self.limits.max_accel_um_s2 {
-            return Err(CommandError::AccelOutOfRange);
-        }
+        let target = self.move_target_counts(target_um, velocity_um_s, accel_um_s2)?;
         let mut profile = self.trajectory;
         if (velocity_um_s, accel_um_s2) != self.move_limits {
             // New limits, also in mid-move (feed override, blending): integers only, so nothing

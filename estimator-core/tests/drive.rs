@@ -482,3 +482,46 @@ fn carriage_moves_put_the_estimated_carriage_on_target() {
         );
     }
 }
+
+/// A move to either end of the configured travel is accepted (the ends go through the same
+/// um-to-counts rounding as a target); one micrometre past either is refused; `check_move`
+/// answers as the command does, without moving anything.
+#[test]
+fn moves_to_the_travel_ends_are_accepted_and_one_um_past_refused() {
+    let (mut d, _m) = homed(30.0);
+    d.command(Command::Enable).unwrap();
+    let cfg = DriveConfig::paper_rig();
+    let (lo_um, hi_um) = (
+        (cfg.travel_min_mm * 1000.0).round() as i32,
+        (cfg.travel_max_mm * 1000.0).round() as i32,
+    );
+    let v = (cfg.max_velocity_mm_s * 1000.0) as u32;
+    let a = (cfg.max_accel_mm_s2 * 1000.0) as u32;
+    for um in [lo_um, hi_um] {
+        assert_eq!(d.check_move(um, v, a), Ok(()), "{um} um");
+    }
+    // The check must not have moved anything: the end itself is also accepted as a command.
+    assert_eq!(
+        d.command(Command::MoveMotorTo {
+            target_um: hi_um,
+            velocity_um_s: v,
+            accel_um_s2: a
+        }),
+        Ok(())
+    );
+    let refused = |r| r == Err(CommandError::TargetOutOfTravel);
+    assert!(refused(d.check_move(hi_um + 1, v, a)));
+    assert!(refused(d.check_move(lo_um - 1, v, a)));
+    assert_eq!(
+        d.check_move(hi_um, v + 1, a),
+        Err(CommandError::VelocityOutOfRange)
+    );
+    assert_eq!(
+        d.check_move(hi_um, v, a + 1),
+        Err(CommandError::AccelOutOfRange)
+    );
+    assert_eq!(
+        d.check_move(hi_um, 0, a),
+        Err(CommandError::VelocityOutOfRange)
+    );
+}

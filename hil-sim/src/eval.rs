@@ -115,8 +115,14 @@ pub fn record_calibration(
         .collect::<Result<Vec<_>, _>>()?;
     // All checked before the first is recorded: a plant they do not fit fails at once.
     for s in &scenarios {
-        s.check_against(&DriveConfig::paper_rig(), plant)
-            .map_err(|e| format!("calibration scenario {e}"))?;
+        s.check_against(
+            &DriveConfig {
+                rig: plant.rig(),
+                ..DriveConfig::paper_rig()
+            },
+            plant,
+        )
+        .map_err(|e| format!("calibration scenario {e}"))?;
     }
     for (k, (name, s)) in CALIBRATION_SCENARIOS.iter().zip(&scenarios).enumerate() {
         let label = format!("record {name}");

@@ -246,7 +246,11 @@ fn scenario_and_plant(
 ) -> Result<(Scenario, PlantParams), String> {
     let scenario = Scenario::load(scenario)?;
     let plant = plant_params(plant)?;
-    scenario.check_against(&estimator_core::drive::DriveConfig::paper_rig(), &plant)?;
+    let drive = estimator_core::drive::DriveConfig {
+        rig: plant.rig(),
+        ..estimator_core::drive::DriveConfig::paper_rig()
+    };
+    scenario.check_against(&drive, &plant)?;
     Ok((scenario, plant))
 }
 

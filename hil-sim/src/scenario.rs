@@ -130,7 +130,6 @@ impl Scenario {
             plant.carriage.travel_max_m * 1e3,
         );
         let in_plant = |v: f64| (plant_mm.0..=plant_mm.1).contains(&v);
-        let in_drive = |v: f64| (drive.travel_min_mm..=drive.travel_max_mm).contains(&v);
         let plant_name = plant.name();
         if !in_plant(self.start_mm) {
             return Err(format!(
@@ -141,15 +140,39 @@ impl Scenario {
                 plant_mm.1
             ));
         }
+        // The drive's own range checks, on the integers the run will send.
+        let checker = estimator_core::drive::Drive::new(drive)
+            .map_err(|e| format!("drive configuration: {e}"))?;
         for (i, m) in self.moves.iter().enumerate() {
             let n = i + 1;
-            if !in_drive(m.to_mm) {
-                return Err(format!(
-                    "{src}: move {n}: to_mm = {} mm is outside the drive's travel {}..={} mm",
-                    show(m.to_mm),
-                    drive.travel_min_mm,
-                    drive.travel_max_mm
-                ));
+            let (target_um, velocity_um_s, accel_um_s2) = crate::run::move_units(m);
+            use estimator_core::drive::CommandError as E;
+            match checker.check_move(target_um, velocity_um_s, accel_um_s2) {
+                Ok(()) => {}
+                Err(E::TargetOutOfTravel) => {
+                    return Err(format!(
+                        "{src}: move {n}: to_mm = {} mm is outside the drive's travel {}..={} mm",
+                        show(m.to_mm),
+                        drive.travel_min_mm,
+                        drive.travel_max_mm
+                    ))
+                }
+                Err(E::VelocityOutOfRange) => {
+                    return Err(format!(
+                        "{src}: move {n}: velocity_mm_s = {} must be in 0.001..={} mm/s (the \
+                         drive's limit; it takes whole um/s)",
+                        show(m.velocity_mm_s),
+                        drive.max_velocity_mm_s
+                    ))
+                }
+                Err(_) => {
+                    return Err(format!(
+                        "{src}: move {n}: accel_mm_s2 = {} must be in 0.001..={} mm/s^2 (the \
+                         drive's limit; it takes whole um/s^2)",
+                        show(m.accel_mm_s2),
+                        drive.max_accel_mm_s2
+                    ))
+                }
             }
             if !in_plant(m.to_mm) {
                 return Err(format!(
@@ -158,25 +181,6 @@ impl Scenario {
                     show(m.to_mm),
                     plant_mm.0,
                     plant_mm.1
-                ));
-            }
-            // The drive takes whole um/s and um/s^2.
-            let v_um_s = (m.velocity_mm_s * 1000.0).round();
-            if v_um_s < 1.0 || m.velocity_mm_s > drive.max_velocity_mm_s {
-                return Err(format!(
-                    "{src}: move {n}: velocity_mm_s = {} must be in 0.001..={} mm/s (the drive's \
-                     limit; it takes whole um/s)",
-                    show(m.velocity_mm_s),
-                    drive.max_velocity_mm_s
-                ));
-            }
-            let a_um_s2 = (m.accel_mm_s2 * 1000.0).round();
-            if a_um_s2 < 1.0 || m.accel_mm_s2 > drive.max_accel_mm_s2 {
-                return Err(format!(
-                    "{src}: move {n}: accel_mm_s2 = {} must be in 0.001..={} mm/s^2 (the drive's \
-                     limit; it takes whole um/s^2)",
-                    show(m.accel_mm_s2),
-                    drive.max_accel_mm_s2
                 ));
             }
         }

@@ -201,6 +201,27 @@ fn the_reported_inputs_are_refused_by_file_move_and_field() {
         }
     }
 
+    // The drive's own limits are accepted exactly as the drive takes them: the travel's ends,
+    // and a speed that rounds to the limit in whole um/s.
+    let ends = scenario_with(
+        &dir,
+        "ends.toml",
+        "name = \"ends\"\nstart_mm = 100.0\n[[move]]\nto_mm = 300.0\nvelocity_mm_s = 250.0004\n\
+         accel_mm_s2 = 5000.0\n[[move]]\nto_mm = 0.0\nvelocity_mm_s = 250.0\naccel_mm_s2 = 5000.0\n",
+    );
+    let out = run(&[
+        "run",
+        "--scenario",
+        &ends,
+        "--calibration",
+        &cal,
+        "--out",
+        "/dev/null",
+    ]);
+    if out.code != Some(0) {
+        failures.push(format!("ends.toml: exit {:?}: {}", out.code, out.stderr));
+    }
+
     // A plant whose travel starts above the scenario's start, and above the calibration
     // scenarios' (20 mm).
     let high = dir.join("high_travel.toml");

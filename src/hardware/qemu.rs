@@ -261,7 +261,10 @@ fn open_pipe() -> Option<(OwnedFd, OwnedFd)> {
     let line = sys_get_cmdline_uninit(&mut line).ok()?;
     let mut words = line.split(|&b| b == b' ').filter(|w| !w.is_empty());
     words.find(|w| *w == b"--pipe")?;
-    let (input, output) = (words.next()?, words.next()?);
+    let (Some(input), Some(output)) = (words.next(), words.next()) else {
+        defmt::error!("--pipe needs two paths: exit");
+        halt(EXIT_HOST_GONE)
+    };
     let open = |path: &[u8], mode| {
         let mut z = [0u8; 128];
         let n = path.len().min(z.len() - 1);
@@ -274,9 +277,10 @@ fn open_pipe() -> Option<(OwnedFd, OwnedFd)> {
         open(output, OpenMode::WRONLY_TRUNC_BINARY),
     ) {
         (Some(i), Some(o)) => Some((i, o)),
+        // The host waits on the pipe, not on USART2: say why and end at once.
         _ => {
-            defmt::error!("--pipe given but its FIFOs cannot be opened: link on USART2");
-            None
+            defmt::error!("--pipe given but its FIFOs cannot be opened: exit");
+            halt(EXIT_HOST_GONE)
         }
     }
 }

@@ -252,6 +252,17 @@ impl PilController {
                         dir.display()
                     )));
                 }
+                // The firmware reads its command line (`belt-drive --pipe IN OUT`) into 256
+                // bytes and each path into 128.
+                let path_len = dir.join("from-firmware").as_os_str().len();
+                if path_len > 110 {
+                    return Err(link_err(format!(
+                        "the temporary directory {} is too long for the PIL pipe's paths on \
+                         QEMU's semihosting command line ({path_len} of at most 110 bytes): set \
+                         TMPDIR to a shorter path",
+                        std::env::temp_dir().display()
+                    )));
+                }
                 let _ = std::fs::remove_dir_all(&dir);
                 std::fs::create_dir(&dir)
                     .map_err(|e| link_err(format!("{}: {e}", dir.display())))?;
