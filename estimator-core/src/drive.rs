@@ -247,6 +247,17 @@ fn finite(v: f64, field: &'static str) -> Result<f64, ConfigError> {
 }
 
 /// `v` (already finite) as `i32`, or the named range error.
+/// Micrometres with `frac_bits` fractional bits to counts at `counts_per_um_q32` (Q32.32),
+/// rounded to nearest, saturating: |um| * 2^33 can exceed i64, and a target out of range is then
+/// refused by its range check.
+fn um_to_counts_q32(um: i32, frac_bits: u32, counts_per_um_q32: i64) -> i32 {
+    let shift = 32 + frac_bits;
+    let q = (um as i64)
+        .saturating_mul(counts_per_um_q32)
+        .saturating_add(1 << (shift - 1));
+    (q >> shift).clamp(i32::MIN as i64, i32::MAX as i64) as i32
+}
+
 fn to_i32(v: f64, field: &'static str) -> Result<i32, ConfigError> {
     if v >= i32::MIN as f64 && v <= i32::MAX as f64 {
         Ok(v as i32)
@@ -285,10 +296,7 @@ impl Drive {
         // counts rounded to nearest), so that a move to either end is accepted.
         let end_counts = |mm: f64, field| -> Result<i32, ConfigError> {
             let um = to_i32(mm * 1000.0 + if mm < 0.0 { -0.5 } else { 0.5 }, field)?;
-            let q = (um as i64)
-                .saturating_mul(counts_per_um_q32)
-                .saturating_add(1 << 31);
-            Ok((q >> 32).clamp(i32::MIN as i64, i32::MAX as i64) as i32)
+            Ok(um_to_counts_q32(um, 0, counts_per_um_q32))
         };
         let limits = Limits {
             counts_per_um_q32,
@@ -494,11 +502,7 @@ impl Drive {
     /// Micrometres with `frac_bits` fractional bits to counts, rounded to nearest, saturating:
     /// |um| * 2^33 can exceed i64, and a target out of range is then refused by its range check.
     fn fixed_um_to_counts(&self, um: i32, frac_bits: u32) -> i32 {
-        let shift = 32 + frac_bits;
-        let q = (um as i64)
-            .saturating_mul(self.limits.counts_per_um_q32)
-            .saturating_add(1 << (shift - 1));
-        (q >> shift).clamp(i32::MIN as i64, i32::MAX as i64) as i32
+        um_to_counts_q32(um, frac_bits, self.limits.counts_per_um_q32)
     }
 
     /// The range checks of a move (travel, velocity, acceleration), as a command makes them, for

@@ -19,6 +19,21 @@ pub struct Rig {
     pub pulley_teeth: u32,
 }
 
+/// `2000 encoder lines, gear 23.7222:1, 20-tooth pulley, 5.08 mm pitch (1867.9 counts/mm)`.
+impl core::fmt::Display for Rig {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        write!(
+            f,
+            "{} encoder lines, gear {}:1, {}-tooth pulley, {} mm pitch ({:.1} counts/mm)",
+            self.encoder_lines,
+            self.gear_ratio,
+            self.pulley_teeth,
+            self.belt_pitch_mm,
+            self.counts_per_mm()
+        )
+    }
+}
+
 impl Rig {
     /// The paper's rig (Table 1) with a 20-tooth pulley.
     pub const PAPER: Rig = Rig {

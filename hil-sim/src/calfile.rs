@@ -183,7 +183,7 @@ pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, String> {
                 "{}: calibrated for {made_for:.1} counts/mm; this plant has {}: calibrate \
                  again on it",
                 bin.display(),
-                crate::eval::describe_rig(rig)
+                rig
             )
         }
         e => format!("{}: {e}", bin.display()),

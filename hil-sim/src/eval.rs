@@ -27,15 +27,21 @@ pub const ESTIMATORS: &[&str] = &[
     "bidir_table",
 ];
 
-/// The drive configuration used by simulations: the paper rig's limits, gains and thresholds
-/// (all in millimetres and seconds), the plant's geometry (`rig`: encoder lines, gearbox, pulley,
-/// pitch), and `params` loaded.
-pub fn drive_config(params: &ModelParams, model: ModelKind, rig: Rig) -> DriveConfig<'_> {
+/// The drive simulations run: the paper rig's limits, gains and thresholds (all in millimetres
+/// and seconds) with the plant's geometry (`rig`: encoder lines, gearbox, pulley, pitch).
+pub fn drive_limits(rig: Rig) -> DriveConfig<'static> {
     DriveConfig {
         rig,
+        ..DriveConfig::paper_rig()
+    }
+}
+
+/// [`drive_limits`] with `params` loaded and `model` active.
+pub fn drive_config(params: &ModelParams, model: ModelKind, rig: Rig) -> DriveConfig<'_> {
+    DriveConfig {
         model: estimator_core::drive::Models::Params(params),
         initial_model: model,
-        ..DriveConfig::paper_rig()
+        ..drive_limits(rig)
     }
 }
 
@@ -49,22 +55,10 @@ pub fn check_pil_geometry(plant: &PlantParams) -> Result<(), String> {
     Err(format!(
         "PIL: the QEMU firmware is configured for the paper rig ({}); {} has {}: run it \
          in-process (without --pil) until the drive takes its configuration over the link",
-        describe_rig(&want),
+        want,
         plant.name(),
-        describe_rig(&have)
+        have
     ))
-}
-
-/// `2000 encoder lines, gear 23.7222:1, 20-tooth pulley, 5.08 mm pitch (1866.4 counts/mm)`.
-pub fn describe_rig(r: &Rig) -> String {
-    format!(
-        "{} encoder lines, gear {}:1, {}-tooth pulley, {} mm pitch ({:.1} counts/mm)",
-        r.encoder_lines,
-        r.gear_ratio,
-        r.pulley_teeth,
-        r.belt_pitch_mm,
-        r.counts_per_mm()
-    )
 }
 
 /// Runs `scenario` with the core in-process.
@@ -115,14 +109,8 @@ pub fn record_calibration(
         .collect::<Result<Vec<_>, _>>()?;
     // All checked before the first is recorded: a plant they do not fit fails at once.
     for s in &scenarios {
-        s.check_against(
-            &DriveConfig {
-                rig: plant.rig(),
-                ..DriveConfig::paper_rig()
-            },
-            plant,
-        )
-        .map_err(|e| format!("calibration scenario {e}"))?;
+        s.check_against(&drive_limits(plant.rig()), plant)
+            .map_err(|e| format!("calibration scenario {e}"))?;
     }
     for (k, (name, s)) in CALIBRATION_SCENARIOS.iter().zip(&scenarios).enumerate() {
         let label = format!("record {name}");
@@ -147,9 +135,14 @@ pub fn paper_setting(scenario: &Scenario, plant: &PlantParams) -> bool {
         source: String::new(),
         ..plant.clone()
     } == PlantParams::paper_rig();
-    let same_moves = Scenario::load("fig18")
-        .is_ok_and(|f| f.start_mm == scenario.start_mm && f.moves == scenario.moves);
-    same_plant && same_moves
+    same_plant && is_paper_fig18(scenario)
+}
+
+/// True when `scenario` has the moves of the paper's Fig. 18 (the `fig18` preset), whatever its
+/// name or file.
+pub fn is_paper_fig18(scenario: &Scenario) -> bool {
+    Scenario::load("fig18")
+        .is_ok_and(|f| f.start_mm == scenario.start_mm && f.moves == scenario.moves)
 }
 
 /// Records the calibration scenarios and calibrates.

@@ -246,11 +246,7 @@ fn scenario_and_plant(
 ) -> Result<(Scenario, PlantParams), String> {
     let scenario = Scenario::load(scenario)?;
     let plant = plant_params(plant)?;
-    let drive = estimator_core::drive::DriveConfig {
-        rig: plant.rig(),
-        ..estimator_core::drive::DriveConfig::paper_rig()
-    };
-    scenario.check_against(&drive, &plant)?;
+    scenario.check_against(&eval::drive_limits(plant.rig()), &plant)?;
     Ok((scenario, plant))
 }
 

@@ -192,8 +192,9 @@ pub fn write(
         ),
     );
     // The paper's figure numbers only for the paper's own scenario.
+    let fig18 = eval::is_paper_fig18(setting.scenario);
     let paper_fig = |n: &str| {
-        if trace.scenario == "fig18" {
+        if fig18 {
             format!(" (the paper's {n})")
         } else {
             String::new()

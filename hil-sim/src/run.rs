@@ -1,6 +1,6 @@
 //! Closed-loop scenario runs: plant <-> controller, one record per control tick.
 
-use estimator_core::drive::{Command, DriveConfig, Faults, Output, Sample};
+use estimator_core::drive::{Command, Faults, Output, Sample};
 use estimator_core::rig::Rig;
 
 use crate::controller::{ControlError, Controller};
@@ -127,16 +127,6 @@ fn budget_s(s: &Scenario) -> f64 {
 /// Records reserved up front (about 10 s at 2 kHz); longer runs grow the buffer as they go.
 const RECORDS_RESERVED: usize = 20_000;
 
-/// A scenario move in the drive's integer units: target um, um/s, um/s^2 (rounded; the
-/// scenario's ranges keep them in range).
-pub fn move_units(m: &crate::scenario::Move) -> (i32, u32, u32) {
-    (
-        (m.to_mm * 1000.0).round() as i32,
-        (m.velocity_mm_s * 1000.0).round() as u32,
-        (m.accel_mm_s2 * 1000.0).round() as u32,
-    )
-}
-
 /// What the board samples: the plant's two raw counters.
 pub fn sample(p: &Plant) -> Sample {
     Sample {
@@ -178,15 +168,7 @@ pub fn run(
     scenario
         .validate()
         .map_err(|e| format!("{}: {e}", scenario.source()))
-        .and_then(|_| {
-            scenario.check_against(
-                &DriveConfig {
-                    rig: *rig,
-                    ..DriveConfig::paper_rig()
-                },
-                plant_params,
-            )
-        })
+        .and_then(|_| scenario.check_against(&crate::eval::drive_limits(*rig), plant_params))
         .map_err(RunError::Scenario)?;
     let dt = 1.0 / cfg.rate_hz;
     let mut plant =
@@ -216,7 +198,7 @@ pub fn run(
         };
         if due && next < scenario.moves.len() {
             let m = &scenario.moves[next];
-            let (target_um, velocity_um_s, accel_um_s2) = move_units(m);
+            let (target_um, velocity_um_s, accel_um_s2) = m.drive_units();
             controller.command(if cfg.carriage_space {
                 Command::MoveTo {
                     target_um,

@@ -38,6 +38,18 @@ pub struct Move {
     pub retarget_after_ms: Option<u32>,
 }
 
+impl Move {
+    /// The move in the drive's integer units: target um, um/s, um/s^2, rounded (the scenario's
+    /// ranges keep them in range): what a run sends and what the check checks.
+    pub fn drive_units(&self) -> (i32, u32, u32) {
+        (
+            (self.to_mm * 1000.0).round() as i32,
+            (self.velocity_mm_s * 1000.0).round() as u32,
+            (self.accel_mm_s2 * 1000.0).round() as u32,
+        )
+    }
+}
+
 /// A named sequence of moves from a start position.
 #[derive(Clone, Debug, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
@@ -145,7 +157,7 @@ impl Scenario {
             .map_err(|e| format!("drive configuration: {e}"))?;
         for (i, m) in self.moves.iter().enumerate() {
             let n = i + 1;
-            let (target_um, velocity_um_s, accel_um_s2) = crate::run::move_units(m);
+            let (target_um, velocity_um_s, accel_um_s2) = m.drive_units();
             use estimator_core::drive::CommandError as E;
             match checker.check_move(target_um, velocity_um_s, accel_um_s2) {
                 Ok(()) => {}

@@ -222,7 +222,7 @@ pub struct PilController {
     pub bad_replies: u32,
 }
 
-static SOCKET_SERIAL: AtomicU32 = AtomicU32::new(0);
+static LINK_SERIAL: AtomicU32 = AtomicU32::new(0);
 
 fn link_err(e: impl std::fmt::Display) -> PilError {
     PilError::Link(e.to_string())
@@ -234,7 +234,7 @@ impl PilController {
         let name = format!(
             "belt-drive-pil-{}-{}",
             std::process::id(),
-            SOCKET_SERIAL.fetch_add(1, Ordering::Relaxed)
+            LINK_SERIAL.fetch_add(1, Ordering::Relaxed)
         );
         let mut q = QemuOptions::new(&opts.elf);
         q.icount_shift = Some(opts.icount_shift);
