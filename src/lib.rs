@@ -37,6 +37,7 @@ pub mod events;
 pub mod hardware;
 #[cfg(target_os = "none")]
 pub mod outbox;
+pub mod persist;
 #[cfg(target_os = "none")]
 pub mod postmortem;
 #[cfg(target_os = "none")]

@@ -31,15 +31,23 @@ mod app {
     use heapless::spsc;
 
     use belt_drive::doorbell::Doorbell;
-    use belt_drive::drive::{Command, CommandError, Drive, DriveConfig, Faults, Models, Telemetry};
+    use belt_drive::drive::{
+        Command, CommandError, Drive, DriveConfig, Faults, Models, Parts, Telemetry,
+    };
     use belt_drive::events::{self, Event};
     use belt_drive::hardware::{self, ControlIo, IdleIo, LinkRx};
     use belt_drive::outbox::Outbox;
+    use belt_drive::persist::{self, Boot, Persist};
     use belt_drive::postmortem::{self, reset_cause};
     use belt_drive::stack;
-    use belt_link::{LinkError, Message, Receiver, Reply, Request, WireTelemetry};
+    use belt_link::{
+        LinkError, Message, Receiver, RecordSample, Reply, Request, WireTelemetry, RECORD_BATCH,
+    };
     use estimator_core::blob::{self, BlobError};
     use estimator_core::endpoint::{answer, Effect, Endpoint, Event as LinkEvent};
+    use estimator_core::rig::Rig;
+    use estimator_core::settings::{self, Settings};
+    use estimator_core::ConfigError;
 
     /// Received bytes waiting for `link` (one slot stays free): more than one largest frame
     /// (77 bytes) plus a status request, 2.7 ms of a saturated 460800 Bd line. Hosts wait for
@@ -49,6 +57,13 @@ mod app {
 
     /// Telemetry stream decimation, 0 = off.
     static STREAM_EVERY: AtomicU16 = AtomicU16::new(0);
+    /// Recording decimation, 0 = off.
+    static RECORD_EVERY: AtomicU16 = AtomicU16::new(0);
+    /// A recording (re)started: the control task restarts its batch and sequence.
+    static RECORD_RESTART: AtomicBool = AtomicBool::new(false);
+    /// Table 2 as an embedded blob (made by build.rs): the paper rig's models when no
+    /// calibration is stored.
+    static PAPER_BLOB: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/paper_blob.bin"));
     /// The board accepts the drive's current limit (set once in `init`); otherwise the drive is
     /// kept disabled and the amplifier off.
     static AMP_PERMITTED: AtomicBool = AtomicBool::new(false);
@@ -74,6 +89,7 @@ mod app {
         bytes_out: spsc::Consumer<'static, u8>,
         receiver: Receiver,
         endpoint: &'static mut Endpoint,
+        persist: Persist,
         /// The previous tick's telemetry (for move start/end and fault events).
         prev: Telemetry,
         /// Reset-cause bits for the status reply.
@@ -88,14 +104,27 @@ mod app {
     fn init(cx: init::Context) -> (Shared, Local) {
         // The amplifier enable and the DAC pin are already safe (board: `__pre_init`).
         stack::paint();
-        // Table 2 as an embedded blob (made by build.rs): built straight into fixed point.
-        static PAPER_BLOB: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/paper_blob.bin"));
-        let config = DriveConfig {
-            model: Models::Blob(PAPER_BLOB),
-            ..DriveConfig::paper_rig()
+        let endpoint: &'static mut Endpoint = cx.local.endpoint_storage;
+        // The stored configuration and calibration, read before the clocks and timers start
+        // (the control rate comes from it).
+        let mut persist = Persist::open();
+        let mut settings_buf = [0u8; settings::ENCODED_LEN];
+        let boot = persist.load(&mut settings_buf, endpoint.blob_buffer());
+        let (stored, stored_blob, record_crc) = match boot {
+            Boot::Loaded {
+                settings_len,
+                blob_len,
+                crc32,
+                ..
+            } => match Settings::decode(&settings_buf[..settings_len.min(settings_buf.len())]) {
+                Ok(s) => (Some(s), blob_len, crc32),
+                Err(_) => (None, 0, 0),
+            },
+            _ => (None, 0, 0),
         };
+        let active = stored.unwrap_or(Settings::PAPER);
         // The configured rate is a whole number of hertz (the paper rig: 2 kHz).
-        let rate_hz = config.rate_hz as u32;
+        let rate_hz = active.rate_hz as u32;
         let mut board = hardware::init(cx.device, cx.core, rate_hz);
         defmt::info!(
             "belt-drive {=str} on {=str}: sysclk {=u32} Hz{=str}, control tick {=u32} Hz",
@@ -114,12 +143,74 @@ mod app {
             cause |= reset_cause::PANIC_RECORD;
         }
         postmortem::log_reset_cause(cause);
+        persist::log_boot(&boot);
 
-        let drive = match Drive::new(&config) {
+        // Built from the paper rig's configuration first (tested on the host: it cannot be
+        // refused), then the stored one installed over it with the link's own checks.
+        let paper = DriveConfig {
+            model: Models::Blob(PAPER_BLOB),
+            ..DriveConfig::paper_rig()
+        };
+        let mut drive = match Drive::new(&paper) {
             Ok(d) => d,
-            // The built-in configuration is tested on the host: this cannot happen in a release.
             Err(e) => defmt::panic!("drive configuration refused: {=str}", e.field()),
         };
+        let mut configured = false;
+        if let Some(s) = stored {
+            match build_parts(&s)
+                .map_err(Ok)
+                .and_then(|p| drive.reconfigure(p).map_err(Err))
+            {
+                Ok(()) => configured = true,
+                Err(Ok(e)) => defmt::error!(
+                    "stored configuration refused: {=str}: the drive boots unconfigured",
+                    e.field()
+                ),
+                Err(Err(_)) => defmt::error!("stored configuration not installed"),
+            }
+        }
+        if configured {
+            endpoint.boot_with(active, record_crc);
+            if stored_blob > 0 {
+                let rig = *drive.rig();
+                let len = stored_blob.min(endpoint.blob_buffer().len());
+                match blob::decode_coeffs(&endpoint.blob_buffer()[..len], &rig)
+                    .and_then(|c| drive.set_models(c))
+                {
+                    Ok(()) => {
+                        endpoint.boot_calibration(len);
+                        // The geometry changed from the paper rig's: the configured model
+                        // comes back with its calibration.
+                        let model = active.initial_model;
+                        let _ = drive.command(Command::SelectModel(model));
+                        defmt::info!(
+                            "stored calibration loaded ({=usize} bytes): model {=str}",
+                            len,
+                            model.as_str()
+                        );
+                    }
+                    Err(e) => defmt::error!(
+                        "stored calibration refused: {=str}; no compensation until one loads",
+                        blob_error_name(e)
+                    ),
+                }
+            }
+            install_default_models(&mut drive);
+            defmt::info!(
+                "configured from storage (record crc {=u32:#010x}): {=u32} encoder lines, gear {=f32}:1, {=u32}-tooth pulley, {=f32} mm pitch",
+                record_crc,
+                drive.rig().encoder_lines,
+                drive.rig().gear_ratio as f32,
+                drive.rig().pulley_teeth,
+                drive.rig().belt_pitch_mm as f32
+            );
+        } else {
+            drive.forget_configuration();
+            defmt::warn!(
+                "no valid configuration stored: the drive is UNCONFIGURED and refuses to enable; set one over the link (ConfigSet, ConfigApply) and save it"
+            );
+        }
+        let config = active.drive_config(Models::Blob(&[]));
         // A current limit beyond the amplifier's linear range would wind the integrator up
         // against the DAC buffer's rail: refused (the drive stays disabled), never a panic.
         let limit_ma = config.pid.max_current_a * 1000.0;
@@ -133,14 +224,13 @@ mod app {
             );
         }
         defmt::info!(
-            "drive disabled, model {=str} (paper Table 2 parameters), no calibration blob loaded: waiting for the link",
+            "drive disabled, model {=str}: waiting for the link",
             drive.telemetry().model.as_str()
         );
         // The boot announcement: an unsolicited status (sequence 0) tells the host that the
         // link is up (QEMU drops bytes sent before the USART is enabled) and that the drive
         // (re)started, disabled.
         let receiver = Receiver::new();
-        let endpoint: &'static mut Endpoint = cx.local.endpoint_storage;
         let mut outbox = Outbox::new(board.tx);
         outbox.send(
             0,
@@ -166,6 +256,7 @@ mod app {
                 bytes_out,
                 receiver,
                 endpoint,
+                persist,
                 prev: Telemetry::default(),
                 reset_cause: cause,
             },
@@ -190,7 +281,7 @@ mod app {
     #[task(
         binds = TIM7,
         priority = 3,
-        local = [io, prev, events_in, since_stream: u16 = 0, since_trace: u16 = 0, deadline_misses: u32 = 0],
+        local = [io, prev, events_in, since_stream: u16 = 0, since_trace: u16 = 0, deadline_misses: u32 = 0, since_record: u16 = 0, batch: Batch = Batch::EMPTY],
         shared = [drive, outbox]
     )]
     fn control(cx: control::Context) {
@@ -201,6 +292,8 @@ mod app {
             since_stream,
             since_trace,
             deadline_misses,
+            since_record,
+            batch,
             ..
         } = cx.local;
         let control::SharedResources {
@@ -239,6 +332,20 @@ mod app {
         if every != 0 && *since_stream >= every {
             *since_stream = 0;
             outbox.lock(|o| o.send(0, &Reply::Telemetry(WireTelemetry::from(&t))));
+        }
+        let record_every = RECORD_EVERY.load(Ordering::Relaxed);
+        if RECORD_RESTART.swap(false, Ordering::Relaxed) {
+            *batch = Batch::EMPTY;
+            *since_record = record_every;
+        }
+        if record_every != 0 {
+            *since_record = since_record.saturating_add(1);
+            if *since_record >= record_every {
+                *since_record = 0;
+                if let Some(frame) = batch.push(&t, record_every) {
+                    outbox.lock(|o| o.send(0, &frame));
+                }
+            }
         }
         events::transitions(events_in, prev, &t);
         if refused {
@@ -281,6 +388,56 @@ mod app {
         io.feed_watchdog();
     }
 
+    /// Recorded samples waiting for a full [`Reply::Records`] frame.
+    pub struct Batch {
+        seq: u32,
+        first_tick: u32,
+        count: u8,
+        samples: [RecordSample; RECORD_BATCH],
+    }
+
+    impl Batch {
+        const EMPTY: Batch = Batch {
+            seq: 0,
+            first_tick: 0,
+            count: 0,
+            samples: [RecordSample {
+                motor_counts: 0,
+                scale_counts: 0,
+                setpoint_counts: 0,
+                current_ma: 0,
+            }; RECORD_BATCH],
+        };
+
+        /// Adds one tick; returns the frame to send when the batch is full.
+        fn push(&mut self, t: &Telemetry, every: u16) -> Option<Reply> {
+            if self.count == 0 {
+                self.first_tick = t.tick;
+            }
+            let ma = (t.current_a.to_bits() as i64 * 1000) >> 16;
+            self.samples[self.count as usize % RECORD_BATCH] = RecordSample {
+                motor_counts: t.motor_counts,
+                scale_counts: t.scale_counts,
+                setpoint_counts: t.setpoint_counts,
+                current_ma: ma.clamp(i16::MIN as i64, i16::MAX as i64) as i16,
+            };
+            self.count += 1;
+            if (self.count as usize) < RECORD_BATCH {
+                return None;
+            }
+            let frame = Reply::Records {
+                seq: self.seq,
+                first_tick: self.first_tick,
+                every,
+                count: self.count,
+                samples: self.samples,
+            };
+            self.seq = self.seq.wrapping_add(1);
+            self.count = 0;
+            Some(frame)
+        }
+    }
+
     /// Defmt lines for the control task's events, outside every interrupt handler.
     #[task(priority = 1, local = [events_out])]
     async fn logger(cx: logger::Context) {
@@ -319,12 +476,13 @@ mod app {
     }
 
     /// The link: frames decoded from the byte queue, commands applied, replies queued.
-    #[task(priority = 1, local = [bytes_out, receiver, endpoint, reset_cause], shared = [drive, outbox])]
+    #[task(priority = 1, local = [bytes_out, receiver, endpoint, persist, reset_cause], shared = [drive, outbox])]
     async fn link(cx: link::Context) {
         let link::LocalResources {
             bytes_out,
             receiver,
             endpoint,
+            persist,
             reset_cause,
             ..
         } = cx.local;
@@ -395,6 +553,50 @@ mod app {
                         log_event(&event);
                         reply
                     }
+                    Effect::Record(n) => {
+                        defmt::info!("recording every {=u16} ticks (0 = off)", n);
+                        RECORD_EVERY.store(n, Ordering::Relaxed);
+                        RECORD_RESTART.store(true, Ordering::Relaxed);
+                        Reply::Ack {
+                            of: frame.msg.kind(),
+                        }
+                    }
+                    Effect::Configure => {
+                        // Soft-float work outside the lock; only the install holds it.
+                        let staged = *endpoint.staged();
+                        let result = build_parts(&staged).map_err(Ok).and_then(|p| {
+                            drive
+                                .lock(|d| {
+                                    d.reconfigure(p)?;
+                                    install_default_models(d);
+                                    Ok(())
+                                })
+                                .map_err(Err)
+                        });
+                        if result.is_ok() {
+                            let ma = staged.pid.max_current_a * 1000.0;
+                            AMP_PERMITTED.store(
+                                ma <= hardware::MAX_LINEAR_CURRENT_MA as f64,
+                                Ordering::Relaxed,
+                            );
+                        }
+                        let (reply, event) = endpoint.configure_done(result);
+                        log_event(&event);
+                        reply
+                    }
+                    Effect::Save => {
+                        let mut buf = [0u8; settings::ENCODED_LEN];
+                        let result = match endpoint.active().encode(&mut buf) {
+                            Ok(n) => {
+                                let blob = endpoint.installed_calibration().unwrap_or(&[]);
+                                persist.save(&buf[..n], blob)
+                            }
+                            Err(_) => Err(persist::detail::ENCODE),
+                        };
+                        let (reply, event) = endpoint.save_done(result);
+                        log_event(&event);
+                        reply
+                    }
                     Effect::Shutdown(code) => {
                         if !hardware::ALLOW_SHUTDOWN {
                             not_supported(&frame.msg)
@@ -429,6 +631,25 @@ mod app {
                 continue;
             }
             RX_BELL.wait().await;
+        }
+    }
+
+    /// The drive's parts for `s`, with the board's own limit on the current (the DAC's linear
+    /// range) checked like any other field.
+    fn build_parts(s: &Settings) -> Result<Parts, ConfigError> {
+        if s.pid.max_current_a * 1000.0 > hardware::MAX_LINEAR_CURRENT_MA as f64 {
+            return Err(ConfigError::OutOfRange("pid.max_current_a"));
+        }
+        Parts::build(&s.drive_config(Models::Blob(&[])), &s.homing)
+    }
+
+    /// The paper rig without a calibration runs on the paper's Table 2 (embedded); any other
+    /// geometry runs uncompensated until its calibration loads.
+    fn install_default_models(d: &mut Drive) {
+        if !d.is_calibrated() && *d.rig() == Rig::PAPER {
+            if let Ok(c) = blob::decode_coeffs(PAPER_BLOB, &Rig::PAPER) {
+                let _ = d.set_models(c);
+            }
         }
     }
 
@@ -501,6 +722,22 @@ mod app {
                     blob_error_name(e)
                 )
             }
+            LinkEvent::ConfigRefused(e) => {
+                defmt::warn!("configuration refused: {=str}", e.field())
+            }
+            LinkEvent::Configured => {
+                defmt::info!("new configuration in force: home the drive again")
+            }
+            LinkEvent::Saved { seq, crc32 } => {
+                defmt::info!(
+                    "configuration and calibration stored: record {=u32}, crc {=u32:#010x}",
+                    seq,
+                    crc32
+                )
+            }
+            LinkEvent::SaveFailed(d) => {
+                defmt::error!("save failed: {=str}", persist::detail_name(d))
+            }
         }
     }
 
@@ -514,6 +751,7 @@ mod app {
             Command::ClearFaults => "clear faults",
             Command::SelectModel(_) => "select model",
             Command::Home { .. } => "home",
+            Command::Homing => "homing",
         }
     }
 
@@ -525,6 +763,8 @@ mod app {
             CommandError::NotEnabled => "drive not enabled (or faulted)",
             CommandError::Busy => "busy (moving)",
             CommandError::NotHomed => "not homed",
+            CommandError::Unconfigured => "not configured",
+            CommandError::NotCalibrated => "no calibration for this geometry",
         }
     }
 
@@ -555,6 +795,8 @@ mod app {
             LinkError::Refused => "refused",
             LinkError::Calibration => "calibration",
             LinkError::NotSupported => "not supported",
+            LinkError::Config => "configuration refused",
+            LinkError::Storage => "storage",
         }
     }
 }

@@ -51,6 +51,10 @@ impl<'a> Reader<'a> {
     pub fn i32(&mut self) -> Result<i32, Short> {
         Ok(i32::from_le_bytes(self.take()?))
     }
+    /// A little-endian `u64`.
+    pub fn u64(&mut self) -> Result<u64, Short> {
+        Ok(u64::from_le_bytes(self.take()?))
+    }
 }
 
 /// Writes fields into a byte slice.
@@ -106,6 +110,10 @@ impl<'a> Writer<'a> {
     }
     /// A little-endian `i32`.
     pub fn i32(&mut self, v: i32) {
+        self.put(&v.to_le_bytes());
+    }
+    /// A little-endian `u64`.
+    pub fn u64(&mut self, v: u64) {
         self.put(&v.to_le_bytes());
     }
     /// Bytes written so far (from the start of the buffer).

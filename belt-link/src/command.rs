@@ -106,8 +106,13 @@ pub enum Command {
     ClearFaults,
     /// Select the error model used for the estimate.
     SelectModel(ModelKind),
-    /// Homing: declare that the motor now stands at `position_um` of nominal travel (motor
-    /// encoder) and that the linear scale, if fitted, reads `scale_um`. Refused while moving.
+    /// Run the homing routine of the configuration (`homing.*`): at low speed and reduced
+    /// current towards a hard stop; the stop becomes `homing.position_mm`, the estimator starts
+    /// on the band edge of the approach direction, and the drive backs off. Needs the drive
+    /// enabled and at rest.
+    Homing,
+    /// Homing by declaration: the motor now stands at `position_um` of nominal travel (motor
+    /// encoder) and the linear scale, if fitted, reads `scale_um`. Refused while moving.
     Home {
         /// Motor position to assign, micrometres of nominal travel.
         position_um: i32,
@@ -131,6 +136,10 @@ pub enum CommandError {
     Busy,
     /// Moves are refused until the drive is homed.
     NotHomed,
+    /// No valid configuration: set one (`ConfigSet`, `ConfigApply`) or store one.
+    Unconfigured,
+    /// The selected model needs a calibration for this drive's geometry: load one first.
+    NotCalibrated,
 }
 
 impl core::fmt::Display for CommandError {
@@ -142,19 +151,25 @@ impl core::fmt::Display for CommandError {
             CommandError::NotEnabled => "drive disabled or faulted",
             CommandError::Busy => "the drive must be at rest",
             CommandError::NotHomed => "not homed: home the drive before moving",
+            CommandError::Unconfigured => {
+                "the drive is not configured: set and apply a configuration"
+            }
+            CommandError::NotCalibrated => "no calibration for this geometry: load one first",
         })
     }
 }
 
 impl CommandError {
     /// Every refusal.
-    pub const ALL: [CommandError; 6] = [
+    pub const ALL: [CommandError; 8] = [
         CommandError::TargetOutOfTravel,
         CommandError::VelocityOutOfRange,
         CommandError::AccelOutOfRange,
         CommandError::NotEnabled,
         CommandError::Busy,
         CommandError::NotHomed,
+        CommandError::Unconfigured,
+        CommandError::NotCalibrated,
     ];
 
     /// Wire code (`detail` of [`crate::LinkError::Refused`]).
@@ -166,6 +181,8 @@ impl CommandError {
             CommandError::NotEnabled => 4,
             CommandError::Busy => 6,
             CommandError::NotHomed => 7,
+            CommandError::Unconfigured => 8,
+            CommandError::NotCalibrated => 9,
         }
     }
 
@@ -178,6 +195,8 @@ impl CommandError {
             4 => CommandError::NotEnabled,
             6 => CommandError::Busy,
             7 => CommandError::NotHomed,
+            8 => CommandError::Unconfigured,
+            9 => CommandError::NotCalibrated,
             _ => return None,
         })
     }

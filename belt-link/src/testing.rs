@@ -122,7 +122,7 @@ pub fn bad_frame(rng: &mut Rng, out: &mut [u8; crate::MAX_FRAME + 16]) -> usize 
         3 => {
             raw[0] = if rng.below(2) == 0 {
                 // The first kind after the last request kind, up to 0x7f.
-                kind::MOVE + 1 + rng.below(0x7f - kind::MOVE as u32) as u8
+                kind::LAST_REQUEST + 1 + rng.below(0x7f - kind::LAST_REQUEST as u32) as u8
             } else {
                 kind::ACK + rng.below(0x7f) as u8
             };

@@ -88,6 +88,16 @@ fn all_requests() -> Vec<Request> {
             position_um: -5,
             scale_um: i32::MIN,
         }),
+        Request::Command(Command::Homing),
+        Request::ConfigSet {
+            key: 0,
+            value_bits: (-1.5e-9f64).to_bits(),
+        },
+        Request::ConfigGet { key: 255 },
+        Request::ConfigApply,
+        Request::Save,
+        Request::Record { every_n_ticks: 2 },
+        Request::CalRead { offset: 128 },
     ]
 }
 
@@ -121,6 +131,8 @@ fn all_replies() -> Vec<Reply> {
             stack_peak_bytes: 1500,
             carriage_target_um: -300_000,
             carriage_estimate_um: i32::MAX,
+            scale_counts: -7,
+            record_crc: 0xdead_beef,
         }),
         Reply::Telemetry(telemetry()),
         Reply::Telemetry(WireTelemetry::default()),
@@ -128,6 +140,47 @@ fn all_replies() -> Vec<Reply> {
             current_a_bits: -1,
             telemetry: telemetry(),
             step_instructions: 321,
+        },
+        Reply::ConfigValue {
+            key: 7,
+            active_bits: 23.7222f64.to_bits(),
+            staged_bits: f64::NAN.to_bits(),
+        },
+        Reply::Saved {
+            seq: 3,
+            crc32: 0x0102_0304,
+        },
+        Reply::Records {
+            seq: u32::MAX,
+            first_tick: 9,
+            every: 2,
+            count: 3,
+            samples: [
+                RecordSample {
+                    motor_counts: -1,
+                    scale_counts: 2,
+                    setpoint_counts: i32::MIN,
+                    current_ma: -8000,
+                },
+                RecordSample::default(),
+                RecordSample {
+                    motor_counts: 0x7f00_0000,
+                    scale_counts: 0,
+                    setpoint_counts: 5,
+                    current_ma: i16::MAX,
+                },
+                RecordSample::default(),
+            ],
+        },
+        Reply::CalData {
+            offset: 64,
+            total_len: 1000,
+            len: 2,
+            data: {
+                let mut d = [0u8; CHUNK_MAX];
+                d[..2].copy_from_slice(&[0, 9]);
+                d
+            },
         },
     ]
 }
@@ -222,7 +275,7 @@ fn layout_is_fixed() {
         (Reply::Ack { of: 1 }.write_payload(&mut [0; MAX_PAYLOAD]), 1),
         (
             Reply::Status(WireStatus::default()).write_payload(&mut [0; MAX_PAYLOAD]),
-            42,
+            STATUS_LEN,
         ),
         (
             Reply::Telemetry(telemetry()).write_payload(&mut [0; MAX_PAYLOAD]),
@@ -350,9 +403,15 @@ fn bad_frames_are_rejected_with_a_reason() {
             (0, 1, Some(error))
         );
     }
-    // A chunk with one byte too many is longer than any frame.
+    // A chunk with one byte too many has a bad length; one past the largest payload is longer
+    // than any frame.
     let mut body = vec![kind::CAL_CHUNK, 1, 0, 0, 0, 0];
     body.extend([1u8; CHUNK_MAX + 1]);
+    let mut rx = Receiver::new();
+    let got = feed::<Request>(&mut rx, &frame_with_crc(&body));
+    assert_eq!(got[0].unwrap_err().error, LinkError::BadLength);
+    let mut body = vec![kind::CAL_CHUNK, 1, 0, 0, 0, 0];
+    body.extend([1u8; MAX_PAYLOAD - 4 + 1]);
     let mut rx = Receiver::new();
     let got = feed::<Request>(&mut rx, &frame_with_crc(&body));
     assert_eq!(got[0].unwrap_err().error, LinkError::Oversize);
@@ -455,6 +514,14 @@ fn arb_request() -> impl Strategy<Value = Request> {
             position_um: p,
             scale_um: s
         })),
+        Just(Request::Command(Command::Homing)),
+        (any::<u8>(), any::<u64>())
+            .prop_map(|(key, value_bits)| Request::ConfigSet { key, value_bits }),
+        any::<u8>().prop_map(|key| Request::ConfigGet { key }),
+        Just(Request::ConfigApply),
+        Just(Request::Save),
+        any::<u16>().prop_map(|n| Request::Record { every_n_ticks: n }),
+        any::<u32>().prop_map(|offset| Request::CalRead { offset }),
     ]
 }
 

@@ -3,8 +3,9 @@
 use crate::bytes::{Reader, Short, Writer};
 use crate::command::{Command, ModelKind};
 
-/// Largest payload of any message (a calibration chunk: offset + [`CHUNK_MAX`] bytes).
-pub const MAX_PAYLOAD: usize = 4 + CHUNK_MAX;
+/// Largest payload of any message (a calibration read-back: offset, total length and
+/// [`CHUNK_MAX`] bytes).
+pub const MAX_PAYLOAD: usize = 8 + CHUNK_MAX;
 /// Largest raw (un-stuffed) frame: kind, seq, payload, CRC.
 pub const MAX_RAW: usize = 2 + MAX_PAYLOAD + 4;
 /// Largest COBS-encoded frame, without the delimiter.
@@ -48,6 +49,22 @@ pub mod kind {
     pub const HOME: u8 = 0x0e;
     /// [`crate::Command::MoveTo`]
     pub const MOVE: u8 = 0x0f;
+    /// [`super::Request::ConfigSet`]
+    pub const CONFIG_SET: u8 = 0x10;
+    /// [`super::Request::ConfigGet`]
+    pub const CONFIG_GET: u8 = 0x11;
+    /// [`super::Request::ConfigApply`]
+    pub const CONFIG_APPLY: u8 = 0x12;
+    /// [`super::Request::Save`]
+    pub const SAVE: u8 = 0x13;
+    /// [`crate::Command::Homing`]
+    pub const HOMING: u8 = 0x14;
+    /// [`super::Request::Record`]
+    pub const RECORD: u8 = 0x15;
+    /// [`super::Request::CalRead`]
+    pub const CAL_READ: u8 = 0x16;
+    /// The highest request kind: the kinds after it up to 0x7f are unused.
+    pub const LAST_REQUEST: u8 = CAL_READ;
 
     /// [`super::Reply::Ack`]
     pub const ACK: u8 = 0x80;
@@ -59,6 +76,14 @@ pub mod kind {
     pub const TELEMETRY_FRAME: u8 = 0x83;
     /// [`super::Reply::Answer`]
     pub const ANSWER: u8 = 0x84;
+    /// [`super::Reply::ConfigValue`]
+    pub const CONFIG_VALUE: u8 = 0x85;
+    /// [`super::Reply::Saved`]
+    pub const SAVED: u8 = 0x86;
+    /// [`super::Reply::Records`]
+    pub const RECORDS: u8 = 0x87;
+    /// [`super::Reply::CalData`]
+    pub const CAL_DATA: u8 = 0x88;
 
     /// Stands for "kind unknown" in an error reply (the frame was too damaged to read it).
     pub const UNKNOWN: u8 = 0xff;
@@ -88,6 +113,10 @@ pub enum LinkError {
     Calibration = 9,
     /// The message is valid but this build does not accept it (e.g. a PIL sample on the board).
     NotSupported = 10,
+    /// A configuration value was refused; `detail` is the key of the offending field.
+    Config = 11,
+    /// Persistent storage failed or was refused; `detail` names the reason.
+    Storage = 12,
 }
 
 impl LinkError {
@@ -104,6 +133,8 @@ impl LinkError {
             8 => LinkError::Refused,
             9 => LinkError::Calibration,
             10 => LinkError::NotSupported,
+            11 => LinkError::Config,
+            12 => LinkError::Storage,
             _ => return None,
         })
     }
@@ -161,7 +192,57 @@ pub enum Request {
         /// Exit status.
         code: u8,
     },
+    /// Stage one configuration value (payload 9: key, `f64` little endian); nothing changes
+    /// until [`Request::ConfigApply`]. Answered with [`Reply::Ack`].
+    ConfigSet {
+        /// Field key (the drive's settings table names it).
+        key: u8,
+        /// Value in the field's SI unit: the bits of an `f64` (`f64::to_bits`), so that
+        /// messages keep `Eq` and a NaN reaches the drive's check as sent.
+        value_bits: u64,
+    },
+    /// Read one configuration value (payload 1); answered with [`Reply::ConfigValue`].
+    ConfigGet {
+        /// Field key.
+        key: u8,
+    },
+    /// Check the staged configuration as a whole and make it the drive's (payload 0); only
+    /// while disabled. Refused with [`LinkError::Config`] and the key of the offending field.
+    ConfigApply,
+    /// Store the configuration and the calibration in persistent storage (payload 0); only
+    /// while disabled. Answered with [`Reply::Saved`].
+    Save,
+    /// Stream [`Reply::Records`] with one sample every `every_n_ticks` ticks; 0 stops it
+    /// (payload 2).
+    Record {
+        /// Decimation; 0 = off.
+        every_n_ticks: u16,
+    },
+    /// Read back [`CHUNK_MAX`] bytes of the installed calibration blob from `offset` (payload 4);
+    /// answered with [`Reply::CalData`].
+    CalRead {
+        /// Offset of the first byte.
+        offset: u32,
+    },
 }
+
+/// One recorded sample in wire form ([`RECORD_SAMPLE_LEN`] bytes).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct RecordSample {
+    /// Unwrapped motor position, counts.
+    pub motor_counts: i32,
+    /// Unwrapped linear-scale position, scale counts.
+    pub scale_counts: i32,
+    /// Trajectory set-point, counts.
+    pub setpoint_counts: i32,
+    /// Current command, milliamperes (saturating).
+    pub current_ma: i16,
+}
+
+/// Wire size of a [`RecordSample`].
+pub const RECORD_SAMPLE_LEN: usize = 14;
+/// Samples in one [`Reply::Records`] frame.
+pub const RECORD_BATCH: usize = 4;
 
 /// One tick's telemetry in wire form ([`TELEMETRY_LEN`] bytes).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -262,6 +343,10 @@ pub struct WireStatus {
     pub frames_bad: u32,
     /// Deepest stack use seen so far, bytes (0 where not measured).
     pub stack_peak_bytes: u32,
+    /// Unwrapped linear-scale position, scale counts (0 without a scale).
+    pub scale_counts: i32,
+    /// CRC-32 of the stored record the drive booted from or last saved (0 = none).
+    pub record_crc: u32,
     /// Where the last move sends the carriage, micrometres of travel.
     pub carriage_target_um: i32,
     /// Estimated carriage position (motor position plus the active compensator's estimate),
@@ -283,12 +368,17 @@ pub mod status_flags {
     pub const HOMED: u8 = 1 << 4;
     /// The amplifier enable line is high.
     pub const AMPLIFIER_ENABLED: u8 = 1 << 5;
+    /// The drive holds a valid configuration (otherwise it refuses to enable).
+    pub const CONFIGURED: u8 = 1 << 6;
+    /// The homing routine is running.
+    pub const HOMING: u8 = 1 << 7;
     /// All defined bits.
-    pub const ALL: u8 = MOVING | ENABLED | CALIBRATED | STREAMING | HOMED | AMPLIFIER_ENABLED;
+    pub const ALL: u8 =
+        MOVING | ENABLED | CALIBRATED | STREAMING | HOMED | AMPLIFIER_ENABLED | CONFIGURED | HOMING;
 }
 
 /// Wire size of [`WireStatus`].
-pub const STATUS_LEN: usize = 42;
+pub const STATUS_LEN: usize = 50;
 
 /// Drive -> host messages.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -319,6 +409,47 @@ pub enum Reply {
         telemetry: WireTelemetry,
         /// Instructions `Drive::step` took (QEMU instruction counter; 0 where not measured).
         step_instructions: u32,
+    },
+    /// Answer to [`Request::ConfigGet`] (payload 17).
+    ConfigValue {
+        /// Field key.
+        key: u8,
+        /// The value the drive runs with (`f64` bits).
+        active_bits: u64,
+        /// The staged value (`f64` bits; equal to `active_bits` unless changed since the last
+        /// apply).
+        staged_bits: u64,
+    },
+    /// Answer to [`Request::Save`] (payload 8).
+    Saved {
+        /// Sequence number of the new record.
+        seq: u32,
+        /// Its CRC-32.
+        crc32: u32,
+    },
+    /// Recorded samples (payload 11 + `count` x [`RECORD_SAMPLE_LEN`]).
+    Records {
+        /// Frame sequence number, +1 per frame since the recording started: a gap is a loss.
+        seq: u32,
+        /// Control tick of `samples[0]`.
+        first_tick: u32,
+        /// Ticks between two samples.
+        every: u16,
+        /// Valid samples, `1..=RECORD_BATCH`.
+        count: u8,
+        /// The samples; only `samples[..count]` are meaningful.
+        samples: [RecordSample; RECORD_BATCH],
+    },
+    /// Answer to [`Request::CalRead`] (payload 8 + `len`).
+    CalData {
+        /// Offset of `data[0]`.
+        offset: u32,
+        /// Length of the installed blob (0 = none).
+        total_len: u32,
+        /// Valid bytes in `data`, `0..=CHUNK_MAX`.
+        len: u8,
+        /// The bytes; only `data[..len]` is meaningful.
+        data: [u8; CHUNK_MAX],
     },
 }
 
@@ -409,6 +540,7 @@ impl Message for Request {
                 Command::ClearFaults => kind::CLEAR_FAULTS,
                 Command::SelectModel(_) => kind::SELECT_MODEL,
                 Command::Home { .. } => kind::HOME,
+                Command::Homing => kind::HOMING,
             },
             Request::CalBegin { .. } => kind::CAL_BEGIN,
             Request::CalChunk { .. } => kind::CAL_CHUNK,
@@ -417,6 +549,12 @@ impl Message for Request {
             Request::Telemetry { .. } => kind::TELEMETRY,
             Request::Sample { .. } => kind::SAMPLE,
             Request::Shutdown { .. } => kind::SHUTDOWN,
+            Request::ConfigSet { .. } => kind::CONFIG_SET,
+            Request::ConfigGet { .. } => kind::CONFIG_GET,
+            Request::ConfigApply => kind::CONFIG_APPLY,
+            Request::Save => kind::SAVE,
+            Request::Record { .. } => kind::RECORD,
+            Request::CalRead { .. } => kind::CAL_READ,
         }
     }
 
@@ -440,10 +578,16 @@ impl Message for Request {
                 w.u32(accel_um_s2);
             }
             Request::Command(
-                Command::Stop | Command::Enable | Command::Disable | Command::ClearFaults,
+                Command::Stop
+                | Command::Enable
+                | Command::Disable
+                | Command::ClearFaults
+                | Command::Homing,
             )
             | Request::CalCommit
-            | Request::Status => {}
+            | Request::Status
+            | Request::ConfigApply
+            | Request::Save => {}
             Request::Command(Command::SelectModel(m)) => w.u8(m as u8),
             Request::Command(Command::Home {
                 position_um,
@@ -473,6 +617,13 @@ impl Message for Request {
                 w.u16(scale_counter);
             }
             Request::Shutdown { code } => w.u8(code),
+            Request::ConfigSet { key, value_bits } => {
+                w.u8(key);
+                w.u64(value_bits);
+            }
+            Request::ConfigGet { key } => w.u8(key),
+            Request::Record { every_n_ticks } => w.u16(every_n_ticks),
+            Request::CalRead { offset } => w.u32(offset),
         }
         // Cannot overflow: every payload fits MAX_PAYLOAD.
         w.len()
@@ -558,6 +709,25 @@ impl Message for Request {
             kind::SHUTDOWN => Ok(Request::Shutdown {
                 code: expect_len(payload, 1)?.u8()?,
             }),
+            kind::HOMING => expect_len(payload, 0).and_then(|_| command(Command::Homing)),
+            kind::CONFIG_SET => {
+                let mut r = expect_len(payload, 9)?;
+                Ok(Request::ConfigSet {
+                    key: r.u8()?,
+                    value_bits: r.u64()?,
+                })
+            }
+            kind::CONFIG_GET => Ok(Request::ConfigGet {
+                key: expect_len(payload, 1)?.u8()?,
+            }),
+            kind::CONFIG_APPLY => expect_len(payload, 0).map(|_| Request::ConfigApply),
+            kind::SAVE => expect_len(payload, 0).map(|_| Request::Save),
+            kind::RECORD => Ok(Request::Record {
+                every_n_ticks: expect_len(payload, 2)?.u16()?,
+            }),
+            kind::CAL_READ => Ok(Request::CalRead {
+                offset: expect_len(payload, 4)?.u32()?,
+            }),
             _ => Err(LinkError::UnknownKind),
         }
     }
@@ -571,6 +741,10 @@ impl Message for Reply {
             Reply::Status(_) => kind::STATUS_REPLY,
             Reply::Telemetry(_) => kind::TELEMETRY_FRAME,
             Reply::Answer { .. } => kind::ANSWER,
+            Reply::ConfigValue { .. } => kind::CONFIG_VALUE,
+            Reply::Saved { .. } => kind::SAVED,
+            Reply::Records { .. } => kind::RECORDS,
+            Reply::CalData { .. } => kind::CAL_DATA,
         }
     }
 
@@ -598,6 +772,8 @@ impl Message for Reply {
                 w.u32(s.stack_peak_bytes);
                 w.i32(s.carriage_target_um);
                 w.i32(s.carriage_estimate_um);
+                w.i32(s.scale_counts);
+                w.u32(s.record_crc);
             }
             Reply::Telemetry(t) => t.write(&mut w),
             Reply::Answer {
@@ -608,6 +784,48 @@ impl Message for Reply {
                 w.i32(current_a_bits);
                 telemetry.write(&mut w);
                 w.u32(step_instructions);
+            }
+            Reply::ConfigValue {
+                key,
+                active_bits,
+                staged_bits,
+            } => {
+                w.u8(key);
+                w.u64(active_bits);
+                w.u64(staged_bits);
+            }
+            Reply::Saved { seq, crc32 } => {
+                w.u32(seq);
+                w.u32(crc32);
+            }
+            Reply::Records {
+                seq,
+                first_tick,
+                every,
+                count,
+                ref samples,
+            } => {
+                w.u32(seq);
+                w.u32(first_tick);
+                w.u16(every);
+                let n = (count as usize).min(RECORD_BATCH);
+                w.u8(n as u8);
+                for s in &samples[..n] {
+                    w.i32(s.motor_counts);
+                    w.i32(s.scale_counts);
+                    w.i32(s.setpoint_counts);
+                    w.u16(s.current_ma as u16);
+                }
+            }
+            Reply::CalData {
+                offset,
+                total_len,
+                len,
+                ref data,
+            } => {
+                w.u32(offset);
+                w.u32(total_len);
+                w.put(&data[..(len as usize).min(CHUNK_MAX)]);
             }
         }
         w.len()
@@ -645,10 +863,10 @@ impl Message for Reply {
                     stack_peak_bytes: r.u32()?,
                     carriage_target_um: r.i32()?,
                     carriage_estimate_um: r.i32()?,
+                    scale_counts: r.i32()?,
+                    record_crc: r.u32()?,
                 };
-                if s.flags & !status_flags::ALL != 0 {
-                    return Err(LinkError::OutOfRange);
-                }
+                // Every bit of `flags` is defined (`status_flags::ALL` is 0xff).
                 Reply::Status(s)
             }
             kind::TELEMETRY_FRAME => Reply::Telemetry(WireTelemetry::read(&mut expect_len(
@@ -663,6 +881,67 @@ impl Message for Reply {
                     current_a_bits,
                     telemetry,
                     step_instructions: r.u32()?,
+                }
+            }
+            kind::CONFIG_VALUE => {
+                let mut r = expect_len(payload, 17)?;
+                Reply::ConfigValue {
+                    key: r.u8()?,
+                    active_bits: r.u64()?,
+                    staged_bits: r.u64()?,
+                }
+            }
+            kind::SAVED => {
+                let mut r = expect_len(payload, 8)?;
+                Reply::Saved {
+                    seq: r.u32()?,
+                    crc32: r.u32()?,
+                }
+            }
+            kind::RECORDS => {
+                if payload.len() < 11 {
+                    return Err(LinkError::BadLength);
+                }
+                let mut r = Reader::new(payload);
+                let (seq, first_tick, every, count) = (r.u32()?, r.u32()?, r.u16()?, r.u8()?);
+                let n = count as usize;
+                if n == 0 || n > RECORD_BATCH {
+                    return Err(LinkError::OutOfRange);
+                }
+                if payload.len() != 11 + n * RECORD_SAMPLE_LEN {
+                    return Err(LinkError::BadLength);
+                }
+                let mut samples = [RecordSample::default(); RECORD_BATCH];
+                for s in &mut samples[..n] {
+                    *s = RecordSample {
+                        motor_counts: r.i32()?,
+                        scale_counts: r.i32()?,
+                        setpoint_counts: r.i32()?,
+                        current_ma: r.u16()? as i16,
+                    };
+                }
+                Reply::Records {
+                    seq,
+                    first_tick,
+                    every,
+                    count,
+                    samples,
+                }
+            }
+            kind::CAL_DATA => {
+                if payload.len() < 8 || payload.len() > 8 + CHUNK_MAX {
+                    return Err(LinkError::BadLength);
+                }
+                let mut r = Reader::new(payload);
+                let (offset, total_len) = (r.u32()?, r.u32()?);
+                let n = payload.len() - 8;
+                let mut data = [0u8; CHUNK_MAX];
+                data[..n].copy_from_slice(&payload[8..]);
+                Reply::CalData {
+                    offset,
+                    total_len,
+                    len: n as u8,
+                    data,
                 }
             }
             _ => return Err(LinkError::UnknownKind),

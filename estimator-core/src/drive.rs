@@ -14,6 +14,7 @@ use crate::fault;
 pub use crate::fault::Faults;
 use crate::model::{self, ModelCoeffs, ModelKind, ModelParams, ModelState};
 use crate::rig::Rig;
+pub use crate::settings::HomingConfig;
 use crate::trajectory::{self, Trajectory};
 use crate::BuildContext;
 use crate::{encoder, pid, ConfigError};
@@ -193,6 +194,8 @@ pub struct Drive {
     faults: Faults,
     enabled: bool,
     homed: bool,
+    /// The homing routine is searching for its stop.
+    homing: bool,
     prev_saturated: bool,
     model: ModelKind,
     polarity: Polarity,
@@ -226,6 +229,11 @@ pub struct Drive {
     um_per_count_q32: i64,
     rig: Rig,
     rate_hz: f64,
+    homing_cfg: HomingCoeffs,
+    /// A configuration was given (boot: stored, or over the link); otherwise enabling is refused.
+    configured: bool,
+    /// `models` hold coefficients for `rig`; otherwise only `ModelKind::None` may be selected.
+    models_valid: bool,
 }
 
 /// A raw counter that counts up for positive travel: negated if the wiring counts down.
@@ -266,9 +274,45 @@ fn to_i32(v: f64, field: &'static str) -> Result<i32, ConfigError> {
     }
 }
 
-impl Drive {
-    /// Checks `cfg` and builds a disabled drive at position 0 (home it with `Command::Home`).
-    pub fn new(cfg: &DriveConfig) -> Result<Drive, ConfigError> {
+/// A checked configuration in the drive's integer units, everything but the model
+/// coefficients: built with f64 arithmetic by [`Parts::build`] (milliseconds of soft float on
+/// the microcontroller, so outside the control task's lock), installed by
+/// [`Drive::reconfigure`].
+#[derive(Clone, Debug)]
+pub struct Parts {
+    rig: Rig,
+    rate_hz: f64,
+    limits: Limits,
+    motor: encoder::Coeffs<u16>,
+    scale: encoder::Coeffs<u16>,
+    trajectory: Trajectory,
+    move_scale: MoveScale,
+    pid: pid::Coeffs,
+    monitor: fault::Coeffs,
+    polarity: Polarity,
+    homing: HomingCoeffs,
+    um_per_count_q32: i64,
+    initial_model: ModelKind,
+}
+
+/// The homing routine in counts, ticks and amperes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct HomingCoeffs {
+    towards_positive: bool,
+    velocity_um_s: u32,
+    accel_um_s2: u32,
+    current_limit_a: I16F16,
+    detect_counts: u32,
+    position_um: i32,
+    backoff_um: i32,
+    /// How far the search goes before it gives up: the travel, both margins and the backoff.
+    search_counts: i32,
+}
+
+impl Parts {
+    /// Checks `cfg` and `homing` as [`Drive::new`] does and converts them; a refusal names the
+    /// field. `cfg.model` is not looked at.
+    pub fn build(cfg: &DriveConfig, homing: &HomingConfig) -> Result<Parts, ConfigError> {
         use ConfigError as E;
         // The geometry and the rate, checked once; every builder below takes them from here.
         let ctx = BuildContext::new(cfg.rig, cfg.rate_hz)?;
@@ -330,6 +374,71 @@ impl Drive {
             deceleration_mm_s2: amax,
         };
         let trajectory = Trajectory::new(start.build(&ctx)?, 0);
+
+        // Homing: slow and gentle, found before the following-error fault.
+        let hv = finite(homing.velocity_mm_s, "homing.velocity_mm_s")?;
+        if !(hv > 0.0 && hv <= vmax) {
+            return Err(E::OutOfRange("homing.velocity_mm_s"));
+        }
+        let hi_a = finite(homing.current_a, "homing.current_a")?;
+        if !(hi_a > 0.0 && hi_a <= cfg.pid.max_current_a) {
+            return Err(E::OutOfRange("homing.current_a"));
+        }
+        let detect = finite(homing.detect_error_mm, "homing.detect_error_mm")?;
+        if !(detect > 0.0 && detect < cfg.faults.following_error_at_rest_mm) {
+            return Err(E::OutOfRange("homing.detect_error_mm"));
+        }
+        let hpos = finite(homing.position_mm, "homing.position_mm")?;
+        if !(hpos >= lo - margin && hpos <= hi + margin) {
+            return Err(E::OutOfRange("homing.position_mm"));
+        }
+        let backoff = finite(homing.backoff_mm, "homing.backoff_mm")?;
+        let after = if homing.towards_positive {
+            hpos - backoff
+        } else {
+            hpos + backoff
+        };
+        if !(backoff >= 0.0 && after >= lo && after <= hi) {
+            return Err(E::OutOfRange("homing.backoff_mm"));
+        }
+        let homing = HomingCoeffs {
+            towards_positive: homing.towards_positive,
+            velocity_um_s: (hv * 1000.0) as u32,
+            // Reaches the jog speed within 0.1 s.
+            accel_um_s2: ((hv * 10_000.0) as u32).clamp(1, limits.max_accel_um_s2),
+            current_limit_a: I16F16::checked_from_num(hi_a)
+                .ok_or(E::OutOfRange("homing.current_a"))?,
+            detect_counts: (detect * cpm) as u32,
+            position_um: to_i32(hpos * 1000.0, "homing.position_mm")?,
+            backoff_um: to_i32(backoff * 1000.0, "homing.backoff_mm")?,
+            search_counts: to_i32(
+                (hi - lo + 2.0 * margin + backoff) * cpm,
+                "drive.travel_max_mm",
+            )?,
+        };
+        Ok(Parts {
+            rig: cfg.rig,
+            rate_hz,
+            limits,
+            motor,
+            scale,
+            trajectory,
+            move_scale,
+            pid,
+            monitor,
+            polarity: cfg.polarity,
+            homing,
+            um_per_count_q32: (1000.0 / cpm * 4_294_967_296.0) as i64,
+            initial_model: cfg.initial_model,
+        })
+    }
+}
+
+impl Drive {
+    /// Checks `cfg` and builds a disabled, configured drive at position 0 (home it with
+    /// `Command::Home` or `Command::Homing`), with the default homing routine.
+    pub fn new(cfg: &DriveConfig) -> Result<Drive, ConfigError> {
+        let parts = Parts::build(cfg, &HomingConfig::DEFAULT)?;
         let models = match cfg.model {
             Models::Params(p) => p.build(&cfg.rig)?,
             Models::Blob(b) => blob::decode_coeffs(b, &cfg.rig).map_err(|e| match e {
@@ -337,25 +446,30 @@ impl Drive {
                 _ => ConfigError::OutOfRange("drive.model (calibration blob)"),
             })?,
         };
+        let p = parts;
         Ok(Drive {
-            rig: cfg.rig,
-            rate_hz,
-            limits,
-            motor,
+            rig: p.rig,
+            rate_hz: p.rate_hz,
+            limits: p.limits,
+            motor: p.motor,
             motor_state: encoder::State::new(0),
-            scale,
+            scale: p.scale,
             scale_state: encoder::State::new(0),
-            trajectory,
-            move_limits: (limits.max_velocity_um_s, limits.max_accel_um_s2),
-            move_scale,
-            pid,
+            trajectory: p.trajectory,
+            move_limits: (p.limits.max_velocity_um_s, p.limits.max_accel_um_s2),
+            move_scale: p.move_scale,
+            pid: p.pid,
             pid_state: pid::State::new(),
             models,
+            models_valid: true,
             model_state: ModelState::new(0),
-            model: cfg.initial_model,
-            monitor,
+            model: p.initial_model,
+            monitor: p.monitor,
             monitor_state: fault::State::new(),
-            polarity: cfg.polarity,
+            polarity: p.polarity,
+            homing_cfg: p.homing,
+            homing: false,
+            configured: true,
             enabled: false,
             homed: false,
             faults: Faults::NONE,
@@ -365,19 +479,82 @@ impl Drive {
             missed_ticks: 0,
             scale_glitches: 0,
             carriage_target_um: 0,
-            um_per_count_q32: (1000.0 / cpm * 4_294_967_296.0) as i64,
+            um_per_count_q32: p.um_per_count_q32,
             tick: 0,
             last: Telemetry {
-                model: cfg.initial_model,
+                model: p.initial_model,
                 ..Telemetry::default()
             },
         })
+    }
+
+    /// Marks the drive unconfigured: it refuses to enable until [`Drive::reconfigure`] (the
+    /// firmware boots so when no valid configuration is stored, never silently on defaults).
+    pub fn forget_configuration(&mut self) {
+        self.configured = false;
+        self.enabled = false;
+        self.hold_here();
+    }
+
+    /// Whether the drive holds a configuration it may run with.
+    pub fn is_configured(&self) -> bool {
+        self.configured
+    }
+
+    /// Whether the error models hold coefficients for this drive's geometry (a calibration, or
+    /// the presets of the geometry they were made for).
+    pub fn is_calibrated(&self) -> bool {
+        self.models_valid
+    }
+
+    /// Whether the homing routine is running.
+    pub fn is_homing(&self) -> bool {
+        self.homing
+    }
+
+    /// Installs a configuration built with [`Parts::build`] (outside any lock: it is f64 work).
+    /// Only while disabled. The drive must be homed again; with another geometry the models no
+    /// longer apply, so compensation is off (`ModelKind::None`) until a calibration loads.
+    pub fn reconfigure(&mut self, p: Parts) -> Result<(), CommandError> {
+        if self.enabled || !self.trajectory.is_done() {
+            return Err(CommandError::Busy);
+        }
+        if p.rig != self.rig {
+            self.models_valid = false;
+        }
+        let here = self.motor_state.position_counts();
+        self.rig = p.rig;
+        self.rate_hz = p.rate_hz;
+        self.limits = p.limits;
+        self.motor = p.motor;
+        self.scale = p.scale;
+        self.trajectory = p.trajectory;
+        self.trajectory.reset(here);
+        self.move_limits = (p.limits.max_velocity_um_s, p.limits.max_accel_um_s2);
+        self.move_scale = p.move_scale;
+        self.pid = p.pid;
+        self.monitor = p.monitor;
+        self.polarity = p.polarity;
+        self.homing_cfg = p.homing;
+        self.um_per_count_q32 = p.um_per_count_q32;
+        self.model = if self.models_valid {
+            p.initial_model
+        } else {
+            ModelKind::None
+        };
+        self.model_state.settle(here);
+        self.configured = true;
+        self.homed = false;
+        self.homing = false;
+        self.hold_here();
+        Ok(())
     }
 
     /// Replaces the error-model parameters; the estimate restarts on the band edge of the
     /// current direction. Invalid parameters change nothing.
     pub fn set_model_params(&mut self, params: &ModelParams) -> Result<(), ConfigError> {
         self.models = params.build(&self.rig)?;
+        self.models_valid = true;
         self.model_state.settle(self.motor_state.position_counts());
         Ok(())
     }
@@ -400,6 +577,7 @@ impl Drive {
             return Err(BlobError::Busy);
         }
         self.models = models;
+        self.models_valid = true;
         self.model_state.settle(self.motor_state.position_counts());
         Ok(())
     }
@@ -644,8 +822,14 @@ impl Drive {
                 velocity_um_s,
                 accel_um_s2,
             } => self.start_move(target_um, velocity_um_s, accel_um_s2, true)?,
-            Command::Stop => self.trajectory.stop(),
+            Command::Stop => {
+                self.trajectory.stop();
+                self.homing = false;
+            }
             Command::Enable => {
+                if !self.configured {
+                    return Err(CommandError::Unconfigured);
+                }
                 if !self.faults.is_clear() {
                     return Err(CommandError::NotEnabled);
                 }
@@ -654,9 +838,18 @@ impl Drive {
                     self.enabled = true;
                 }
             }
-            Command::Disable => self.enabled = false,
+            Command::Disable => {
+                self.enabled = false;
+                self.homing = false;
+            }
             Command::ClearFaults => self.faults = Faults::NONE,
-            Command::SelectModel(kind) => self.model = kind,
+            Command::SelectModel(kind) => {
+                if kind != ModelKind::None && !self.models_valid {
+                    return Err(CommandError::NotCalibrated);
+                }
+                self.model = kind;
+            }
+            Command::Homing => self.start_homing()?,
             Command::Home {
                 position_um,
                 scale_um,
@@ -672,10 +865,97 @@ impl Drive {
                 self.model_state.reset(x);
                 self.carriage_target_um = position_um;
                 self.homed = true;
+                self.homing = false;
                 self.hold_here();
             }
         }
         Ok(())
+    }
+
+    /// Starts the homing search: a motor move towards the stop, far enough to cross the whole
+    /// travel from anywhere in it, at the homing speed; [`Drive::step`] watches for the stop.
+    fn start_homing(&mut self) -> Result<(), CommandError> {
+        if !self.enabled {
+            return Err(CommandError::NotEnabled);
+        }
+        if !self.trajectory.is_done() {
+            return Err(CommandError::Busy);
+        }
+        let h = self.homing_cfg;
+        let coeffs = self.move_coeffs(h.velocity_um_s, h.accel_um_s2)?;
+        let here = self.motor_state.position_counts();
+        let target = if h.towards_positive {
+            here.saturating_add(h.search_counts)
+        } else {
+            here.saturating_sub(h.search_counts)
+        };
+        let mut profile = self.trajectory;
+        profile
+            .set_coeffs(coeffs)
+            .map_err(|_| CommandError::AccelOutOfRange)?;
+        profile.set_target(target);
+        self.trajectory = profile;
+        self.move_limits = (h.velocity_um_s, h.accel_um_s2);
+        self.homed = false;
+        self.homing = true;
+        Ok(())
+    }
+
+    /// The homing search's tick, instead of the fault detectors (pressing on the stop is what it
+    /// looks for): the current limited to the homing current, the stop found when the following
+    /// error passes the detection threshold. Then the stop is the homing position, the scale
+    /// reads it too (the carriage touches the stop), the models start on the band edge of the
+    /// approach direction, and the drive backs off. Kept out of line: the per-tick path of a
+    /// homed drive does not pay for it.
+    #[cold]
+    #[inline(never)]
+    fn homing_tick(&mut self, x: i32) -> (I16F16, i32, i32) {
+        let h = self.homing_cfg;
+        let sp = self.trajectory.tick();
+        let out = self.pid.update(&mut self.pid_state, &sp, x);
+        let fe = out.following_error_counts.to_num::<i32>();
+        let setpoint = sp.position_floor_counts();
+        if fe.unsigned_abs() > h.detect_counts {
+            let home = self.um_to_counts(h.position_um);
+            self.motor_state.reset(home);
+            let scale = (h.position_um as i64 * SCALE_COUNTS_PER_UM as i64)
+                .clamp(i32::MIN as i64, i32::MAX as i64) as i32;
+            self.scale_state.reset(scale);
+            self.model_state.reset(home);
+            if !h.towards_positive {
+                self.model_state.dir = model::Direction::Reverse;
+            }
+            self.homing = false;
+            self.homed = true;
+            self.hold_here();
+            let away = if h.towards_positive {
+                h.position_um.saturating_sub(h.backoff_um)
+            } else {
+                h.position_um.saturating_add(h.backoff_um)
+            };
+            self.carriage_target_um = h.position_um;
+            if h.backoff_um != 0 {
+                // Checked at configuration: the backoff ends inside the travel.
+                let _ = self.start_move(away, h.velocity_um_s, h.accel_um_s2, false);
+            }
+            return (I16F16::ZERO, 0, home);
+        }
+        if self.trajectory.is_done() {
+            self.homing = false;
+            self.faults.0 |= Faults::HOMING_FAILED;
+        }
+        let limit = h.current_limit_a;
+        (out.current_a.clamp(-limit, limit), fe, setpoint)
+    }
+
+    /// Counts a tick without a frame from the host; latches `LINK_TIMEOUT` when too many pass.
+    #[inline(always)]
+    fn link_watchdog(&mut self) {
+        let timeout = self.monitor.link_timeout_ticks();
+        self.silent_ticks = self.silent_ticks.saturating_add(1);
+        if timeout != 0 && self.silent_ticks >= timeout {
+            self.faults.0 |= Faults::LINK_TIMEOUT;
+        }
     }
 
     /// Set-point at the measured position, loop and detector state cleared: enabling never jerks
@@ -693,7 +973,7 @@ impl Drive {
     pub fn step(&mut self, sample: Sample) -> Output {
         self.tick = self.tick.wrapping_add(1);
         let motor_raw = counting_up(sample.motor_counter, self.polarity.motor_encoder_inverted);
-        let x = match self.motor.update(&mut self.motor_state, motor_raw) {
+        let mut x = match self.motor.update(&mut self.motor_state, motor_raw) {
             Ok(x) => x,
             Err(_) => {
                 // The position can no longer be trusted: the drive must be homed again.
@@ -705,14 +985,15 @@ impl Drive {
         let scale_raw = counting_up(sample.scale_counter, self.polarity.scale_inverted);
         // The scale only informs calibration; a glitch there is counted and keeps the last good
         // reading.
-        let scale = match self.scale.update(&mut self.scale_state, scale_raw) {
+        let mut scale = match self.scale.update(&mut self.scale_state, scale_raw) {
             Ok(s) => s,
             Err(_) => {
                 self.scale_glitches = self.scale_glitches.saturating_add(1);
                 self.scale_state.position_counts()
             }
         };
-        if x < self.limits.fault_min_counts || x > self.limits.fault_max_counts {
+        // Before homing the position means nothing: the travel is checked once homed.
+        if self.homed && (x < self.limits.fault_min_counts || x > self.limits.fault_max_counts) {
             self.faults.0 |= Faults::TRAVEL_LIMIT;
         }
 
@@ -720,7 +1001,15 @@ impl Drive {
         let mut saturated = false;
         let mut following_error_counts = 0;
         let mut setpoint_counts = x;
-        if self.enabled && self.faults.is_clear() {
+        if self.homing && self.enabled && self.faults.is_clear() {
+            (current_a, following_error_counts, setpoint_counts) = self.homing_tick(x);
+            if self.homed {
+                // Found this tick: report the positions it assigned.
+                x = self.motor_state.position_counts();
+                scale = self.scale_state.position_counts();
+            }
+            self.link_watchdog();
+        } else if self.enabled && self.faults.is_clear() {
             let sp = self.trajectory.tick();
             let out = self.pid.update(&mut self.pid_state, &sp, x);
             // The floor of the I24F8 error (always within i32).
@@ -744,15 +1033,12 @@ impl Drive {
                     prev_saturated: self.prev_saturated,
                 },
             );
-            let timeout = self.monitor.link_timeout_ticks();
-            self.silent_ticks = self.silent_ticks.saturating_add(1);
-            if timeout != 0 && self.silent_ticks >= timeout {
-                self.faults.0 |= Faults::LINK_TIMEOUT;
-            }
+            self.link_watchdog();
         }
         if !self.faults.is_clear() {
             // Safe state: zero current, disabled until the host clears the fault and re-enables.
             self.enabled = false;
+            self.homing = false;
             current_a = I16F16::ZERO;
             saturated = false;
             self.hold_here();

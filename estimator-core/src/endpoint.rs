@@ -9,7 +9,9 @@ use belt_link::{
 use fixed::types::I16F16;
 
 use crate::blob::{self, BlobError};
-use crate::drive::{Drive, Faults, Output, Sample, Telemetry};
+use crate::drive::{Drive, Faults, Output, Parts, Sample, Telemetry};
+use crate::settings::{self, Settings, SettingsError};
+use crate::ConfigError;
 
 /// `detail` codes of [`LinkError::Calibration`].
 pub mod cal_error {
@@ -25,6 +27,18 @@ pub mod cal_error {
     pub const CRC: u8 = 5;
     /// The drive rejected the blob's contents: this bit plus [`super::blob_error_code`].
     pub const REJECTED: u8 = 0x10;
+}
+
+/// `detail` codes of [`LinkError::Storage`] that the endpoint gives; the storage's own errors
+/// use codes below 0x40 (see `crate::storage`).
+pub mod storage_detail {
+    /// This build has no persistent storage (QEMU without `--storage`).
+    pub const NO_STORAGE: u8 = 0x40;
+    /// The installed calibration's bytes were overwritten by a later, unfinished transfer:
+    /// upload the calibration again before saving.
+    pub const CALIBRATION_BYTES_GONE: u8 = 0x41;
+    /// Saving needs the drive disabled (an erase stalls the CPU).
+    pub const ENABLED: u8 = 0x42;
 }
 
 /// Wire code of a blob refusal (low bits of a [`cal_error::REJECTED`] detail).
@@ -128,6 +142,15 @@ pub enum Effect {
     /// task needs, install it with [`Drive::set_models`], then report with
     /// [`Endpoint::calibration_done`].
     Calibrate(usize),
+    /// The staged configuration ([`Endpoint::staged`]) is to be applied: build it with
+    /// [`Parts::build`] outside any lock, install it with [`Drive::reconfigure`], report with
+    /// [`Endpoint::configure_done`].
+    Configure,
+    /// Store [`Endpoint::active`] and [`Endpoint::installed_calibration`] (the drive is
+    /// disabled), then report with [`Endpoint::save_done`].
+    Save,
+    /// Stream recorded samples every `n` ticks (0 = off); then acknowledge.
+    Record(u16),
 }
 
 /// An event worth a log line, reported by [`Endpoint::handle`] (the core has no logger).
@@ -153,6 +176,19 @@ pub enum Event {
     },
     /// The drive rejected a blob.
     CalibrationRejected(BlobError),
+    /// A configuration value or the staged configuration was refused (the field).
+    ConfigRefused(ConfigError),
+    /// A new configuration is in force.
+    Configured,
+    /// The configuration and calibration were stored.
+    Saved {
+        /// Record sequence number.
+        seq: u32,
+        /// Record CRC-32.
+        crc32: u32,
+    },
+    /// Storing failed (the storage detail code).
+    SaveFailed(u8),
 }
 
 /// The drive's end of the link: turns requests into drive commands, assembles calibration
@@ -161,8 +197,16 @@ pub struct Endpoint {
     blob: [u8; blob::MAX_BYTES],
     /// Transfer in progress: announced length and CRC, bytes received, running CRC.
     transfer: Option<(usize, u32, usize, Crc32)>,
+    /// Length and CRC of the installed calibration while its bytes are in `blob` (a new
+    /// transfer overwrites them).
+    installed: Option<(usize, u32)>,
     calibrated: bool,
     streaming: bool,
+    /// The configuration in force and the one being edited over the link.
+    active: Settings,
+    staged: Settings,
+    /// CRC of the stored record booted from or last saved (0 = none).
+    record_crc: u32,
 }
 
 impl Default for Endpoint {
@@ -177,8 +221,102 @@ impl Endpoint {
         Endpoint {
             blob: [0; blob::MAX_BYTES],
             transfer: None,
+            installed: None,
             calibrated: false,
             streaming: false,
+            active: Settings::PAPER,
+            staged: Settings::PAPER,
+            record_crc: 0,
+        }
+    }
+
+    /// Boot: the configuration the drive was built with, and the stored record it came from
+    /// (CRC, 0 if none).
+    pub fn boot_with(&mut self, active: Settings, record_crc: u32) {
+        self.active = active;
+        self.staged = active;
+        self.record_crc = record_crc;
+    }
+
+    /// Boot: a stored calibration of `len` bytes was copied into [`Endpoint::blob_buffer`] and
+    /// installed.
+    pub fn boot_calibration(&mut self, len: usize) {
+        let len = len.min(self.blob.len());
+        self.installed = Some((len, belt_link::crc32(&self.blob[..len])));
+        self.calibrated = true;
+    }
+
+    /// The buffer a stored calibration is loaded into at boot.
+    pub fn blob_buffer(&mut self) -> &mut [u8] {
+        &mut self.blob
+    }
+
+    /// The configuration in force.
+    pub fn active(&self) -> &Settings {
+        &self.active
+    }
+
+    /// The configuration being edited (what [`Effect::Configure`] applies).
+    pub fn staged(&self) -> &Settings {
+        &self.staged
+    }
+
+    /// The installed calibration's bytes, if still held (empty: none loaded), or `None` if a
+    /// later transfer overwrote them.
+    pub fn installed_calibration(&self) -> Option<&[u8]> {
+        match self.installed {
+            Some((len, _)) => Some(&self.blob[..len]),
+            None if !self.calibrated => Some(&[]),
+            None => None,
+        }
+    }
+
+    /// Reports the outcome of an [`Effect::Configure`].
+    pub fn configure_done(
+        &mut self,
+        result: Result<(), Result<ConfigError, CommandError>>,
+    ) -> (Reply, Event) {
+        let of = kind::CONFIG_APPLY;
+        match result {
+            Ok(()) => {
+                self.active = self.staged;
+                (Reply::Ack { of }, Event::Configured)
+            }
+            Err(Ok(e)) => (
+                Reply::Error {
+                    of,
+                    reason: LinkError::Config,
+                    detail: settings::key_of(&e),
+                },
+                Event::ConfigRefused(e),
+            ),
+            Err(Err(e)) => (
+                Reply::Error {
+                    of,
+                    reason: LinkError::Refused,
+                    detail: e.code(),
+                },
+                Event::None,
+            ),
+        }
+    }
+
+    /// Reports the outcome of an [`Effect::Save`]: the record's sequence number and CRC, or the
+    /// storage detail code.
+    pub fn save_done(&mut self, result: Result<(u32, u32), u8>) -> (Reply, Event) {
+        match result {
+            Ok((seq, crc32)) => {
+                self.record_crc = crc32;
+                (Reply::Saved { seq, crc32 }, Event::Saved { seq, crc32 })
+            }
+            Err(d) => (
+                Reply::Error {
+                    of: kind::SAVE,
+                    reason: LinkError::Storage,
+                    detail: d,
+                },
+                Event::SaveFailed(d),
+            ),
         }
     }
 
@@ -196,6 +334,8 @@ impl Endpoint {
         match result {
             Ok(()) => {
                 self.calibrated = true;
+                let len = len.min(self.blob.len());
+                self.installed = Some((len, belt_link::crc32(&self.blob[..len])));
                 (
                     Reply::Ack {
                         of: kind::CAL_COMMIT,
@@ -222,6 +362,14 @@ impl Endpoint {
                 let result = crate::blob::decode_coeffs(self.calibration(len), drive.rig())
                     .and_then(|c| drive.set_models(c));
                 let (reply, event) = self.calibration_done(len, result);
+                (Effect::Reply(reply), event)
+            }
+            (Effect::Configure, _) => {
+                let cfg = self.staged.drive_config(crate::drive::Models::Blob(&[]));
+                let result = Parts::build(&cfg, &self.staged.homing)
+                    .map_err(Ok)
+                    .and_then(|p| drive.reconfigure(p).map_err(Err));
+                let (reply, event) = self.configure_done(result);
                 (Effect::Reply(reply), event)
             }
             other => other,
@@ -264,6 +412,66 @@ impl Endpoint {
                 (Effect::Stream(every_n_ticks), Event::None)
             }
             Request::Shutdown { code } => (Effect::Shutdown(code), Event::None),
+            Request::ConfigSet { key, value_bits } => {
+                match self.staged.set(key, f64::from_bits(value_bits)) {
+                    Ok(()) => (ack, Event::None),
+                    Err(SettingsError::Invalid(e)) => {
+                        (refuse(LinkError::Config, key), Event::ConfigRefused(e))
+                    }
+                    Err(_) => (refuse(LinkError::OutOfRange, key), Event::None),
+                }
+            }
+            Request::ConfigGet { key } => match (self.active.get(key), self.staged.get(key)) {
+                (Some(a), Some(s)) => (
+                    Effect::Reply(Reply::ConfigValue {
+                        key,
+                        active_bits: a.to_bits(),
+                        staged_bits: s.to_bits(),
+                    }),
+                    Event::None,
+                ),
+                _ => (refuse(LinkError::OutOfRange, key), Event::None),
+            },
+            Request::ConfigApply => {
+                if drive.is_enabled() {
+                    let e = CommandError::Busy;
+                    return (refuse(LinkError::Refused, e.code()), Event::None);
+                }
+                (Effect::Configure, Event::None)
+            }
+            Request::Save => {
+                if drive.is_enabled() {
+                    return (
+                        refuse(LinkError::Storage, storage_detail::ENABLED),
+                        Event::SaveFailed(storage_detail::ENABLED),
+                    );
+                }
+                if self.installed_calibration().is_none() {
+                    let d = storage_detail::CALIBRATION_BYTES_GONE;
+                    return (refuse(LinkError::Storage, d), Event::SaveFailed(d));
+                }
+                (Effect::Save, Event::None)
+            }
+            Request::Record { every_n_ticks } => (Effect::Record(every_n_ticks), Event::None),
+            Request::CalRead { offset } => {
+                let Some(bytes) = self.installed_calibration() else {
+                    let d = cal_error::NOT_STARTED;
+                    return (refuse(LinkError::Calibration, d), Event::None);
+                };
+                let start = (offset as usize).min(bytes.len());
+                let piece = &bytes[start..(start + belt_link::CHUNK_MAX).min(bytes.len())];
+                let mut data = [0u8; belt_link::CHUNK_MAX];
+                data[..piece.len()].copy_from_slice(piece);
+                (
+                    Effect::Reply(Reply::CalData {
+                        offset,
+                        total_len: bytes.len() as u32,
+                        len: piece.len() as u8,
+                        data,
+                    }),
+                    Event::None,
+                )
+            }
             Request::CalBegin { total_len, crc32 } => {
                 if total_len as usize > blob::MAX_BYTES {
                     self.transfer = None;
@@ -274,6 +482,8 @@ impl Endpoint {
                     );
                 }
                 self.transfer = Some((total_len as usize, crc32, 0, Crc32::new()));
+                // The buffer is about to be overwritten.
+                self.installed = None;
                 (ack, Event::CalibrationBegun { total_len })
             }
             Request::CalChunk {
@@ -349,6 +559,12 @@ impl Endpoint {
         if last.amplifier_enabled {
             flags |= status_flags::AMPLIFIER_ENABLED;
         }
+        if drive.is_configured() {
+            flags |= status_flags::CONFIGURED;
+        }
+        if drive.is_homing() {
+            flags |= status_flags::HOMING;
+        }
         WireStatus {
             tick: last.tick,
             motor_counts: last.motor_counts,
@@ -364,6 +580,8 @@ impl Endpoint {
             stack_peak_bytes,
             carriage_target_um: drive.carriage_target_um(),
             carriage_estimate_um: drive.carriage_estimate_um(),
+            scale_counts: last.scale_counts,
+            record_crc: self.record_crc,
         }
     }
 }

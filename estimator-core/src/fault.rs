@@ -43,14 +43,16 @@ impl Faults {
     pub const DEADLINE_MISSED: u16 = 1 << 8;
     /// The clock security system saw the crystal fail (board only).
     pub const CLOCK_FAILURE: u16 = 1 << 9;
+    /// The homing routine searched the whole travel without finding its stop.
+    pub const HOMING_FAILED: u16 = 1 << 10;
     /// No fault.
     pub const NONE: Faults = Faults(0);
     /// Every defined bit.
-    pub const ALL: u16 = (1 << 10) - 1;
+    pub const ALL: u16 = (1 << 11) - 1;
 
     /// Every bit with its name, in bit order. The names are what logs, status replies and
     /// `hil-sim` print.
-    pub const NAMES: [(u16, &'static str); 10] = [
+    pub const NAMES: [(u16, &'static str); 11] = [
         (Self::ENCODER_JUMP, "encoder_jump"),
         (Self::FOLLOWING_ERROR, "following_error"),
         (Self::TRAVEL_LIMIT, "travel_limit"),
@@ -61,6 +63,7 @@ impl Faults {
         (Self::CURRENT_SATURATION, "current_saturation"),
         (Self::DEADLINE_MISSED, "deadline_missed"),
         (Self::CLOCK_FAILURE, "clock_failure"),
+        (Self::HOMING_FAILED, "homing_failed"),
     ];
 
     /// True when no fault bit is set.

@@ -22,8 +22,11 @@ pub mod model;
 pub mod blob;
 pub mod drive;
 pub mod fault;
+pub mod settings;
 
 pub mod endpoint;
+
+pub mod storage;
 
 #[cfg(feature = "vectors")]
 pub mod vectors;

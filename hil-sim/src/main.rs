@@ -199,6 +199,35 @@ enum Cmd {
         #[arg(long, default_value = "out/report")]
         out: PathBuf,
     },
+    /// A virtual drive: the firmware under QEMU on the simulated plant, its link on a
+    /// pseudo-terminal that a host tool opens like a USB-serial adapter. Runs until Ctrl-C,
+    /// SIGTERM, or a host's Shutdown request.
+    VirtualDrive {
+        /// Plant parameters (TOML); default: the built-in `paper-rig` preset.
+        #[arg(long)]
+        plant: Option<PathBuf>,
+        /// The drive's storage (a file standing in for the flash sectors; created if missing).
+        #[arg(long)]
+        storage: PathBuf,
+        /// Make this symbolic link to the terminal (e.g. /tmp/belt-drive).
+        #[arg(long)]
+        link: Option<PathBuf>,
+        /// Carriage position at power-on, mm (the drive must home to learn it).
+        #[arg(long, default_value_t = 150.0)]
+        start_mm: f64,
+        /// Plant noise seed.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Plant time per wall time (1 = real time, 0 = as fast as QEMU runs).
+        #[arg(long, default_value_t = 1.0)]
+        speed: f64,
+        /// Firmware ELF (default: target/thumbv7em-none-eabihf/release/belt-drive).
+        #[arg(long)]
+        elf: Option<PathBuf>,
+        /// Write the firmware's defmt log here (default: stderr).
+        #[arg(long)]
+        log: Option<PathBuf>,
+    },
 }
 
 fn plant_params(path: &Option<PathBuf>) -> Result<PlantParams, String> {
@@ -500,6 +529,61 @@ fn main() -> ExitCode {
             elf,
             json,
         } => faults_campaign(&plant, seed, pil, &elf, json),
+        Cmd::VirtualDrive {
+            plant,
+            storage,
+            link,
+            start_mm,
+            seed,
+            speed,
+            elf,
+            log,
+        } => (|| {
+            let plant = plant_params(&plant)?;
+            let elf = elf.unwrap_or_else(|| PilOptions::default_elf(None));
+            if !elf.exists() {
+                return Err(format!(
+                    "{}: no firmware ELF; build it with `cargo fw-qemu`",
+                    elf.display()
+                ));
+            }
+            if !(speed.is_finite() && speed >= 0.0) {
+                return Err(format!("--speed {speed}: must be 0 or more"));
+            }
+            let mut pil = PilOptions::new(elf);
+            pil.storage = Some(storage.clone());
+            // Runs for as long as the host needs it.
+            pil.timeout = std::time::Duration::from_secs(24 * 3600);
+            if let Some(path) = log {
+                pil.log = hil_sim::pil::qemu::LogSink::File(path);
+            }
+            let opts = hil_sim::pil::virtual_drive::VirtualDriveOptions {
+                pil,
+                plant,
+                start_mm,
+                seed,
+                link,
+                speed,
+            };
+            eprintln!(
+                "virtual drive: plant {}, storage {}",
+                opts.plant.name(),
+                storage.display()
+            );
+            let end = hil_sim::pil::virtual_drive::run(&opts, &mut |tty| {
+                // stdout: the port, for scripts.
+                println!("{}", tty.display());
+                eprintln!("virtual drive: link on {}", tty.display());
+            })?;
+            eprintln!(
+                "virtual drive: stopped after {} ticks{}",
+                end.ticks,
+                end.exit_code
+                    .map(|c| format!(", firmware exit {c}"))
+                    .unwrap_or_default()
+            );
+            Ok(())
+        })(),
         Cmd::Report {
             scenario,
             common,

@@ -9,6 +9,9 @@
 //! - `pil_deliver()` (QEMU: hand a PIL sample to `control`; board: refused), `clock_failed()`,
 //! - `LinkRx`, `LinkTx` (the link; board: the USART halves; QEMU: also the PIL pipe) and
 //!   `IdleIo` (what `idle` does);
+//! - the configuration storage (`estimator_core::storage`'s A/B slots): `StorageFlash` (board:
+//!   flash sectors 10-11, `stm32f405/flash.rs`; QEMU: a host file, `qemu_storage.rs`),
+//!   `open_storage()` and `during_save(f)` (board: the watchdog lengthened around the erase).
 //! - `emergency_stop()`, `halt(code)`; here: `timestamp_ms()` and the link USART halves.
 //!
 //! The control-tick interrupt is `TIM7` on both: on the board TIM7 (a basic timer) fires at the
@@ -26,6 +29,11 @@ pub use stm32f405::*;
 mod qemu;
 #[cfg(feature = "qemu")]
 pub use qemu::*;
+/// The configuration storage under QEMU: a host file through semihosting (`--storage PATH`).
+#[cfg(feature = "qemu")]
+pub mod qemu_storage;
+#[cfg(feature = "qemu")]
+pub use qemu_storage::{during_save, open_storage, FileFlash as StorageFlash};
 
 use stm32f4xx_hal::pac;
 

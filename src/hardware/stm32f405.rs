@@ -21,6 +21,9 @@
 //! tick, resets a board that stops ticking into that safe state.
 
 mod clocks;
+/// The configuration storage: flash sectors 10-11.
+pub mod flash;
+pub use flash::{open_storage, with_long_watchdog as during_save, BoardFlash as StorageFlash};
 
 use core::sync::atomic::{AtomicBool, Ordering};
 

@@ -17,6 +17,7 @@
 pub mod bench;
 pub mod fuzz;
 pub mod qemu;
+pub mod virtual_drive;
 
 use std::fs::File;
 use std::io::{self, Read, Write};
@@ -31,6 +32,7 @@ use belt_link::{
 };
 use estimator_core::drive::{Output, Sample};
 use estimator_core::endpoint::output_of;
+use estimator_core::settings::{self, Settings};
 
 use crate::controller::{ControlError, Controller};
 use qemu::{LogSink, Qemu, QemuOptions};
@@ -72,6 +74,11 @@ pub struct PilOptions {
     pub min_level: &'static str,
     /// How the link travels.
     pub transport: Transport,
+    /// The configuration sent to the firmware after boot (it boots unconfigured without
+    /// storage); `None`: send none (the drive keeps what it booted with).
+    pub settings: Option<Settings>,
+    /// The drive's storage file (`None`: the firmware has no storage).
+    pub storage: Option<PathBuf>,
 }
 
 /// How the PIL link travels between this process and the firmware under QEMU.
@@ -162,6 +169,8 @@ impl PilOptions {
             log: LogSink::Stderr,
             min_level: "info",
             transport: Transport::Pipe,
+            settings: Some(Settings::PAPER),
+            storage: None,
         }
     }
 
@@ -241,6 +250,7 @@ impl PilController {
         q.timeout = opts.timeout;
         q.log = opts.log.clone();
         q.min_level = opts.min_level;
+        q.storage = opts.storage.clone();
         let link = match opts.transport {
             Transport::Pipe => {
                 let dir = std::env::temp_dir().join(name);
@@ -325,7 +335,23 @@ impl PilController {
             0,
             Duration::from_secs(20),
         )?;
+        if let Some(s) = &opts.settings {
+            pil.configure(s)?;
+        }
         Ok(pil)
+    }
+
+    /// Sends every configuration field and applies them (the drive must be disabled).
+    pub fn configure(&mut self, s: &Settings) -> Result<(), PilError> {
+        for f in &settings::FIELDS {
+            let value = s.get(f.key).unwrap_or_default();
+            self.expect_ack(&Request::ConfigSet {
+                key: f.key,
+                value_bits: value.to_bits(),
+            })
+            .map_err(|e| link_err(format!("{} = {value}: {e}", f.name)))?;
+        }
+        self.expect_ack(&Request::ConfigApply)
     }
 
     /// Reads replies until one with sequence `seq` satisfies `want`, or the time is up.
@@ -437,6 +463,14 @@ impl PilController {
                 Some(e) => Err(PilError::Refused(e)),
                 None => Err(link_err(format!("refused with unknown code {detail}"))),
             },
+            Reply::Error {
+                reason: LinkError::Config,
+                detail,
+                ..
+            } => Err(link_err(format!(
+                "configuration refused: {}",
+                settings::field(detail).map_or("unknown field", |f| f.name)
+            ))),
             Reply::Error { reason, detail, .. } => Err(link_err(format!(
                 "{:?} refused: {reason:?} (detail {detail})",
                 req.kind()
@@ -470,6 +504,79 @@ impl PilController {
         Ok(out)
     }
 
+    /// [`PilController::step_sample`] for a drive whose link also serves another host (the
+    /// virtual drive): every frame from the firmware other than this tick's answer is handed
+    /// to `forward` whole, re-encoded exactly as it came (the encoding is canonical).
+    pub fn step_forwarding(
+        &mut self,
+        sample: Sample,
+        forward: &mut dyn FnMut(&[u8]),
+    ) -> Result<Output, PilError> {
+        self.seq = self.seq.checked_add(1).unwrap_or(1);
+        let seq = self.seq;
+        self.send(
+            seq,
+            &Request::Sample {
+                motor_counter: sample.motor_counter,
+                scale_counter: sample.scale_counter,
+            },
+        )?;
+        let deadline = Instant::now() + self.reply_timeout;
+        let mut buf = [0u8; 512];
+        loop {
+            let n = match self.link.read(&mut buf, Duration::from_millis(50)) {
+                Ok(0) => return Err(link_err("QEMU closed the link")),
+                Ok(n) => n,
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
+                    ) =>
+                {
+                    if Instant::now() >= deadline {
+                        return Err(link_err("no answer to a sample"));
+                    }
+                    if !self.qemu.is_running() {
+                        return Err(link_err("QEMU exited"));
+                    }
+                    continue;
+                }
+                Err(e) => return Err(link_err(e)),
+            };
+            let mut found = None;
+            for &b in &buf[..n] {
+                match self.rx.push::<Reply>(b) {
+                    Some(Ok(f)) if f.seq == seq && matches!(f.msg, Reply::Answer { .. }) => {
+                        found = Some(f.msg)
+                    }
+                    Some(Ok(f)) => {
+                        let mut out = [0u8; MAX_FRAME];
+                        let len = encode(f.seq, &f.msg, &mut out);
+                        forward(&out[..len]);
+                    }
+                    None => {}
+                    Some(Err(_)) => self.bad_replies += 1,
+                }
+            }
+            if let Some(reply) = found {
+                let (out, instructions) = output_of(&reply)
+                    .ok_or_else(|| link_err(format!("invalid answer: {reply:?}")))?;
+                self.counts.add(instructions);
+                return Ok(out);
+            }
+        }
+    }
+
+    /// True while QEMU runs.
+    pub fn is_running(&mut self) -> bool {
+        self.qemu.is_running()
+    }
+
+    /// Waits for QEMU to end (after a host's `Shutdown`) and returns its exit status.
+    pub fn wait(mut self) -> Result<i32, PilError> {
+        self.qemu.wait().map_err(link_err)
+    }
+
     /// The decoded defmt lines kept so far.
     pub fn log_lines(&self) -> Vec<String> {
         self.qemu.log_lines()
@@ -482,7 +589,10 @@ fn answers(reply: &Reply, k: u8) -> bool {
         Reply::Ack { of } | Reply::Error { of, .. } => *of == k,
         Reply::Status(_) => k == kind::STATUS,
         Reply::Answer { .. } => k == kind::SAMPLE,
-        Reply::Telemetry(_) => false,
+        Reply::ConfigValue { .. } => k == kind::CONFIG_GET,
+        Reply::Saved { .. } => k == kind::SAVE,
+        Reply::CalData { .. } => k == kind::CAL_READ,
+        Reply::Telemetry(_) | Reply::Records { .. } => false,
     }
 }
 

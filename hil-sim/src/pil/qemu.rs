@@ -42,6 +42,9 @@ pub struct QemuOptions {
     /// The link over two FIFOs (host to firmware, firmware to host) through semihosting
     /// instead of USART2: passed as `--pipe IN OUT` on the semihosting command line.
     pub pipe: Option<(PathBuf, PathBuf)>,
+    /// The drive's persistent storage: a host file standing in for the flash sectors
+    /// (`--storage FILE` on the semihosting command line).
+    pub storage: Option<PathBuf>,
     /// Wall-clock limit for the whole run.
     pub timeout: Duration,
     /// Where the decoded log goes.
@@ -60,6 +63,7 @@ impl QemuOptions {
             icount_shift: None,
             usart2_socket: None,
             pipe: None,
+            storage: None,
             timeout: Duration::from_secs(60),
             log: LogSink::Stderr,
             min_level: "info",
@@ -120,14 +124,16 @@ pub fn command_line(opts: &QemuOptions) -> Vec<String> {
         .collect();
     args.push("-semihosting-config".into());
     let mut semihosting = String::from("enable=on,target=native");
+    // QEMU's option syntax doubles a comma inside a value.
+    let arg = |p: &PathBuf| p.display().to_string().replace(',', ",,");
+    if opts.pipe.is_some() || opts.storage.is_some() {
+        semihosting += ",arg=belt-drive";
+    }
     if let Some((input, output)) = &opts.pipe {
-        // QEMU's option syntax doubles a comma inside a value.
-        let arg = |p: &PathBuf| p.display().to_string().replace(',', ",,");
-        semihosting += &format!(
-            ",arg=belt-drive,arg=--pipe,arg={},arg={}",
-            arg(input),
-            arg(output)
-        );
+        semihosting += &format!(",arg=--pipe,arg={},arg={}", arg(input), arg(output));
+    }
+    if let Some(path) = &opts.storage {
+        semihosting += &format!(",arg=--storage,arg={}", arg(path));
     }
     args.push(semihosting);
     args.push("-kernel".into());

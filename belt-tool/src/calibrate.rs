@@ -1,0 +1,727 @@
+//! `beltctl calibrate`: the calibration of `hil-sim calibrate` on a real drive.
+//!
+//! The same scenarios (`hil_sim::eval::CALIBRATION_SCENARIOS`, fitted to the drive's travel and
+//! limits), run as raw motor moves while the drive records every tick; the recordings become
+//! `hil_sim::run::Trace`s and are fitted by `hil_sim::calibrate::calibrate`, written by
+//! `hil_sim::calfile`, plotted by `hil_sim::plot`; the blob goes to the drive and is read back.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use belt_link::{crc32, Command, ModelKind, Reply, Request, CHUNK_MAX};
+use estimator_core::blob;
+use estimator_core::drive::{Faults, Output, Telemetry, SCALE_COUNTS_PER_UM};
+use estimator_core::fixed::types::I16F16;
+use estimator_core::model::ModelParams;
+use estimator_core::rig::Rig;
+use estimator_core::settings::Settings;
+use hil_sim::calibrate::Calibration;
+use hil_sim::run::{Record, Trace};
+use hil_sim::scenario::{Move, Scenario};
+
+use crate::error::ToolError;
+use crate::link::{Link, TickSample};
+use crate::ops::{self, MoveLimits};
+use crate::progress::Progress;
+
+/// Rest after the last move of a scenario before its recording stops (as `hil-sim` runs end).
+const SETTLE: Duration = Duration::from_millis(200);
+
+/// The travel the calibration scenarios were written for: the paper rig's.
+fn scenario_travel_mm() -> (f64, f64) {
+    (Settings::PAPER.travel_min_mm, Settings::PAPER.travel_max_mm)
+}
+
+/// What the calibration scenarios became on this drive.
+#[derive(Clone, Debug)]
+pub struct Plan {
+    /// The scenarios, positions and limits fitted to the drive.
+    pub scenarios: Vec<Scenario>,
+    /// Positions were scaled by this factor (1 when the drive's travel holds the scenarios).
+    pub position_scale: f64,
+    /// Moves whose velocity or acceleration was lowered to the drive's (or `--velocity`,
+    /// `--accel`) limits.
+    pub clipped_moves: usize,
+}
+
+/// `hil-sim`'s calibration scenarios fitted to the drive: positions mapped from the paper's
+/// travel onto the drive's (scaled down only where the drive's is shorter), speeds and
+/// accelerations clipped to the drive's limits and to the caps given.
+pub fn plan(
+    settings: &Settings,
+    velocity_cap: Option<f64>,
+    accel_cap: Option<f64>,
+) -> Result<Plan, ToolError> {
+    let (p0, p1) = scenario_travel_mm();
+    let (d0, d1) = (settings.travel_min_mm, settings.travel_max_mm);
+    // NaN-proof: only a real, non-empty travel passes.
+    if d1.partial_cmp(&d0) != Some(std::cmp::Ordering::Greater) {
+        return Err(ToolError::Drive(format!(
+            "the drive's travel {d0}..{d1} mm is empty (drive.travel_min_mm, drive.travel_max_mm)"
+        )));
+    }
+    let scale = ((d1 - d0) / (p1 - p0)).min(1.0);
+    let map = |x: f64| (d0 + (x - p0) * scale).clamp(d0, d1);
+    let vmax = velocity_cap.map_or(settings.max_velocity_mm_s, |c| {
+        c.min(settings.max_velocity_mm_s)
+    });
+    let amax = accel_cap.map_or(settings.max_accel_mm_s2, |c| {
+        c.min(settings.max_accel_mm_s2)
+    });
+    let mut clipped = 0;
+    let mut scenarios = Vec::new();
+    for name in hil_sim::eval::CALIBRATION_SCENARIOS {
+        let s = Scenario::load(name).map_err(ToolError::Drive)?;
+        let moves = s
+            .moves
+            .iter()
+            .map(|m| {
+                let (v, a) = (m.velocity_mm_s.min(vmax), m.accel_mm_s2.min(amax));
+                if v < m.velocity_mm_s || a < m.accel_mm_s2 {
+                    clipped += 1;
+                }
+                Move {
+                    to_mm: map(m.to_mm),
+                    velocity_mm_s: v,
+                    accel_mm_s2: a,
+                    ..m.clone()
+                }
+            })
+            .collect();
+        scenarios.push(Scenario {
+            start_mm: map(s.start_mm),
+            moves,
+            ..s
+        });
+    }
+    Ok(Plan {
+        scenarios,
+        position_scale: scale,
+        clipped_moves: clipped,
+    })
+}
+
+/// A recording as a `hil-sim` trace: time from the recording's first tick, the scale in
+/// millimetres, the commanded direction held at rest, the current as the drive's output.
+pub fn to_trace(
+    name: &str,
+    samples: &[TickSample],
+    rate_hz: f64,
+    rig: &Rig,
+    move_ticks: &[u32],
+) -> Trace {
+    let t0 = samples.first().map_or(0, |s| s.tick);
+    let mut cmd_dir: i8 = 1;
+    let mut last_sp: Option<i32> = None;
+    let records = samples
+        .iter()
+        .map(|s| {
+            let r = &s.sample;
+            let moving = last_sp.is_some_and(|sp| sp != r.setpoint_counts);
+            if let Some(sp) = last_sp {
+                if r.setpoint_counts != sp {
+                    cmd_dir = if r.setpoint_counts > sp { 1 } else { -1 };
+                }
+            }
+            last_sp = Some(r.setpoint_counts);
+            let current_a = I16F16::saturating_from_num(r.current_ma as f64 / 1000.0);
+            Record {
+                t_s: s.tick.wrapping_sub(t0) as f64 / rate_hz,
+                motor_counts: r.motor_counts,
+                x_ls_mm: r.scale_counts as f64 / (SCALE_COUNTS_PER_UM as f64 * 1000.0),
+                setpoint_counts: r.setpoint_counts,
+                cmd_dir,
+                out: Output {
+                    current_a,
+                    telemetry: Telemetry {
+                        tick: s.tick,
+                        motor_counts: r.motor_counts,
+                        scale_counts: r.scale_counts,
+                        setpoint_counts: r.setpoint_counts,
+                        following_error_counts: r.setpoint_counts.wrapping_sub(r.motor_counts),
+                        current_a,
+                        faults: Faults::NONE,
+                        moving,
+                        amplifier_enabled: true,
+                        homed: true,
+                        ..Telemetry::default()
+                    },
+                },
+            }
+        })
+        .collect();
+    let move_starts = move_ticks
+        .iter()
+        .map(|&t| samples.partition_point(|s| s.tick.wrapping_sub(t0) < t.wrapping_sub(t0)))
+        .collect();
+    Trace {
+        scenario: name.to_string(),
+        seed: 0,
+        counts_per_mm: rig.counts_per_mm(),
+        records,
+        move_starts,
+    }
+}
+
+/// Fails unless the scale followed the motor over the recording: calibration needs it fitted,
+/// connected and counting the right way.
+pub fn check_scale(trace: &Trace) -> Result<(), ToolError> {
+    let r = &trace.records;
+    let (Some(lo), Some(hi)) = (
+        (0..r.len()).min_by_key(|&i| r[i].motor_counts),
+        (0..r.len()).max_by_key(|&i| r[i].motor_counts),
+    ) else {
+        return Err(ToolError::Drive("the recording is empty".into()));
+    };
+    let motor_mm = trace.x_pe_mm(hi) - trace.x_pe_mm(lo);
+    let scale_mm = r[hi].x_ls_mm - r[lo].x_ls_mm;
+    if motor_mm < 1.0 {
+        return Err(ToolError::Drive(format!(
+            "the motor moved only {motor_mm:.3} mm during {}: calibration needs the moves",
+            trace.scenario
+        )));
+    }
+    let ratio = scale_mm / motor_mm;
+    if ratio < -0.5 {
+        return Err(ToolError::Drive(format!(
+            "the linear scale counts backwards (motor +{motor_mm:.1} mm, scale {scale_mm:.1} \
+             mm): set polarity.scale_inverted"
+        )));
+    }
+    if !(0.5..=2.0).contains(&ratio) {
+        return Err(ToolError::Drive(format!(
+            "the linear scale does not follow the motor (motor {motor_mm:.1} mm, scale \
+             {scale_mm:.3} mm): calibration needs the linear scale fitted and connected"
+        )));
+    }
+    Ok(())
+}
+
+/// Runs one scenario's moves as raw motor moves while recording every tick; returns the
+/// recording and the ticks at which each move was commanded.
+fn run_scenario(
+    link: &mut Link,
+    s: &Scenario,
+    progress: &mut Progress,
+) -> Result<(Vec<TickSample>, Vec<u32>), ToolError> {
+    let label = format!("record {}", s.name);
+    // To the start, unrecorded, as a hil-sim run starts at rest there.
+    let first = &s.moves[0];
+    let to_start = MoveLimits {
+        velocity_mm_s: first.velocity_mm_s,
+        accel_mm_s2: first.accel_mm_s2,
+    };
+    let here = link.status()?.carriage_estimate_um as f64 / 1000.0;
+    let cmd = ops::move_command(ops::target_um(s.start_mm)?, &to_start, true)?;
+    ops::move_and_wait(link, cmd, s.start_mm - here, &to_start, |_| Ok(()))?;
+    link.pump(Duration::from_millis(300))?;
+
+    link.start_recording(1)?;
+    let mut samples = Vec::new();
+    let mut move_ticks = Vec::with_capacity(s.moves.len());
+    let result = (|| {
+        let mut x = s.start_mm;
+        for (i, m) in s.moves.iter().enumerate() {
+            progress.stage(&label, i as f64 / s.moves.len() as f64);
+            let limits = MoveLimits {
+                velocity_mm_s: m.velocity_mm_s,
+                accel_mm_s2: m.accel_mm_s2,
+            };
+            move_ticks.push(link.status()?.tick);
+            let cmd = ops::move_command(ops::target_um(m.to_mm)?, &limits, true)?;
+            match m.retarget_after_ms {
+                Some(ms) => {
+                    link.command(cmd)?;
+                    link.pump(Duration::from_millis(ms as u64))?;
+                }
+                None => {
+                    ops::move_and_wait(link, cmd, m.to_mm - x, &limits, |_| Ok(()))?;
+                    dwell(link, Duration::from_millis(m.dwell_ms as u64))?;
+                }
+            }
+            samples.extend(link.take_samples());
+            x = m.to_mm;
+        }
+        dwell(link, SETTLE)
+    })();
+    progress.stage(&label, 1.0);
+    let stopped = link.stop_recording();
+    result?;
+    let (rest, stats) = stopped?;
+    samples.extend(rest);
+    stats.check()?;
+    Ok((samples, move_ticks))
+}
+
+/// Rests for `d`, polling the status now and then (the drive's link watchdog).
+fn dwell(link: &mut Link, d: Duration) -> Result<(), ToolError> {
+    let end = std::time::Instant::now() + d;
+    loop {
+        let left = end.saturating_duration_since(std::time::Instant::now());
+        if left.is_zero() {
+            return Ok(());
+        }
+        link.pump(left.min(ops::POLL * 4))?;
+        link.status()?;
+    }
+}
+
+/// Uploads a calibration blob: begin, chunks, commit. A transfer broken by the link (a lost
+/// reply makes the drive see a chunk twice) starts over, up to the link's tries.
+pub fn upload(link: &mut Link, blob: &[u8]) -> Result<(), ToolError> {
+    use estimator_core::endpoint::cal_error;
+    let tries = link.options().tries;
+    let mut last = None;
+    for _ in 0..tries {
+        match upload_once(link, blob) {
+            Ok(()) => return Ok(()),
+            Err(
+                e @ ToolError::Refused {
+                    reason: belt_link::LinkError::Calibration,
+                    detail,
+                    ..
+                },
+            ) if detail & cal_error::REJECTED == 0 && detail != cal_error::TOO_LONG => {
+                last = Some(e)
+            }
+            Err(e @ (ToolError::Timeout { .. } | ToolError::Damaged { .. })) => last = Some(e),
+            Err(e) => return Err(e),
+        }
+    }
+    Err(last.unwrap_or_else(|| ToolError::Drive("calibration upload failed".into())))
+}
+
+fn upload_once(link: &mut Link, blob: &[u8]) -> Result<(), ToolError> {
+    link.acked(&Request::CalBegin {
+        total_len: blob.len() as u32,
+        crc32: crc32(blob),
+    })?;
+    for (i, piece) in blob.chunks(CHUNK_MAX).enumerate() {
+        let mut data = [0u8; CHUNK_MAX];
+        data[..piece.len()].copy_from_slice(piece);
+        link.acked(&Request::CalChunk {
+            offset: (i * CHUNK_MAX) as u32,
+            len: piece.len() as u8,
+            data,
+        })?;
+    }
+    link.acked(&Request::CalCommit)
+}
+
+/// Reads the installed calibration blob back (`CalRead`); `expected_len` is what was uploaded.
+pub fn read_back(link: &mut Link, expected_len: usize) -> Result<Vec<u8>, ToolError> {
+    let mut out = Vec::with_capacity(expected_len);
+    while out.len() < expected_len {
+        let req = Request::CalRead {
+            offset: out.len() as u32,
+        };
+        match link.call(&req)? {
+            Reply::CalData {
+                total_len,
+                len,
+                data,
+                ..
+            } => {
+                if total_len as usize != expected_len {
+                    return Err(ToolError::Drive(format!(
+                        "the drive holds a calibration of {total_len} bytes, not the \
+                         {expected_len} uploaded"
+                    )));
+                }
+                if len == 0 {
+                    return Err(link.unexpected(
+                        &req,
+                        &Reply::CalData {
+                            offset: out.len() as u32,
+                            total_len,
+                            len,
+                            data,
+                        },
+                    ));
+                }
+                let n = (len as usize).min(CHUNK_MAX).min(expected_len - out.len());
+                out.extend_from_slice(&data[..n]);
+            }
+            other => return Err(link.unexpected(&req, &other)),
+        }
+    }
+    Ok(out)
+}
+
+/// Options of `beltctl calibrate`.
+#[derive(Clone, Debug)]
+pub struct Options {
+    /// Directory for the calibration files and plots.
+    pub out: PathBuf,
+    /// Cap on the moves' speed, mm/s.
+    pub velocity_cap: Option<f64>,
+    /// Cap on the moves' acceleration, mm/s².
+    pub accel_cap: Option<f64>,
+    /// Model to select after the upload.
+    pub model: ModelKind,
+    /// Save configuration and calibration in the drive's storage afterwards.
+    pub save: bool,
+}
+
+/// What a calibration produced.
+#[derive(Clone, Debug)]
+pub struct Outcome {
+    /// The fit.
+    pub calibration: Calibration,
+    /// CRC-32 of the uploaded blob.
+    pub blob_crc: u32,
+    /// Its length, bytes.
+    pub blob_len: usize,
+    /// The stored record's CRC, with `--save`.
+    pub saved_crc: Option<u32>,
+    /// Files written.
+    pub files: Vec<PathBuf>,
+    /// Plot files that could not be drawn, and why (no font, ...).
+    pub plot_warnings: Vec<String>,
+    /// The plan that ran.
+    pub plan: Plan,
+}
+
+/// The whole calibration on the drive behind `link`.
+pub fn run(link: &mut Link, opts: &Options, progress: &mut Progress) -> Result<Outcome, ToolError> {
+    let status = link.status()?;
+    ops::require_ready(&status, "calibration")?;
+    let settings = crate::config::settings(link)?;
+    let rig = settings.rig;
+    let plan = plan(&settings, opts.velocity_cap, opts.accel_cap)?;
+    if plan.position_scale < 1.0 {
+        progress.println(&format!(
+            "beltctl: the drive's travel is shorter than the scenarios': positions scaled by {:.3}",
+            plan.position_scale
+        ));
+    }
+    if plan.clipped_moves > 0 {
+        progress.println(&format!(
+            "beltctl: {} moves slowed to the drive's limits or the caps given",
+            plan.clipped_moves
+        ));
+    }
+
+    let mut traces = Vec::new();
+    for s in &plan.scenarios {
+        let (samples, move_ticks) = match run_scenario(link, s, progress) {
+            Ok(r) => r,
+            Err(e) => {
+                let _ = link.command(Command::Stop);
+                return Err(e);
+            }
+        };
+        let t = to_trace(&s.name, &samples, settings.rate_hz, &rig, &move_ticks);
+        check_scale(&t)?;
+        traces.push(t);
+    }
+
+    let cal = hil_sim::calibrate::calibrate(&traces, &rig, &mut |s, f| progress.stage(s, f))
+        .map_err(|e| ToolError::Drive(format!("calibration fit: {e}")))?;
+
+    hil_sim::calfile::save(&opts.out, &cal, &rig).map_err(ToolError::Drive)?;
+    let mut files = vec![
+        opts.out.join("calibration.bin"),
+        opts.out.join("calibration.toml"),
+    ];
+    let mut plot_warnings = Vec::new();
+    plots(
+        &opts.out,
+        &traces,
+        &cal.params,
+        &rig,
+        &mut files,
+        &mut plot_warnings,
+    );
+
+    let mut buf = vec![0u8; blob::MAX_BYTES];
+    let n = blob::encode(&cal.params, &rig, &mut buf)
+        .map_err(|e| ToolError::Drive(format!("calibration blob: {e}")))?;
+    let blob = &buf[..n];
+    progress.stage("upload calibration", 0.0);
+    upload(link, blob)?;
+    progress.stage("verify calibration", 0.5);
+    let back = read_back(link, blob.len())?;
+    if let Some(i) = (0..blob.len()).find(|&i| back[i] != blob[i]) {
+        return Err(ToolError::Drive(format!(
+            "calibration read-back differs from the upload at byte {i} of {}",
+            blob.len()
+        )));
+    }
+    progress.finish();
+    link.command(Command::SelectModel(opts.model))?;
+    let saved_crc = if opts.save {
+        // The drive saves only while disabled.
+        link.command(Command::Disable)?;
+        progress
+            .println("beltctl: disabled the drive to save (the drive saves only while disabled)");
+        Some(save(link)?.1)
+    } else {
+        None
+    };
+    Ok(Outcome {
+        calibration: cal,
+        blob_crc: crc32(blob),
+        blob_len: blob.len(),
+        saved_crc,
+        files,
+        plot_warnings,
+        plan,
+    })
+}
+
+/// `Request::Save`: the stored record's sequence number and CRC.
+pub fn save(link: &mut Link) -> Result<(u32, u32), ToolError> {
+    match link.call(&Request::Save)? {
+        Reply::Saved { seq, crc32 } => Ok((seq, crc32)),
+        other => Err(link.unexpected(&Request::Save, &other)),
+    }
+}
+
+/// The figures: Delta x against x_PE over every recording (Fig. 11), and Models 1 and 3 along
+/// the reversals recording (Figs. 19-24 style). A figure that cannot be drawn is a warning.
+fn plots(
+    dir: &Path,
+    traces: &[Trace],
+    params: &ModelParams,
+    rig: &Rig,
+    files: &mut Vec<PathBuf>,
+    warnings: &mut Vec<String>,
+) {
+    let mut attempt = |path: PathBuf, r: Result<(), Box<dyn std::error::Error>>| match r {
+        Ok(()) => files.push(path),
+        Err(e) => warnings.push(format!("{}: {e}", path.display())),
+    };
+    let p = dir.join("hysteresis.png");
+    let r = hil_sim::plot::hysteresis(&p, "x_LS - x_PE against x_PE (calibration moves)", traces);
+    attempt(p, r);
+    let coeffs = match params.build(rig) {
+        Ok(c) => c,
+        Err(e) => {
+            warnings.push(format!("model plots: {e}"));
+            return;
+        }
+    };
+    let Some(t) = traces
+        .iter()
+        .find(|t| t.scenario == "reversals")
+        .or(traces.first())
+    else {
+        return;
+    };
+    let est = hil_sim::eval::estimates(t, &coeffs);
+    let ys: Vec<&[f64]> = est.iter().map(|(_, y)| y.as_slice()).collect();
+    let scales = hil_sim::plot::estimate_scales(t, &ys);
+    for (name, title) in [("model1", "Model 1"), ("model3", "Model 3")] {
+        if let Some((_, y)) = est.iter().find(|(n, _)| *n == name) {
+            let p = dir.join(format!("{}_{name}.png", t.scenario));
+            let r = hil_sim::plot::estimate(
+                &p,
+                &format!("{title} along the {} recording", t.scenario),
+                t,
+                y,
+                scales,
+            );
+            attempt(p, r);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use belt_link::RecordSample;
+
+    #[test]
+    fn the_plan_fits_the_drive() {
+        let same = plan(&Settings::PAPER, None, None).unwrap();
+        assert_eq!(same.position_scale, 1.0);
+        assert_eq!(same.clipped_moves, 0);
+        let names: Vec<_> = same.scenarios.iter().map(|s| s.name.as_str()).collect();
+        assert_eq!(names, hil_sim::eval::CALIBRATION_SCENARIOS);
+        for s in &same.scenarios {
+            let orig = Scenario::load(&s.name).unwrap();
+            assert_eq!(s.moves, orig.moves);
+        }
+
+        let mut short = Settings::PAPER;
+        short.travel_max_mm = 150.0;
+        short.max_velocity_mm_s = 30.0;
+        let p = plan(&short, None, Some(600.0)).unwrap();
+        assert_eq!(p.position_scale, 0.5);
+        assert!(p.clipped_moves > 0);
+        for s in &p.scenarios {
+            assert!((0.0..=150.0).contains(&s.start_mm));
+            for m in &s.moves {
+                assert!((0.0..=150.0).contains(&m.to_mm), "{}", m.to_mm);
+                assert!(m.velocity_mm_s <= 30.0 && m.accel_mm_s2 <= 600.0);
+            }
+            // Every move still fits the drive's own checks.
+            let drive =
+                short.drive_config(estimator_core::drive::Models::Params(&ModelParams::PAPER));
+            let d = estimator_core::drive::Drive::new(&drive).unwrap();
+            for m in &s.moves {
+                let (t, v, a) = m.drive_units();
+                d.check_move(t, v, a).unwrap();
+            }
+        }
+    }
+
+    #[test]
+    fn recordings_become_traces() {
+        let rig = Rig::PAPER;
+        let sp = [0, 0, 5, 9, 9, 9, 4, 4];
+        let samples: Vec<TickSample> = sp
+            .iter()
+            .enumerate()
+            .map(|(i, &s)| TickSample {
+                tick: 1000 + 2 * i as u32,
+                sample: RecordSample {
+                    motor_counts: s,
+                    scale_counts: 2000 * i as i32,
+                    setpoint_counts: s,
+                    current_ma: -1500,
+                },
+            })
+            .collect();
+        let t = to_trace("x", &samples, 2000.0, &rig, &[1003, 1010]);
+        let dirs: Vec<i8> = t.records.iter().map(|r| r.cmd_dir).collect();
+        assert_eq!(dirs, [1, 1, 1, 1, 1, 1, -1, -1]);
+        assert_eq!(t.records[3].t_s, 0.003);
+        assert_eq!(t.records[2].x_ls_mm, 2.0);
+        assert_eq!(t.records[0].out.current_a, I16F16::from_num(-1.5));
+        assert_eq!(t.move_starts, [2, 5]);
+        assert_eq!(t.counts_per_mm, rig.counts_per_mm());
+    }
+
+    #[test]
+    fn the_scale_must_follow_the_motor() {
+        let rig = Rig::PAPER;
+        let trace = |scale_per_count: f64| {
+            let samples: Vec<TickSample> = (0..100)
+                .map(|i| TickSample {
+                    tick: i,
+                    sample: RecordSample {
+                        motor_counts: i as i32 * 100,
+                        scale_counts: (i as f64 * 100.0 * scale_per_count) as i32,
+                        setpoint_counts: 0,
+                        current_ma: 0,
+                    },
+                })
+                .collect();
+            to_trace("s", &samples, 2000.0, &rig, &[])
+        };
+        // 2000 scale counts per mm, 1867.9 motor counts per mm.
+        let right = 2000.0 / rig.counts_per_mm();
+        check_scale(&trace(right)).unwrap();
+        let e = check_scale(&trace(-right)).unwrap_err().to_string();
+        assert!(e.contains("polarity.scale_inverted"), "{e}");
+        let e = check_scale(&trace(0.0)).unwrap_err().to_string();
+        assert!(e.contains("linear scale fitted"), "{e}");
+    }
+
+    /// The fake drive of these tests: the drive's own endpoint and core, answering in line.
+    fn endpoint_drive(mut lose_reply: impl FnMut(&Request) -> bool + Send + 'static) -> Link {
+        use estimator_core::drive::{Drive, DriveConfig};
+        use estimator_core::endpoint::{Effect, Endpoint};
+        let mut ep = Box::new(Endpoint::new());
+        let mut drive = Drive::new(&DriveConfig::paper_rig()).unwrap();
+        crate::testing::Fake::link(move |seq, req| {
+            let reply = match ep.handle_inline(&req, &mut drive).0 {
+                Effect::Reply(r) => r,
+                other => panic!("{req:?}: {other:?}"),
+            };
+            if lose_reply(&req) {
+                return Vec::new();
+            }
+            crate::testing::wire(seq, &reply)
+        })
+    }
+
+    fn paper_blob() -> Vec<u8> {
+        let mut buf = vec![0u8; blob::MAX_BYTES];
+        let n = blob::encode(&ModelParams::PAPER, &Rig::PAPER, &mut buf).unwrap();
+        buf.truncate(n);
+        buf
+    }
+
+    #[test]
+    fn a_blob_uploads_to_the_drive_endpoint_and_reads_back() {
+        let blob = paper_blob();
+        let mut link = endpoint_drive(|_| false);
+        upload(&mut link, &blob).unwrap();
+        assert_eq!(read_back(&mut link, blob.len()).unwrap(), blob);
+        link.command(Command::SelectModel(ModelKind::Table))
+            .unwrap();
+    }
+
+    #[test]
+    fn a_lost_chunk_ack_restarts_the_transfer() {
+        let blob = paper_blob();
+        let mut lost = false;
+        // The drive takes chunk 2 but its ack is lost: the retry is refused as out of order.
+        let mut link = endpoint_drive(move |req| {
+            let hit =
+                matches!(req, Request::CalChunk { offset, .. } if *offset == 2 * CHUNK_MAX as u32);
+            hit && !std::mem::replace(&mut lost, true)
+        });
+        upload(&mut link, &blob).unwrap();
+        assert_eq!(read_back(&mut link, blob.len()).unwrap(), blob);
+        assert!(link.stats().resent >= 1);
+    }
+
+    #[test]
+    fn a_rejected_blob_is_not_retried() {
+        let mut blob = paper_blob();
+        blob[0] ^= 0xff; // bad magic
+        let mut link = endpoint_drive(|_| false);
+        let e = upload(&mut link, &blob).unwrap_err().to_string();
+        assert!(e.contains("bad magic"), "{e}");
+    }
+
+    #[test]
+    fn a_recorded_run_becomes_the_simulators_trace() {
+        // What the drive records of a simulated calibration run, turned back into a trace, is
+        // the trace hil-sim fits: every field the fit reads, bit for bit.
+        let plant = hil_sim::plant::PlantParams::paper_rig();
+        let scenario = Scenario::load("reversals").unwrap();
+        let sim = hil_sim::eval::run_in_process(
+            &scenario,
+            &plant,
+            &ModelParams::PAPER,
+            ModelKind::None,
+            1,
+            &mut |_| {},
+        )
+        .unwrap();
+        let samples: Vec<TickSample> = sim
+            .records
+            .iter()
+            .map(|r| TickSample {
+                tick: r.out.telemetry.tick,
+                sample: RecordSample {
+                    motor_counts: r.motor_counts,
+                    scale_counts: (r.x_ls_mm * 2000.0).round() as i32,
+                    setpoint_counts: r.setpoint_counts,
+                    current_ma: (r.out.current_a.to_num::<f64>() * 1000.0).round() as i16,
+                },
+            })
+            .collect();
+        let ticks: Vec<u32> = sim
+            .move_starts
+            .iter()
+            .map(|&i| sim.records[i].out.telemetry.tick)
+            .collect();
+        let t = to_trace("reversals", &samples, 2000.0, &plant.rig(), &ticks);
+        assert_eq!(t.records.len(), sim.records.len());
+        assert_eq!(t.counts_per_mm, sim.counts_per_mm);
+        assert_eq!(t.move_starts, sim.move_starts);
+        for (i, (a, b)) in t.records.iter().zip(&sim.records).enumerate() {
+            assert_eq!(a.motor_counts, b.motor_counts, "{i}");
+            assert_eq!(a.x_ls_mm.to_bits(), b.x_ls_mm.to_bits(), "{i}");
+            assert_eq!(a.cmd_dir, b.cmd_dir, "{i}");
+            assert!((a.t_s - b.t_s).abs() < 1e-9, "{i}");
+        }
+        check_scale(&t).unwrap();
+    }
+}

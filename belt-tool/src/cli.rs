@@ -1,0 +1,471 @@
+//! The command line: arguments (clap) and what each command does.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use belt_link::{Command, ModelKind};
+use clap::{Args, Parser, Subcommand};
+use serde_json::json;
+
+use crate::error::ToolError;
+use crate::link::{Link, LinkOptions};
+use crate::ops::{self, Arrival, MoveLimits};
+use crate::progress::Progress;
+use crate::{calibrate, config, port, record, status};
+
+/// beltctl: set up, move, record and calibrate a belt-drive controller over its serial link.
+#[derive(Parser, Debug)]
+#[command(name = "beltctl", version, about, long_about = None)]
+pub struct Cli {
+    /// How to reach the drive.
+    #[command(flatten)]
+    pub link: LinkArgs,
+    /// Print JSON instead of tables (status, move, config get/save, record, calibrate).
+    #[arg(long, global = true)]
+    pub json: bool,
+    /// What to do.
+    #[command(subcommand)]
+    pub cmd: Cmd,
+}
+
+/// How to reach the drive.
+#[derive(Args, Debug, Clone)]
+pub struct LinkArgs {
+    /// The drive's serial port, e.g. /dev/ttyUSB0 (required).
+    #[arg(long, global = true, value_name = "PATH")]
+    pub port: Option<String>,
+    /// Baud rate (8N1).
+    #[arg(long, global = true, default_value_t = port::DEFAULT_BAUD)]
+    pub baud: u32,
+    /// Time allowed for each reply, ms.
+    #[arg(long, global = true, default_value_t = 300, value_name = "MS")]
+    pub timeout_ms: u64,
+    /// Tries per request (a request is sent again after a timeout or when it reached the
+    /// drive damaged).
+    #[arg(long, global = true, default_value_t = 3, value_name = "N",
+          value_parser = clap::value_parser!(u32).range(1..=100))]
+    pub retries: u32,
+}
+
+/// The commands.
+#[derive(Subcommand, Debug)]
+pub enum Cmd {
+    /// Show the drive's state: flags, faults, model, positions, stored record, reset cause.
+    Status,
+    /// Enable the current output.
+    Enable,
+    /// Zero the current at once and stay so.
+    Disable,
+    /// Decelerate to rest.
+    Stop,
+    /// Clear latched faults (the drive stays disabled until `enable`).
+    ClearFaults,
+    /// Select the compensator: none, model1, model2, model3, backlash, bidir_table.
+    Model {
+        /// The compensator's name.
+        name: String,
+    },
+    /// Run the drive's homing routine and wait until it ends.
+    Home {
+        /// Give up (and stop the drive) after this long, s.
+        #[arg(long, default_value_t = 60.0)]
+        timeout_s: f64,
+    },
+    /// Move to each target in turn and report where the carriage arrived.
+    #[command(allow_negative_numbers = true)]
+    Move {
+        /// Targets, mm of carriage travel.
+        #[arg(required = true, value_name = "MM")]
+        targets: Vec<f64>,
+        /// Cruise speed, mm/s.
+        #[arg(long, default_value_t = 50.0, value_name = "MM_S")]
+        velocity: f64,
+        /// Acceleration and deceleration, mm/s^2.
+        #[arg(long, default_value_t = 500.0, value_name = "MM_S2")]
+        accel: f64,
+        /// Raw motor moves (no compensation) instead of carriage moves.
+        #[arg(long)]
+        motor: bool,
+        /// Rest after arrival before reading the position, ms.
+        #[arg(long, default_value_t = 200, value_name = "MS")]
+        settle_ms: u64,
+    },
+    /// Read, change, save, load and dump the drive's configuration.
+    #[command(subcommand)]
+    Config(ConfigCmd),
+    /// Record the drive's samples into a CSV file.
+    Record {
+        /// How long, s.
+        #[arg(long)]
+        seconds: f64,
+        /// One sample every N control ticks.
+        #[arg(long, default_value_t = 1, value_name = "N",
+              value_parser = clap::value_parser!(u16).range(1..))]
+        every: u16,
+        /// The CSV file.
+        #[arg(long, value_name = "FILE.csv")]
+        out: PathBuf,
+    },
+    /// Calibrate on the drive: run hil-sim's calibration moves while recording, fit Models 1-3
+    /// and the baselines, write the calibration files, upload, verify and select the model.
+    Calibrate {
+        /// Directory for calibration.bin, calibration.toml and the plots.
+        #[arg(long, value_name = "DIR")]
+        out: PathBuf,
+        /// Cap on the moves' speed, mm/s (they never exceed the drive's limit either).
+        #[arg(long, value_name = "MM_S")]
+        velocity: Option<f64>,
+        /// Cap on the moves' acceleration, mm/s^2.
+        #[arg(long, value_name = "MM_S2")]
+        accel: Option<f64>,
+        /// Model selected after the upload.
+        #[arg(long, default_value = "model3")]
+        model: String,
+        /// Save configuration and calibration on the drive afterwards (disables the drive:
+        /// it saves only while disabled).
+        #[arg(long)]
+        save: bool,
+    },
+}
+
+/// `beltctl config ...`
+#[derive(Subcommand, Debug)]
+pub enum ConfigCmd {
+    /// Show fields (all when none is named): active value, staged value if different, unit.
+    Get {
+        /// Field names, e.g. rig.gear_ratio.
+        names: Vec<String>,
+    },
+    /// Stage NAME=VALUE for each, then apply them together (the drive must be disabled).
+    Set {
+        /// Assignments, e.g. rig.gear_ratio=19.2 drive.travel_max_mm=450.
+        #[arg(required = true, value_name = "NAME=VALUE")]
+        values: Vec<String>,
+    },
+    /// Store configuration and calibration in the drive's persistent storage.
+    Save,
+    /// Stage and apply every value of a TOML file of `"name" = value`.
+    Load {
+        /// The file.
+        file: PathBuf,
+    },
+    /// Print the active configuration as a file `config load` reads back.
+    Dump,
+}
+
+fn model_kind(name: &str, flag: &str) -> Result<ModelKind, ToolError> {
+    ModelKind::parse(name).ok_or_else(|| {
+        let names: Vec<_> = ModelKind::ALL.iter().map(|k| k.as_str()).collect();
+        ToolError::Usage(format!("{flag}{name}: use one of {}", names.join(", ")))
+    })
+}
+
+fn connect(a: &LinkArgs) -> Result<Link, ToolError> {
+    let path = a.port.as_deref().ok_or_else(|| {
+        ToolError::Usage("no port given: use --port PATH (e.g. --port /dev/ttyUSB0)".into())
+    })?;
+    port::connect(
+        path,
+        a.baud,
+        LinkOptions {
+            timeout: Duration::from_millis(a.timeout_ms),
+            tries: a.retries,
+        },
+    )
+}
+
+fn print_json(v: &serde_json::Value) {
+    println!("{v}");
+}
+
+/// Runs the command line.
+pub fn run(cli: Cli) -> Result<(), ToolError> {
+    // Arguments first: a mistyped argument should not need a drive.
+    if let Cmd::Model { name } = &cli.cmd {
+        model_kind(name, "model ")?;
+    }
+    if let Cmd::Calibrate { model, .. } = &cli.cmd {
+        model_kind(model, "--model ")?;
+    }
+    let set_values = match &cli.cmd {
+        Cmd::Config(ConfigCmd::Set { values }) => values
+            .iter()
+            .map(|a| config::parse_assignment(a).map_err(ToolError::Usage))
+            .collect::<Result<Vec<_>, _>>()?,
+        _ => Vec::new(),
+    };
+    let get_fields = match &cli.cmd {
+        Cmd::Config(ConfigCmd::Get { names }) => names
+            .iter()
+            .map(|n| config::lookup(n).map_err(ToolError::Usage))
+            .collect::<Result<Vec<_>, _>>()?,
+        _ => Vec::new(),
+    };
+    let load = match &cli.cmd {
+        Cmd::Config(ConfigCmd::Load { file }) => {
+            let text =
+                std::fs::read_to_string(file).map_err(|e| ToolError::file(file.display(), e))?;
+            config::parse_file(file, &text)?
+        }
+        _ => Vec::new(),
+    };
+
+    let mut link = connect(&cli.link)?;
+    let link = &mut link;
+    let json = cli.json;
+    match cli.cmd {
+        Cmd::Status => {
+            let s = link.status()?;
+            let rig = match config::rig(link) {
+                Ok(r) => Some(r),
+                // A drive that answers status but not the configuration: show what we have.
+                Err(ToolError::Refused { .. } | ToolError::Drive(_)) => None,
+                Err(e) => return Err(e),
+            };
+            if json {
+                print_json(&status::to_json(&s, rig.as_ref()));
+            } else {
+                print!("{}", status::to_table(link.name(), &s, rig.as_ref()));
+            }
+        }
+        Cmd::Enable => simple(link, Command::Enable, "enabled")?,
+        Cmd::Disable => simple(link, Command::Disable, "disabled")?,
+        Cmd::Stop => simple(link, Command::Stop, "stopping")?,
+        Cmd::ClearFaults => simple(link, Command::ClearFaults, "faults cleared")?,
+        Cmd::Model { name } => {
+            let m = model_kind(&name, "model ")?;
+            simple(
+                link,
+                Command::SelectModel(m),
+                &format!("model {m} selected"),
+            )?
+        }
+        Cmd::Home { timeout_s } => {
+            if !(timeout_s.is_finite() && timeout_s > 0.0) {
+                return Err(ToolError::Usage(format!(
+                    "--timeout-s {timeout_s}: must be > 0"
+                )));
+            }
+            let s = ops::home(link, Duration::from_secs_f64(timeout_s.min(86_400.0)))?;
+            if json {
+                print_json(&status::to_json(&s, None));
+            } else {
+                println!(
+                    "homed: carriage at {:.3} mm, scale {:.1} um",
+                    s.carriage_estimate_um as f64 / 1000.0,
+                    status::scale_um(&s)
+                );
+            }
+        }
+        Cmd::Move {
+            targets,
+            velocity,
+            accel,
+            motor,
+            settle_ms,
+        } => moves(link, &targets, velocity, accel, motor, settle_ms, json)?,
+        Cmd::Config(c) => match c {
+            ConfigCmd::Get { .. } => {
+                let values = if get_fields.is_empty() {
+                    config::get_all(link)?
+                } else {
+                    get_fields
+                        .iter()
+                        .map(|f| config::get(link, f))
+                        .collect::<Result<Vec<_>, _>>()?
+                };
+                if json {
+                    let obj: serde_json::Map<_, _> = values
+                        .iter()
+                        .map(|v| {
+                            (
+                                v.field.name.to_string(),
+                                json!({"active": v.active, "staged": v.staged_change(),
+                                       "unit": v.field.unit}),
+                            )
+                        })
+                        .collect();
+                    print_json(&serde_json::Value::Object(obj));
+                } else {
+                    for v in &values {
+                        let staged = v.staged_change().map_or(String::new(), |s| {
+                            format!("  (staged: {})", config::format_value(v.field, s))
+                        });
+                        println!(
+                            "{:<42} {:>14}  {}{staged}",
+                            v.field.name,
+                            config::format_value(v.field, v.active),
+                            v.field.unit
+                        );
+                    }
+                }
+            }
+            ConfigCmd::Set { .. } => {
+                config::set_and_apply(link, &set_values, "config set")?;
+                println!("applied {}", values(set_values.len()));
+            }
+            ConfigCmd::Load { file } => {
+                config::set_and_apply(link, &load, &file.display().to_string())?;
+                println!("applied {} from {}", values(load.len()), file.display());
+            }
+            ConfigCmd::Save => {
+                config::require_disabled(link, "saving")?;
+                let (seq, crc) = calibrate::save(link)?;
+                if json {
+                    print_json(&json!({"seq": seq, "crc": format!("{crc:08x}")}));
+                } else {
+                    println!("saved: record {seq}, crc {crc:08x}");
+                }
+            }
+            ConfigCmd::Dump => {
+                let values = config::get_all(link)?;
+                print!("{}", config::dump(link.name(), &values));
+            }
+        },
+        Cmd::Record {
+            seconds,
+            every,
+            out,
+        } => {
+            let (written, stats) = record::record(link, seconds, every, &out)?;
+            if json {
+                print_json(&json!({
+                    "samples": written, "file": out.display().to_string(),
+                    "frames": stats.frames, "lost_frames": stats.lost_frames,
+                    "missing_samples": stats.missing_samples,
+                }));
+            } else {
+                println!("wrote {written} samples to {}", out.display());
+            }
+            stats.check().map_err(|e| {
+                ToolError::Drive(format!("{e} ({} holds what arrived)", out.display()))
+            })?;
+        }
+        Cmd::Calibrate {
+            out,
+            velocity,
+            accel,
+            model,
+            save,
+        } => {
+            let opts = calibrate::Options {
+                out,
+                velocity_cap: velocity,
+                accel_cap: accel,
+                model: model_kind(&model, "--model ")?,
+                save,
+            };
+            let mut progress = Progress::new();
+            let o = calibrate::run(link, &opts, &mut progress)?;
+            progress.finish();
+            for w in &o.plot_warnings {
+                eprintln!("beltctl: warning: plot not drawn: {w}");
+            }
+            let rms: serde_json::Map<_, _> = o
+                .calibration
+                .fit_rms_um
+                .iter()
+                .map(|(k, v)| (k.as_str().to_string(), json!(v)))
+                .collect();
+            if !json {
+                println!("| model | fit RMS (um) |\n|---|---:|");
+                for (k, v) in &o.calibration.fit_rms_um {
+                    println!("| {} | {v:.2} |", k.as_str());
+                }
+                println!(
+                    "\n{} samples; blob {} bytes, crc {:08x}, uploaded and verified; {} selected{}",
+                    o.calibration.samples,
+                    o.blob_len,
+                    o.blob_crc,
+                    opts.model,
+                    o.saved_crc
+                        .map_or(String::new(), |c| format!("; saved, crc {c:08x}"))
+                );
+                for f in &o.files {
+                    println!("wrote {}", f.display());
+                }
+            } else {
+                print_json(&json!({
+                    "fit_rms_um": rms,
+                    "samples": o.calibration.samples,
+                    "blob_crc": format!("{:08x}", o.blob_crc),
+                    "saved_crc": o.saved_crc.map(|c| format!("{c:08x}")),
+                }));
+            }
+        }
+    }
+    Ok(())
+}
+
+fn values(n: usize) -> String {
+    format!("{n} value{}", if n == 1 { "" } else { "s" })
+}
+
+fn simple(link: &mut Link, cmd: Command, done: &str) -> Result<(), ToolError> {
+    link.command(cmd)?;
+    println!("{done}");
+    Ok(())
+}
+
+fn moves(
+    link: &mut Link,
+    targets: &[f64],
+    velocity: f64,
+    accel: f64,
+    motor: bool,
+    settle_ms: u64,
+    json: bool,
+) -> Result<(), ToolError> {
+    let limits = MoveLimits {
+        velocity_mm_s: velocity,
+        accel_mm_s2: accel,
+    };
+    // Arguments checked before anything moves.
+    let cmds = targets
+        .iter()
+        .map(|&mm| ops::move_command(ops::target_um(mm)?, &limits, motor).map(|c| (mm, c)))
+        .collect::<Result<Vec<_>, _>>()?;
+    let start = link.status()?;
+    ops::require_ready(&start, "moving")?;
+    let counts_per_mm = config::rig(link).ok().map(|r| r.counts_per_mm());
+    let mut here = start.carriage_estimate_um as f64 / 1000.0;
+    let mut errors = Vec::with_capacity(targets.len());
+    for (mm, cmd) in cmds {
+        ops::move_and_wait(link, cmd, mm - here, &limits, |_| Ok(()))?;
+        link.pump(Duration::from_millis(settle_ms))?;
+        let s = link.status()?;
+        let a = Arrival::of(mm, &s, counts_per_mm);
+        errors.push(a.error_um());
+        here = a.estimate_mm;
+        if json {
+            print_json(&json!({
+                "target_mm": a.target_mm,
+                "estimate_mm": a.estimate_mm,
+                "motor_mm": a.motor_mm,
+                "scale_mm": a.scale_mm,
+                "scale_minus_target_um": a.error_um(),
+            }));
+        } else {
+            println!(
+                "target {:>10.3} mm   estimate {:>10.3} mm   scale {:>10.4} mm   scale - target \
+                 {:>8.1} um",
+                a.target_mm,
+                a.estimate_mm,
+                a.scale_mm,
+                a.error_um()
+            );
+        }
+    }
+    let n = errors.len().max(1) as f64;
+    let rms = (errors.iter().map(|e| e * e).sum::<f64>() / n).sqrt();
+    let max = errors.iter().fold(0.0f64, |m, e| m.max(e.abs()));
+    if json {
+        print_json(&json!({"count": errors.len(), "rms_um": rms, "max_um": max}));
+    } else if errors.len() > 1 {
+        println!(
+            "{} moves: |scale - target| RMS {rms:.1} um, max {max:.1} um",
+            errors.len()
+        );
+    }
+    Ok(())
+}

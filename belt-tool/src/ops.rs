@@ -1,0 +1,217 @@
+//! What the commands do on the drive: moves that wait for arrival, homing, waiting on status.
+
+use std::time::{Duration, Instant};
+
+use belt_link::{status_flags, Command, WireStatus};
+use estimator_core::drive::Faults;
+
+use crate::error::ToolError;
+use crate::link::Link;
+use crate::status::{fault_names, scale_um};
+
+/// How often a waiting command polls the status (it also feeds the drive's link watchdog).
+pub const POLL: Duration = Duration::from_millis(50);
+
+/// Polls the status every [`POLL`] until `done` holds, a fault latches, or `timeout` passes
+/// (then the drive is told to stop). The first poll comes after one period, so that a command
+/// just sent has reached the drive's state.
+pub fn wait_for(
+    link: &mut Link,
+    what: &str,
+    timeout: Duration,
+    done: impl Fn(&WireStatus) -> bool,
+    mut tick: impl FnMut(&mut Link) -> Result<(), ToolError>,
+) -> Result<WireStatus, ToolError> {
+    let start = Instant::now();
+    let boots = link.stats().boots;
+    loop {
+        // Between polls the link listens (records keep arriving).
+        link.pump(POLL)?;
+        tick(link)?;
+        let s = link.status()?;
+        if link.stats().boots != boots {
+            return Err(ToolError::Drive(format!(
+                "{what}: the drive restarted (it sent its boot status)"
+            )));
+        }
+        if s.faults != 0 {
+            return Err(ToolError::Drive(format!(
+                "{what}: the drive latched faults: {} (`beltctl clear-faults`, then `beltctl \
+                 enable`)",
+                fault_names(s.faults).join(", ")
+            )));
+        }
+        if done(&s) {
+            return Ok(s);
+        }
+        if start.elapsed() > timeout {
+            let _ = link.command(Command::Stop);
+            return Err(ToolError::Drive(format!(
+                "{what}: not done after {:.1} s; told the drive to stop",
+                timeout.as_secs_f64()
+            )));
+        }
+    }
+}
+
+/// Limits of one move, SI.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MoveLimits {
+    /// Cruise speed, mm/s.
+    pub velocity_mm_s: f64,
+    /// Acceleration, mm/s².
+    pub accel_mm_s2: f64,
+}
+
+impl MoveLimits {
+    /// The drive's integer units, checked: whole um/s and um/s², at least 1.
+    pub fn drive_units(&self) -> Result<(u32, u32), ToolError> {
+        let unit = |v: f64, name: &str, unit: &str| {
+            let x = (v * 1000.0).round();
+            if !(x.is_finite() && x >= 1.0 && x <= u32::MAX as f64) {
+                return Err(ToolError::Usage(format!(
+                    "{name} {v}: must be at least 0.001 {unit}"
+                )));
+            }
+            Ok(x as u32)
+        };
+        Ok((
+            unit(self.velocity_mm_s, "--velocity", "mm/s")?,
+            unit(self.accel_mm_s2, "--accel", "mm/s^2")?,
+        ))
+    }
+
+    /// Upper bound of a move's time over `distance_mm`, with room for settling and polling.
+    pub fn budget(&self, distance_mm: f64) -> Duration {
+        let t =
+            distance_mm.abs() / self.velocity_mm_s + 2.0 * self.velocity_mm_s / self.accel_mm_s2;
+        Duration::from_secs_f64((2.0 * t + 5.0).min(3600.0))
+    }
+}
+
+/// A target in the drive's micrometres.
+pub fn target_um(mm: f64) -> Result<i32, ToolError> {
+    let um = (mm * 1000.0).round();
+    if !(um.is_finite() && um.abs() <= i32::MAX as f64) {
+        return Err(ToolError::Usage(format!("target {mm} mm is out of range")));
+    }
+    Ok(um as i32)
+}
+
+/// The move command: the carriage placed with the active model (`MoveTo`), or the raw motor
+/// (`MoveMotorTo`, `motor`).
+pub fn move_command(
+    target_um: i32,
+    limits: &MoveLimits,
+    motor: bool,
+) -> Result<Command, ToolError> {
+    let (velocity_um_s, accel_um_s2) = limits.drive_units()?;
+    Ok(if motor {
+        Command::MoveMotorTo {
+            target_um,
+            velocity_um_s,
+            accel_um_s2,
+        }
+    } else {
+        Command::MoveTo {
+            target_um,
+            velocity_um_s,
+            accel_um_s2,
+        }
+    })
+}
+
+/// Sends a move and waits until the drive is at rest again; returns that status.
+pub fn move_and_wait(
+    link: &mut Link,
+    cmd: Command,
+    distance_mm: f64,
+    limits: &MoveLimits,
+    tick: impl FnMut(&mut Link) -> Result<(), ToolError>,
+) -> Result<WireStatus, ToolError> {
+    let what = crate::link::describe(&belt_link::Request::Command(cmd));
+    link.command(cmd)?;
+    wait_for(
+        link,
+        &what,
+        limits.budget(distance_mm),
+        |s| s.flags & status_flags::MOVING == 0,
+        tick,
+    )
+}
+
+/// One arrival: where the carriage was sent and where it is.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Arrival {
+    /// Target, mm.
+    pub target_mm: f64,
+    /// The drive's estimate of the carriage position, mm.
+    pub estimate_mm: f64,
+    /// The motor's position, mm of nominal travel, where the geometry is known.
+    pub motor_mm: Option<f64>,
+    /// The linear scale, mm.
+    pub scale_mm: f64,
+}
+
+impl Arrival {
+    /// From the status after settling.
+    pub fn of(target_mm: f64, s: &WireStatus, counts_per_mm: Option<f64>) -> Arrival {
+        Arrival {
+            target_mm,
+            estimate_mm: s.carriage_estimate_um as f64 / 1000.0,
+            motor_mm: counts_per_mm.map(|c| s.motor_counts as f64 / c),
+            scale_mm: scale_um(s) / 1000.0,
+        }
+    }
+
+    /// Scale minus target, um.
+    pub fn error_um(&self) -> f64 {
+        (self.scale_mm - self.target_mm) * 1000.0
+    }
+}
+
+/// Runs the drive's homing routine and waits for it and its back-off to end; Ok when the drive
+/// is homed.
+pub fn home(link: &mut Link, timeout: Duration) -> Result<WireStatus, ToolError> {
+    link.command(Command::Homing)?;
+    let s = wait_for(
+        link,
+        "homing",
+        timeout,
+        // The routine ends at the stop; the back-off from it is an ordinary move.
+        |s| s.flags & (status_flags::HOMING | status_flags::MOVING) == 0,
+        |_| Ok(()),
+    )?;
+    if s.flags & status_flags::HOMED == 0 {
+        return Err(ToolError::Drive(format!(
+            "homing ended without homing the drive (faults: {})",
+            Faults(s.faults)
+        )));
+    }
+    Ok(s)
+}
+
+/// Fails unless the drive is enabled, homed and free of faults: what moves need.
+pub fn require_ready(s: &WireStatus, what: &str) -> Result<(), ToolError> {
+    let mut missing = Vec::new();
+    if s.faults != 0 {
+        missing.push(format!(
+            "its faults cleared ({}: `beltctl clear-faults`)",
+            fault_names(s.faults).join(", ")
+        ));
+    }
+    if s.flags & status_flags::ENABLED == 0 {
+        missing.push("enabled (`beltctl enable`)".into());
+    }
+    if s.flags & status_flags::HOMED == 0 {
+        missing.push("homed (`beltctl home`)".into());
+    }
+    if missing.is_empty() {
+        Ok(())
+    } else {
+        Err(ToolError::Drive(format!(
+            "{what} needs the drive {}",
+            missing.join(" and ")
+        )))
+    }
+}

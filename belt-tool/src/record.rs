@@ -1,0 +1,95 @@
+//! `beltctl record`: the drive's recording stream into a CSV file.
+
+use std::io::{IsTerminal, Write};
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::error::ToolError;
+use crate::link::{Link, RecordingStats, TickSample};
+
+/// The CSV header.
+pub const CSV_HEADER: &str = "tick,motor_counts,scale_counts,setpoint_counts,current_ma";
+
+/// How often the recording host sends a status request: it keeps the drive's link watchdog fed.
+const KEEPALIVE: Duration = Duration::from_millis(200);
+
+/// Writes samples as CSV rows.
+pub fn write_rows(w: &mut impl Write, samples: &[TickSample]) -> std::io::Result<()> {
+    for s in samples {
+        let r = &s.sample;
+        writeln!(
+            w,
+            "{},{},{},{},{}",
+            s.tick, r.motor_counts, r.scale_counts, r.setpoint_counts, r.current_ma
+        )?;
+    }
+    Ok(())
+}
+
+/// Records for `seconds`, one sample every `every` ticks, into `out`; returns the samples
+/// written and the recording's counters (losses are the caller's to report).
+pub fn record(
+    link: &mut Link,
+    seconds: f64,
+    every: u16,
+    out: &Path,
+) -> Result<(u64, RecordingStats), ToolError> {
+    if !(seconds.is_finite() && seconds > 0.0 && seconds <= 86_400.0) {
+        return Err(ToolError::Usage(format!(
+            "--seconds {seconds}: give a duration of up to a day"
+        )));
+    }
+    let io_err = |e: std::io::Error| ToolError::file(out.display(), e);
+    let file = std::fs::File::create(out).map_err(io_err)?;
+    let mut w = std::io::BufWriter::new(file);
+    writeln!(w, "{CSV_HEADER}").map_err(io_err)?;
+
+    let bar = std::io::stderr().is_terminal().then(|| {
+        let b = ProgressBar::new((seconds * 10.0).ceil() as u64);
+        b.set_style(
+            ProgressStyle::with_template("recording [{bar:40}] {msg} {elapsed}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar())
+                .progress_chars("=> "),
+        );
+        b
+    });
+    link.start_recording(every)?;
+    let start = Instant::now();
+    let mut written = 0u64;
+    let result = (|| {
+        while start.elapsed().as_secs_f64() < seconds {
+            let left = Duration::from_secs_f64(seconds).saturating_sub(start.elapsed());
+            link.pump(KEEPALIVE.min(left))?;
+            link.status()?;
+            let batch = link.take_samples();
+            written += batch.len() as u64;
+            write_rows(&mut w, &batch).map_err(io_err)?;
+            if let (Some(b), Some(st)) = (&bar, link.recording_stats()) {
+                b.set_position((start.elapsed().as_secs_f64() * 10.0) as u64);
+                b.set_message(format!(
+                    "{} samples{}",
+                    written,
+                    if st.lost_frames > 0 {
+                        format!(", {} frames lost", st.lost_frames)
+                    } else {
+                        String::new()
+                    }
+                ));
+            }
+        }
+        Ok(())
+    })();
+    if let Some(b) = bar {
+        b.finish_and_clear();
+    }
+    // Stop the stream whatever happened: a drive left streaming floods the next user.
+    let stopped = link.stop_recording();
+    result?;
+    let (rest, stats) = stopped?;
+    written += rest.len() as u64;
+    write_rows(&mut w, &rest).map_err(io_err)?;
+    w.flush().map_err(io_err)?;
+    Ok((written, stats))
+}

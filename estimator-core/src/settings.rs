@@ -1,0 +1,484 @@
+//! What a machine builder configures, as one record: the drive train's geometry, the travel and
+//! the limits, polarity, gains, fault thresholds, the control rate and homing. Every field has a
+//! key (its number on the link), a name (the same name a refusal gives, e.g.
+//! `"pid.kp_a_per_mm"`) and a unit; values travel and are stored as `f64` in SI-like units.
+//!
+//! The model parameters are not here: they come with the calibration blob, which records the
+//! geometry it was made for.
+
+use belt_link::bytes::{Reader, Short, Writer};
+use belt_link::ModelKind;
+
+use crate::drive::{DriveConfig, Models, Polarity};
+use crate::rig::Rig;
+use crate::{fault, pid, ConfigError};
+
+/// The homing routine: a slow jog at reduced current towards a hard stop.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HomingConfig {
+    /// Towards the stop at negative travel (`false`) or positive travel (`true`).
+    pub towards_positive: bool,
+    /// Jog speed, mm/s.
+    pub velocity_mm_s: f64,
+    /// Current limit while jogging, amperes: enough to beat friction, small enough that pressing
+    /// on the stop harms nothing.
+    pub current_a: f64,
+    /// The stop is found when the following error exceeds this, mm.
+    pub detect_error_mm: f64,
+    /// Position the stop is given, mm of travel.
+    pub position_mm: f64,
+    /// Distance to back off the stop after homing, mm (0 = stay).
+    pub backoff_mm: f64,
+}
+
+impl HomingConfig {
+    /// Towards negative travel at 10 mm/s and 1.5 A, found at 0.3 mm of following error (below
+    /// the 1 mm fault limit), the stop at 0 mm, backing off 5 mm.
+    pub const DEFAULT: HomingConfig = HomingConfig {
+        towards_positive: false,
+        velocity_mm_s: 10.0,
+        current_a: 1.5,
+        detect_error_mm: 0.3,
+        position_mm: 0.0,
+        backoff_mm: 5.0,
+    };
+}
+
+/// The drive's whole configuration except the model parameters.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Settings {
+    /// Drive-train geometry.
+    pub rig: Rig,
+    /// Control rate, Hz.
+    pub rate_hz: f64,
+    /// Lowest target, mm.
+    pub travel_min_mm: f64,
+    /// Highest target, mm.
+    pub travel_max_mm: f64,
+    /// Overshoot allowed before `TRAVEL_LIMIT`, mm.
+    pub travel_margin_mm: f64,
+    /// Fastest move, mm/s.
+    pub max_velocity_mm_s: f64,
+    /// Steepest acceleration, mm/s².
+    pub max_accel_mm_s2: f64,
+    /// Fastest believable motion between two samples, mm/s.
+    pub encoder_max_speed_mm_s: f64,
+    /// Wiring polarity.
+    pub polarity: Polarity,
+    /// Position-loop gains.
+    pub pid: pid::Config,
+    /// Fault thresholds.
+    pub faults: fault::Config,
+    /// Model active after boot.
+    pub initial_model: ModelKind,
+    /// Homing routine.
+    pub homing: HomingConfig,
+}
+
+impl Settings {
+    /// The paper's rig (`DriveConfig::paper_rig`) with the default homing.
+    pub const PAPER: Settings = Settings {
+        rig: Rig::PAPER,
+        rate_hz: 2000.0,
+        travel_min_mm: 0.0,
+        travel_max_mm: 300.0,
+        travel_margin_mm: 5.0,
+        max_velocity_mm_s: 250.0,
+        max_accel_mm_s2: 5000.0,
+        encoder_max_speed_mm_s: 1000.0,
+        polarity: Polarity::NORMAL,
+        pid: pid::Config::PAPER_RIG,
+        faults: fault::Config::PAPER_RIG,
+        initial_model: ModelKind::Linear,
+        homing: HomingConfig::DEFAULT,
+    };
+
+    /// The drive configuration with these settings and `model`.
+    pub fn drive_config<'a>(&self, model: Models<'a>) -> DriveConfig<'a> {
+        DriveConfig {
+            rig: self.rig,
+            rate_hz: self.rate_hz,
+            travel_min_mm: self.travel_min_mm,
+            travel_max_mm: self.travel_max_mm,
+            travel_margin_mm: self.travel_margin_mm,
+            max_velocity_mm_s: self.max_velocity_mm_s,
+            max_accel_mm_s2: self.max_accel_mm_s2,
+            faults: self.faults,
+            polarity: self.polarity,
+            encoder_max_speed_mm_s: self.encoder_max_speed_mm_s,
+            pid: self.pid,
+            model,
+            initial_model: self.initial_model,
+        }
+    }
+
+    /// The value of field `key`, or `None` for an unknown key.
+    pub fn get(&self, key: u8) -> Option<f64> {
+        field(key).map(|f| (f.get)(self))
+    }
+
+    /// Sets field `key`; a value the field cannot hold (not finite, not a whole number where one
+    /// is needed, out of its type's range) is refused by name and changes nothing. Whether the
+    /// configuration as a whole makes sense is `Drive`'s check.
+    pub fn set(&mut self, key: u8, value: f64) -> Result<(), SettingsError> {
+        let f = field(key).ok_or(SettingsError::UnknownKey(key))?;
+        if !value.is_finite() {
+            return Err(SettingsError::Invalid(ConfigError::NotFinite(f.name)));
+        }
+        if !(value >= f.min && value <= f.max) || (f.whole && value != (value as i64) as f64) {
+            return Err(SettingsError::Invalid(ConfigError::OutOfRange(f.name)));
+        }
+        (f.set)(self, value);
+        Ok(())
+    }
+
+    /// The record's bytes: magic, version, field count, then `key, f64` pairs in key order.
+    /// Returns the length ([`ENCODED_LEN`]).
+    pub fn encode(&self, out: &mut [u8]) -> Result<usize, Short> {
+        let mut w = Writer::new(out);
+        w.put(&MAGIC);
+        w.u16(VERSION);
+        w.u16(FIELDS.len() as u16);
+        for f in &FIELDS {
+            w.u8(f.key);
+            w.u64((f.get)(self).to_bits());
+        }
+        w.finish()
+    }
+
+    /// Parses a record; every field must be present once and hold a valid value.
+    pub fn decode(bytes: &[u8]) -> Result<Settings, SettingsError> {
+        let mut r = Reader::new(bytes);
+        let short = |_: Short| SettingsError::Truncated;
+        if r.take::<4>().map_err(short)? != MAGIC {
+            return Err(SettingsError::BadMagic);
+        }
+        let version = r.u16().map_err(short)?;
+        if version != VERSION {
+            return Err(SettingsError::UnsupportedVersion(version));
+        }
+        let n = r.u16().map_err(short)? as usize;
+        if n != FIELDS.len() || r.remaining() != n * 9 {
+            return Err(SettingsError::Truncated);
+        }
+        let mut s = Settings::PAPER;
+        let mut seen = [false; 256];
+        for _ in 0..n {
+            let key = r.u8().map_err(short)?;
+            let value = f64::from_bits(r.u64().map_err(short)?);
+            if core::mem::replace(&mut seen[key as usize], true) {
+                return Err(SettingsError::UnknownKey(key));
+            }
+            s.set(key, value)?;
+        }
+        Ok(s)
+    }
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        Settings::PAPER
+    }
+}
+
+/// Record magic.
+const MAGIC: [u8; 4] = *b"BDCF";
+/// Record version: bump when a field changes meaning.
+pub const VERSION: u16 = 1;
+/// Length of an encoded record.
+pub const ENCODED_LEN: usize = 8 + FIELDS.len() * 9;
+
+/// Why a value or a record was refused.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SettingsError {
+    /// No field has this key.
+    UnknownKey(u8),
+    /// The value does not fit the field (named).
+    Invalid(ConfigError),
+    /// The record is shorter or longer than its field count says.
+    Truncated,
+    /// Not a settings record.
+    BadMagic,
+    /// A record of another version.
+    UnsupportedVersion(u16),
+}
+
+impl core::fmt::Display for SettingsError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            SettingsError::UnknownKey(k) => write!(f, "no configuration field has key {k}"),
+            SettingsError::Invalid(e) => write!(f, "{e}"),
+            SettingsError::Truncated => f.write_str("settings record truncated or too long"),
+            SettingsError::BadMagic => f.write_str("not a settings record (bad magic)"),
+            SettingsError::UnsupportedVersion(v) => write!(f, "settings record version {v}"),
+        }
+    }
+}
+
+/// One configuration field.
+pub struct Field {
+    /// Its key on the link and in the record.
+    pub key: u8,
+    /// Its name, as refusals give it.
+    pub name: &'static str,
+    /// Its unit, for people.
+    pub unit: &'static str,
+    /// Smallest value the field's type holds.
+    pub min: f64,
+    /// Largest value the field's type holds.
+    pub max: f64,
+    /// The field holds a whole number (counts, flags, a model number).
+    pub whole: bool,
+    get: fn(&Settings) -> f64,
+    set: fn(&mut Settings, f64),
+}
+
+/// The field with key `key`.
+pub fn field(key: u8) -> Option<&'static Field> {
+    FIELDS.iter().find(|f| f.key == key)
+}
+
+/// The field named `name`.
+pub fn field_named(name: &str) -> Option<&'static Field> {
+    FIELDS.iter().find(|f| f.name == name)
+}
+
+/// The key of the field a [`ConfigError`] names (0xff if none does).
+pub fn key_of(e: &ConfigError) -> u8 {
+    field_named(e.field()).map_or(0xff, |f| f.key)
+}
+
+const INF: f64 = f64::INFINITY;
+
+macro_rules! real {
+    ($key:expr, $name:expr, $unit:expr, $($path:ident).+) => {
+        Field {
+            key: $key,
+            name: $name,
+            unit: $unit,
+            min: -INF,
+            max: INF,
+            whole: false,
+            get: |s| s.$($path).+,
+            set: |s, v| s.$($path).+ = v,
+        }
+    };
+}
+
+macro_rules! flag {
+    ($key:expr, $name:expr, $($path:ident).+) => {
+        Field {
+            key: $key,
+            name: $name,
+            unit: "0 or 1",
+            min: 0.0,
+            max: 1.0,
+            whole: true,
+            get: |s| s.$($path).+ as u8 as f64,
+            set: |s, v| s.$($path).+ = v != 0.0,
+        }
+    };
+}
+
+/// Every field, in key order.
+pub static FIELDS: [Field; 40] = [
+    Field {
+        key: 0,
+        name: "rig.encoder_lines",
+        unit: "lines/rev",
+        min: 1.0,
+        max: (1u32 << 20) as f64,
+        whole: true,
+        get: |s| s.rig.encoder_lines as f64,
+        set: |s, v| s.rig.encoder_lines = v as u32,
+    },
+    real!(1, "rig.gear_ratio", "motor rev/pulley rev", rig.gear_ratio),
+    real!(2, "rig.belt_pitch_mm", "mm", rig.belt_pitch_mm),
+    Field {
+        key: 3,
+        name: "rig.pulley_teeth",
+        unit: "teeth",
+        min: 1.0,
+        max: 1000.0,
+        whole: true,
+        get: |s| s.rig.pulley_teeth as f64,
+        set: |s, v| s.rig.pulley_teeth = v as u32,
+    },
+    real!(4, "drive.rate_hz", "Hz", rate_hz),
+    real!(5, "drive.travel_min_mm", "mm", travel_min_mm),
+    real!(6, "drive.travel_max_mm", "mm", travel_max_mm),
+    real!(7, "drive.travel_margin_mm", "mm", travel_margin_mm),
+    real!(8, "drive.max_velocity_mm_s", "mm/s", max_velocity_mm_s),
+    real!(9, "drive.max_accel_mm_s2", "mm/s^2", max_accel_mm_s2),
+    real!(10, "encoder.max_speed_mm_s", "mm/s", encoder_max_speed_mm_s),
+    flag!(
+        11,
+        "polarity.motor_encoder_inverted",
+        polarity.motor_encoder_inverted
+    ),
+    flag!(12, "polarity.scale_inverted", polarity.scale_inverted),
+    flag!(13, "polarity.current_inverted", polarity.current_inverted),
+    real!(14, "pid.kp_a_per_mm", "A/mm", pid.kp_a_per_mm),
+    real!(15, "pid.ki_a_per_mm_s", "A/(mm s)", pid.ki_a_per_mm_s),
+    real!(16, "pid.kd_a_s_per_mm", "A s/mm", pid.kd_a_s_per_mm),
+    real!(
+        17,
+        "pid.derivative_cutoff_hz",
+        "Hz",
+        pid.derivative_cutoff_hz
+    ),
+    real!(
+        18,
+        "pid.kff_vel_a_s_per_mm",
+        "A s/mm",
+        pid.kff_vel_a_s_per_mm
+    ),
+    real!(
+        19,
+        "pid.kff_acc_a_s2_per_mm",
+        "A s^2/mm",
+        pid.kff_acc_a_s2_per_mm
+    ),
+    real!(20, "pid.max_current_a", "A", pid.max_current_a),
+    real!(
+        21,
+        "faults.following_error_at_rest_mm",
+        "mm",
+        faults.following_error_at_rest_mm
+    ),
+    real!(
+        22,
+        "faults.following_error_at_max_velocity_mm",
+        "mm",
+        faults.following_error_at_max_velocity_mm
+    ),
+    real!(23, "faults.stall_current_a", "A", faults.stall_current_a),
+    real!(24, "faults.stall_motion_mm", "mm", faults.stall_motion_mm),
+    real!(25, "faults.stall_time_s", "s", faults.stall_time_s),
+    real!(
+        26,
+        "faults.runaway_current_a",
+        "A",
+        faults.runaway_current_a
+    ),
+    real!(
+        27,
+        "faults.runaway_speed_mm_s",
+        "mm/s",
+        faults.runaway_speed_mm_s
+    ),
+    real!(28, "faults.runaway_time_s", "s", faults.runaway_time_s),
+    real!(
+        29,
+        "faults.overspeed_ratio",
+        "x max velocity",
+        faults.overspeed_ratio
+    ),
+    real!(30, "faults.overspeed_time_s", "s", faults.overspeed_time_s),
+    real!(
+        31,
+        "faults.saturation_time_s",
+        "s",
+        faults.saturation_time_s
+    ),
+    real!(
+        32,
+        "faults.link_timeout_s",
+        "s (0 = off)",
+        faults.link_timeout_s
+    ),
+    Field {
+        key: 33,
+        name: "drive.initial_model",
+        unit: "0 none, 1-3 Models 1-3, 4 backlash, 5 bidirectional table",
+        min: 0.0,
+        max: (ModelKind::ALL.len() - 1) as f64,
+        whole: true,
+        get: |s| s.initial_model as u8 as f64,
+        set: |s, v| s.initial_model = ModelKind::from_u8(v as u8).unwrap_or_default(),
+    },
+    flag!(34, "homing.towards_positive", homing.towards_positive),
+    real!(35, "homing.velocity_mm_s", "mm/s", homing.velocity_mm_s),
+    real!(36, "homing.current_a", "A", homing.current_a),
+    real!(37, "homing.detect_error_mm", "mm", homing.detect_error_mm),
+    real!(38, "homing.position_mm", "mm", homing.position_mm),
+    real!(39, "homing.backoff_mm", "mm", homing.backoff_mm),
+];
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_are_their_index_and_names_unique() {
+        for (i, f) in FIELDS.iter().enumerate() {
+            assert_eq!(f.key as usize, i, "{}", f.name);
+            assert_eq!(field_named(f.name).map(|g| g.key), Some(f.key));
+        }
+    }
+
+    #[test]
+    fn paper_settings_are_the_paper_drive() {
+        let cfg = Settings::PAPER.drive_config(Models::Params(&crate::model::ModelParams::PAPER));
+        assert_eq!(cfg, DriveConfig::paper_rig());
+    }
+
+    #[test]
+    fn every_field_round_trips_through_get_set_and_the_record() {
+        let mut s = Settings::PAPER;
+        for f in &FIELDS {
+            let v = s.get(f.key).unwrap();
+            let new = if f.whole {
+                if v + 1.0 <= f.max {
+                    v + 1.0
+                } else {
+                    v - 1.0
+                }
+            } else {
+                v * 1.5 + 0.25
+            };
+            s.set(f.key, new).unwrap();
+            assert_eq!(s.get(f.key), Some(new), "{}", f.name);
+        }
+        let mut buf = [0u8; ENCODED_LEN];
+        assert_eq!(s.encode(&mut buf), Ok(ENCODED_LEN));
+        assert_eq!(Settings::decode(&buf), Ok(s));
+    }
+
+    #[test]
+    fn bad_values_and_records_are_refused_by_name() {
+        let mut s = Settings::PAPER;
+        let e = |r: Result<(), SettingsError>| match r {
+            Err(SettingsError::Invalid(e)) => e.field(),
+            other => panic!("{other:?}"),
+        };
+        assert_eq!(e(s.set(0, 0.0)), "rig.encoder_lines");
+        assert_eq!(e(s.set(0, 1.5)), "rig.encoder_lines");
+        assert_eq!(e(s.set(1, f64::NAN)), "rig.gear_ratio");
+        assert_eq!(e(s.set(11, 2.0)), "polarity.motor_encoder_inverted");
+        assert_eq!(e(s.set(33, 6.0)), "drive.initial_model");
+        assert_eq!(s.set(200, 1.0), Err(SettingsError::UnknownKey(200)));
+        assert_eq!(s, Settings::PAPER, "refused values change nothing");
+
+        let mut buf = [0u8; ENCODED_LEN];
+        Settings::PAPER.encode(&mut buf).unwrap();
+        assert_eq!(
+            Settings::decode(&buf[..ENCODED_LEN - 1]),
+            Err(SettingsError::Truncated)
+        );
+        let mut bad = buf;
+        bad[0] ^= 1;
+        assert_eq!(Settings::decode(&bad), Err(SettingsError::BadMagic));
+        let mut bad = buf;
+        bad[8 + 9] = 0; // the second pair's key repeats the first's
+        assert_eq!(Settings::decode(&bad), Err(SettingsError::UnknownKey(0)));
+        let mut bad = buf;
+        bad[9..17].copy_from_slice(&f64::NAN.to_bits().to_le_bytes());
+        assert!(matches!(
+            Settings::decode(&bad),
+            Err(SettingsError::Invalid(ConfigError::NotFinite(
+                "rig.encoder_lines"
+            )))
+        ));
+    }
+}

@@ -1,0 +1,126 @@
+//! The drive's persistent record (configuration and calibration) on the board's storage: the
+//! STM32F405's sectors 10-11 on the board, a host file through semihosting under QEMU (which
+//! does not model the flash controller). The record format, the A/B slots and the power-cut
+//! safety are `estimator_core::storage`'s, tested on the host.
+
+use estimator_core::storage::{self, StorageError};
+
+use crate::hardware::{self, StorageFlash};
+
+/// `detail` codes of a failed save beyond the storage's own ([`StorageError::code`], 1-7) and the
+/// endpoint's (0x40..).
+pub mod detail {
+    /// The settings record did not encode (cannot happen: the buffer is sized for it).
+    pub const ENCODE: u8 = 0x30;
+}
+
+/// A short name for a save failure's detail code, for the log.
+pub fn detail_name(code: u8) -> &'static str {
+    use estimator_core::endpoint::storage_detail as e;
+    match code {
+        1 => "flash error",
+        2 => "flash geometry not supported",
+        3 => "record larger than a slot",
+        4 | 5 => "buffer too small",
+        6 => "the record read back differs",
+        7 => "the record changed while read",
+        detail::ENCODE => "settings did not encode",
+        e::NO_STORAGE => "no storage on this build (QEMU: start with --storage FILE)",
+        e::CALIBRATION_BYTES_GONE => {
+            "the calibration's bytes were overwritten by a later transfer: upload it again"
+        }
+        e::ENABLED => "the drive is enabled: disable it first",
+        _ => "unknown",
+    }
+}
+
+/// What the boot found in storage.
+#[derive(Clone, Copy, Debug)]
+pub enum Boot {
+    /// This build has no storage (QEMU without `--storage`).
+    NoStorage,
+    /// Neither slot holds a valid record.
+    Nothing,
+    /// The storage could not be read, or its newest record does not fit the buffers.
+    Failed(u8),
+    /// The newest valid record.
+    Loaded {
+        /// Which slot.
+        slot: storage::Slot,
+        /// Its sequence number.
+        seq: u32,
+        /// Its CRC-32.
+        crc32: u32,
+        /// Bytes of settings copied.
+        settings_len: usize,
+        /// Bytes of calibration blob copied.
+        blob_len: usize,
+    },
+}
+
+/// Logs what the boot found.
+pub fn log_boot(b: &Boot) {
+    match *b {
+        Boot::NoStorage => defmt::warn!("storage: none on this build"),
+        Boot::Nothing => defmt::warn!("storage: no valid record"),
+        Boot::Failed(code) => defmt::error!("storage: unreadable: {=str}", detail_name(code)),
+        Boot::Loaded {
+            slot,
+            seq,
+            crc32,
+            settings_len,
+            blob_len,
+        } => defmt::info!(
+            "storage: record {=u32} in slot {=str}, crc {=u32:#010x}, {=usize} B settings, {=usize} B calibration",
+            seq,
+            slot.name(),
+            crc32,
+            settings_len,
+            blob_len
+        ),
+    }
+}
+
+/// The board's storage, if it has one.
+pub struct Persist {
+    flash: Option<StorageFlash>,
+}
+
+impl Persist {
+    /// Opens the storage (board: always; QEMU: when `--storage FILE` is given).
+    pub fn open() -> Persist {
+        Persist {
+            flash: hardware::open_storage(),
+        }
+    }
+
+    /// Loads the newest valid record into the buffers.
+    pub fn load(&mut self, settings_buf: &mut [u8], blob_buf: &mut [u8]) -> Boot {
+        let Some(flash) = &mut self.flash else {
+            return Boot::NoStorage;
+        };
+        match storage::load(flash, settings_buf, blob_buf) {
+            Ok(Some(r)) => Boot::Loaded {
+                slot: r.slot,
+                seq: r.seq,
+                crc32: r.crc32,
+                settings_len: r.settings_len,
+                blob_len: r.blob_len,
+            },
+            Ok(None) => Boot::Nothing,
+            Err(e) => Boot::Failed(e.code()),
+        }
+    }
+
+    /// Saves a new record (the drive is disabled: the erase stalls the CPU for up to 2 s on the
+    /// board, with the watchdog lengthened meanwhile). Returns its sequence number and CRC, or
+    /// the detail code of the failure.
+    pub fn save(&mut self, settings: &[u8], blob: &[u8]) -> Result<(u32, u32), u8> {
+        let Some(flash) = &mut self.flash else {
+            return Err(estimator_core::endpoint::storage_detail::NO_STORAGE);
+        };
+        let r = hardware::during_save(|| storage::save(flash, settings, blob))
+            .map_err(|e: StorageError<_>| e.code())?;
+        Ok((r.seq, r.crc32))
+    }
+}

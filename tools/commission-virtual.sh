@@ -1,0 +1,113 @@
+#!/usr/bin/env bash
+# Commissions a virtual drive end to end, as a machine builder would a board on a USB-serial
+# adapter: the firmware under QEMU on a simulated stage that is not the paper rig (a 19.2:1
+# gearbox), its link on a pseudo-terminal, driven only by `beltctl`.
+#
+#   1. a fresh storage file: the drive boots unconfigured and refuses to enable;
+#   2. beltctl: configuration (tools/commission-config.toml), enable, homing onto the end stop,
+#      calibration with the linear scale fitted (recorded on the drive, fitted on the host with
+#      hil-sim's fitting code), upload, read-back check, save;
+#   3. the virtual drive is stopped and started again on the same storage file;
+#   4. it must boot configured with the saved record, home, and place the carriage on targets
+#      with the stored calibration's placement correction (Model 3).
+#
+# Last line: one JSON object (saved_crc, loaded_crc_after_restart, homed, targets,
+# arrival_rms_um, arrival_max_um); arrival = the scale's reading at rest minus the target.
+# Environment: COMMISSION_PROFILE (cargo profile, default ci), COMMISSION_KEEP=1 keeps the work
+# directory (logs, calibration, plots).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+profile=${COMMISSION_PROFILE:-ci}
+cargo build --profile "$profile" -q -p hil-sim -p belt-tool
+elf=target/thumbv7em-none-eabihf/release/belt-drive
+[ -f "$elf" ] || cargo fw-qemu
+hil_sim=target/$profile/hil-sim
+beltctl=target/$profile/beltctl
+
+work=$(mktemp -d "${TMPDIR:-/tmp}/commission.XXXXXX")
+store=$work/storage.bin
+port=$work/drive
+vd_pid=
+finish() {
+    if [ -n "$vd_pid" ]; then kill "$vd_pid" 2>/dev/null || true; wait "$vd_pid" 2>/dev/null || true; fi
+    if [ "${COMMISSION_KEEP:-0}" = 1 ]; then echo "work directory kept: $work" >&2; else rm -rf "$work"; fi
+}
+trap finish EXIT
+
+# The simulated stage: the paper rig's plant with a 19.2:1 gearbox.
+sed 's/^ratio = 23.7222 .*/ratio = 19.2/' hil-sim/presets/paper-rig.toml > "$work/plant.toml"
+grep -q '^ratio = 19.2$' "$work/plant.toml"
+
+start_drive() { # $1: log name, $2: where the carriage stands at power-on (mm)
+    rm -f "$port"
+    "$hil_sim" virtual-drive --plant "$work/plant.toml" --storage "$store" --link "$port" \
+        --start-mm "$2" --log "$work/$1.log" > "$work/$1.out" 2> "$work/$1.err" &
+    vd_pid=$!
+    for _ in $(seq 1 200); do
+        [ -e "$port" ] && return 0
+        kill -0 "$vd_pid" 2>/dev/null || { cat "$work/$1.err" >&2; echo "virtual drive died" >&2; exit 1; }
+        sleep 0.1
+    done
+    echo "virtual drive: no link after 20 s" >&2
+    exit 1
+}
+stop_drive() {
+    kill -TERM "$vd_pid"
+    wait "$vd_pid" || true
+    vd_pid=
+}
+json_field() { # $1: JSON text, $2: key -> the raw value
+    python3 -c 'import json,sys; v=json.loads(sys.argv[1])[sys.argv[2]]; print(json.dumps(v) if not isinstance(v,str) else v)' "$1" "$2"
+}
+ctl() { "$beltctl" --port "$port" "$@"; }
+
+echo "== 1. first power-on, fresh storage ($store)" >&2
+start_drive drive1 120
+status=$(ctl status --json)
+echo "$status" >&2
+[ "$(json_field "$status" configured)" = false ] || { echo "a fresh drive must boot unconfigured" >&2; exit 1; }
+if ctl enable 2>"$work/enable.err"; then
+    echo "an unconfigured drive enabled" >&2; exit 1
+fi
+echo "refused as it must be: $(cat "$work/enable.err")" >&2
+
+echo "== 2. configure, home, calibrate, save" >&2
+ctl config load tools/commission-config.toml
+ctl enable
+ctl home
+ctl calibrate --out "$work/calibration" --json | tee "$work/calibrate.json" >&2
+ctl disable
+saved=$(ctl config save --json)
+echo "$saved" >&2
+saved_crc=$(json_field "$saved" crc)
+
+echo "== 3. restart on the same storage" >&2
+stop_drive
+start_drive drive2 200
+status=$(ctl status --json)
+echo "$status" >&2
+[ "$(json_field "$status" configured)" = true ] || { echo "the drive did not boot configured" >&2; exit 1; }
+loaded_crc=$(json_field "$status" record_crc)
+
+echo "== 4. home and place the carriage" >&2
+ctl enable
+homed=false
+ctl home && homed=true
+ctl move 25 180 60 240 120 40 --json > "$work/moves.json"
+cat "$work/moves.json" >&2
+summary=$(tail -n 1 "$work/moves.json")
+stop_drive
+
+python3 - "$saved_crc" "$loaded_crc" "$homed" "$summary" <<'EOF'
+import json, sys
+saved, loaded, homed, summary = sys.argv[1], sys.argv[2], sys.argv[3] == "true", json.loads(sys.argv[4])
+print(json.dumps({
+    "saved_crc": saved,
+    "loaded_crc_after_restart": loaded,
+    "homed": homed,
+    "targets": summary["count"],
+    "arrival_rms_um": round(summary["rms_um"], 2),
+    "arrival_max_um": round(summary["max_um"], 2),
+}))
+EOF
