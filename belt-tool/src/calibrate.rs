@@ -22,7 +22,7 @@ use hil_sim::scenario::{Move, Scenario};
 use crate::error::ToolError;
 use crate::link::{Link, TickSample};
 use crate::ops::{self, MoveLimits};
-use crate::progress::Progress;
+use hil_sim::progress::Progress;
 
 /// Rest after the last move of a scenario before its recording stops (as `hil-sim` runs end).
 const SETTLE: Duration = Duration::from_millis(200);

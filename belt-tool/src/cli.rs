@@ -10,8 +10,8 @@ use serde_json::json;
 use crate::error::ToolError;
 use crate::link::{Link, LinkOptions};
 use crate::ops::{self, Arrival, MoveLimits};
-use crate::progress::Progress;
 use crate::{calibrate, config, port, record, status};
+use hil_sim::progress::Progress;
 
 /// beltctl: set up, move, record and calibrate a belt-drive controller over its serial link.
 #[derive(Parser, Debug)]
@@ -355,7 +355,7 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
                 model: model_kind(&model, "--model ")?,
                 save,
             };
-            let mut progress = Progress::new();
+            let mut progress = Progress::named("beltctl");
             let o = calibrate::run(link, &opts, &mut progress)?;
             progress.finish();
             for w in &o.plot_warnings {

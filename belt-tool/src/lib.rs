@@ -20,7 +20,6 @@ pub mod error;
 pub mod link;
 pub mod ops;
 pub mod port;
-pub mod progress;
 pub mod record;
 pub mod status;
 #[cfg(test)]

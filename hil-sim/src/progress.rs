@@ -9,6 +9,8 @@ pub struct Progress {
     bar: Option<ProgressBar>,
     stage: String,
     tty: bool,
+    /// The program named on stage lines without a terminal.
+    program: &'static str,
 }
 
 impl Default for Progress {
@@ -18,12 +20,18 @@ impl Default for Progress {
 }
 
 impl Progress {
-    /// A reporter; draws a bar only when standard error is a terminal.
+    /// A reporter for `hil-sim`; draws a bar only when standard error is a terminal.
     pub fn new() -> Progress {
+        Progress::named("hil-sim")
+    }
+
+    /// A reporter for another program (its name starts the stage lines).
+    pub fn named(program: &'static str) -> Progress {
         Progress {
             bar: None,
             stage: String::new(),
             tty: std::io::stderr().is_terminal(),
+            program,
         }
     }
 
@@ -37,18 +45,26 @@ impl Progress {
             if self.tty {
                 let b = ProgressBar::new(1000);
                 b.set_style(
-                    ProgressStyle::with_template("{msg:>24} [{bar:40}] {percent:>3}% {elapsed}")
+                    ProgressStyle::with_template("{msg:>28} [{bar:40}] {percent:>3}% {elapsed}")
                         .unwrap_or_else(|_| ProgressStyle::default_bar())
                         .progress_chars("=> "),
                 );
                 b.set_message(stage.to_string());
                 self.bar = Some(b);
             } else {
-                eprintln!("hil-sim: {stage}");
+                eprintln!("{}: {stage}", self.program);
             }
         }
         if let Some(b) = &self.bar {
             b.set_position((fraction.clamp(0.0, 1.0) * 1000.0) as u64);
+        }
+    }
+
+    /// Prints a line without tearing the bar.
+    pub fn println(&self, line: &str) {
+        match &self.bar {
+            Some(b) => b.suspend(|| eprintln!("{line}")),
+            None => eprintln!("{line}"),
         }
     }
 
@@ -58,5 +74,11 @@ impl Progress {
             b.finish_and_clear();
         }
         self.stage.clear();
+    }
+}
+
+impl Drop for Progress {
+    fn drop(&mut self) {
+        self.finish();
     }
 }

@@ -361,6 +361,17 @@ impl PilController {
         seq: u8,
         limit: Duration,
     ) -> Result<Reply, PilError> {
+        self.wait_passing(want, seq, limit, &mut |_| {})
+    }
+
+    /// [`PilController::wait_for`]; every other valid frame goes to `other`.
+    fn wait_passing(
+        &mut self,
+        want: impl Fn(&Reply) -> bool,
+        seq: u8,
+        limit: Duration,
+        other: &mut dyn FnMut(belt_link::Frame<Reply>),
+    ) -> Result<Reply, PilError> {
         let deadline = Instant::now() + limit;
         let mut buf = [0u8; 256];
         loop {
@@ -390,7 +401,8 @@ impl PilController {
             for &b in &buf[..n] {
                 match self.rx.push::<Reply>(b) {
                     Some(Ok(f)) if f.seq == seq && want(&f.msg) => found = Some(f.msg),
-                    Some(Ok(_)) | None => {}
+                    Some(Ok(f)) => other(f),
+                    None => {}
                     Some(Err(_)) => self.bad_replies += 1,
                 }
             }
@@ -521,50 +533,20 @@ impl PilController {
                 scale_counter: sample.scale_counter,
             },
         )?;
-        let deadline = Instant::now() + self.reply_timeout;
-        let mut buf = [0u8; 512];
-        loop {
-            let n = match self.link.read(&mut buf, Duration::from_millis(50)) {
-                Ok(0) => return Err(link_err("QEMU closed the link")),
-                Ok(n) => n,
-                Err(e)
-                    if matches!(
-                        e.kind(),
-                        io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
-                    ) =>
-                {
-                    if Instant::now() >= deadline {
-                        return Err(link_err("no answer to a sample"));
-                    }
-                    if !self.qemu.is_running() {
-                        return Err(link_err("QEMU exited"));
-                    }
-                    continue;
-                }
-                Err(e) => return Err(link_err(e)),
-            };
-            let mut found = None;
-            for &b in &buf[..n] {
-                match self.rx.push::<Reply>(b) {
-                    Some(Ok(f)) if f.seq == seq && matches!(f.msg, Reply::Answer { .. }) => {
-                        found = Some(f.msg)
-                    }
-                    Some(Ok(f)) => {
-                        let mut out = [0u8; MAX_FRAME];
-                        let len = encode(f.seq, &f.msg, &mut out);
-                        forward(&out[..len]);
-                    }
-                    None => {}
-                    Some(Err(_)) => self.bad_replies += 1,
-                }
-            }
-            if let Some(reply) = found {
-                let (out, instructions) = output_of(&reply)
-                    .ok_or_else(|| link_err(format!("invalid answer: {reply:?}")))?;
-                self.counts.add(instructions);
-                return Ok(out);
-            }
-        }
+        let reply = self.wait_passing(
+            |r| matches!(r, Reply::Answer { .. }),
+            seq,
+            self.reply_timeout,
+            &mut |f| {
+                let mut out = [0u8; MAX_FRAME];
+                let len = encode(f.seq, &f.msg, &mut out);
+                forward(&out[..len]);
+            },
+        )?;
+        let (out, instructions) =
+            output_of(&reply).ok_or_else(|| link_err(format!("invalid answer: {reply:?}")))?;
+        self.counts.add(instructions);
+        Ok(out)
     }
 
     /// True while QEMU runs.
