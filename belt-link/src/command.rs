@@ -121,6 +121,31 @@ pub enum Command {
     },
 }
 
+impl Command {
+    /// A move to `target_um`: of carriage travel ([`Command::MoveTo`]) when `carriage`, else of
+    /// nominal motor travel ([`Command::MoveMotorTo`]).
+    pub const fn move_to(
+        carriage: bool,
+        target_um: i32,
+        velocity_um_s: u32,
+        accel_um_s2: u32,
+    ) -> Command {
+        if carriage {
+            Command::MoveTo {
+                target_um,
+                velocity_um_s,
+                accel_um_s2,
+            }
+        } else {
+            Command::MoveMotorTo {
+                target_um,
+                velocity_um_s,
+                accel_um_s2,
+            }
+        }
+    }
+}
+
 /// Why a command was refused; refused commands change nothing.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum CommandError {

@@ -638,19 +638,12 @@ impl Message for Request {
                 if velocity_um_s == 0 || accel_um_s2 == 0 {
                     return Err(LinkError::OutOfRange);
                 }
-                command(if k == kind::MOVE_MOTOR {
-                    Command::MoveMotorTo {
-                        target_um,
-                        velocity_um_s,
-                        accel_um_s2,
-                    }
-                } else {
-                    Command::MoveTo {
-                        target_um,
-                        velocity_um_s,
-                        accel_um_s2,
-                    }
-                })
+                command(Command::move_to(
+                    k == kind::MOVE,
+                    target_um,
+                    velocity_um_s,
+                    accel_um_s2,
+                ))
             }
             kind::STOP => expect_len(payload, 0).and_then(|_| command(Command::Stop)),
             kind::ENABLE => expect_len(payload, 0).and_then(|_| command(Command::Enable)),

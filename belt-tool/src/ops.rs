@@ -106,19 +106,12 @@ pub fn move_command(
     motor: bool,
 ) -> Result<Command, ToolError> {
     let (velocity_um_s, accel_um_s2) = limits.drive_units()?;
-    Ok(if motor {
-        Command::MoveMotorTo {
-            target_um,
-            velocity_um_s,
-            accel_um_s2,
-        }
-    } else {
-        Command::MoveTo {
-            target_um,
-            velocity_um_s,
-            accel_um_s2,
-        }
-    })
+    Ok(Command::move_to(
+        !motor,
+        target_um,
+        velocity_um_s,
+        accel_um_s2,
+    ))
 }
 
 /// Sends a move and waits until the drive is at rest again; returns that status.

@@ -540,31 +540,19 @@ impl Endpoint {
         reset_cause: u8,
     ) -> WireStatus {
         let last = drive.telemetry();
-        let mut flags = 0;
-        if last.moving {
-            flags |= status_flags::MOVING;
-        }
-        if drive.is_enabled() {
-            flags |= status_flags::ENABLED;
-        }
-        if self.calibrated {
-            flags |= status_flags::CALIBRATED;
-        }
-        if self.streaming {
-            flags |= status_flags::STREAMING;
-        }
-        if drive.is_homed() {
-            flags |= status_flags::HOMED;
-        }
-        if last.amplifier_enabled {
-            flags |= status_flags::AMPLIFIER_ENABLED;
-        }
-        if drive.is_configured() {
-            flags |= status_flags::CONFIGURED;
-        }
-        if drive.is_homing() {
-            flags |= status_flags::HOMING;
-        }
+        let flags = [
+            (last.moving, status_flags::MOVING),
+            (drive.is_enabled(), status_flags::ENABLED),
+            (self.calibrated, status_flags::CALIBRATED),
+            (self.streaming, status_flags::STREAMING),
+            (drive.is_homed(), status_flags::HOMED),
+            (last.amplifier_enabled, status_flags::AMPLIFIER_ENABLED),
+            (drive.is_configured(), status_flags::CONFIGURED),
+            (drive.is_homing(), status_flags::HOMING),
+        ]
+        .iter()
+        .filter(|(set, _)| *set)
+        .fold(0, |acc, (_, bit)| acc | bit);
         WireStatus {
             tick: last.tick,
             motor_counts: last.motor_counts,

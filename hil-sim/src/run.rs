@@ -199,19 +199,12 @@ pub fn run(
         if due && next < scenario.moves.len() {
             let m = &scenario.moves[next];
             let (target_um, velocity_um_s, accel_um_s2) = m.drive_units();
-            controller.command(if cfg.carriage_space {
-                Command::MoveTo {
-                    target_um,
-                    velocity_um_s,
-                    accel_um_s2,
-                }
-            } else {
-                Command::MoveMotorTo {
-                    target_um,
-                    velocity_um_s,
-                    accel_um_s2,
-                }
-            })?;
+            controller.command(Command::move_to(
+                cfg.carriage_space,
+                target_um,
+                velocity_um_s,
+                accel_um_s2,
+            ))?;
             move_starts.push(records.len());
             next_at = m.retarget_after_ms.map(|ms| t + ms as f64 / 1000.0);
             rest_since = None;
