@@ -18,24 +18,27 @@ pub enum ModelKind {
     Backlash = 4,
     /// Baseline: bidirectional position table (LinuxCNC `COMP_FILE`).
     BidirTable = 5,
+    /// Model 4: play operators, band shape, tooth harmonic and current (the project's own).
+    Operator = 6,
 }
 
 impl ModelKind {
     /// Every kind, in numeric order.
-    pub const ALL: [ModelKind; 6] = [
+    pub const ALL: [ModelKind; 7] = [
         ModelKind::None,
         ModelKind::Linear,
         ModelKind::Exponential,
         ModelKind::Table,
         ModelKind::Backlash,
         ModelKind::BidirTable,
+        ModelKind::Operator,
     ];
 
     /// The paper's three models.
     pub const PAPER_MODELS: [ModelKind; 3] =
         [ModelKind::Linear, ModelKind::Exponential, ModelKind::Table];
 
-    /// The kind with this number (`0..=5`), e.g. from a command byte.
+    /// The kind with this number (`0..=6`), e.g. from a command byte.
     pub const fn from_u8(v: u8) -> Option<ModelKind> {
         match v {
             0 => Some(ModelKind::None),
@@ -44,11 +47,12 @@ impl ModelKind {
             3 => Some(ModelKind::Table),
             4 => Some(ModelKind::Backlash),
             5 => Some(ModelKind::BidirTable),
+            6 => Some(ModelKind::Operator),
             _ => None,
         }
     }
 
-    /// `"none"`, `"model1"`, `"model2"`, `"model3"`, `"backlash"` or `"bidir_table"`.
+    /// `"none"`, `"model1"`, `"model2"`, `"model3"`, `"backlash"`, `"bidir_table"` or `"model4"`.
     pub const fn as_str(self) -> &'static str {
         match self {
             ModelKind::None => "none",
@@ -57,6 +61,7 @@ impl ModelKind {
             ModelKind::Table => "model3",
             ModelKind::Backlash => "backlash",
             ModelKind::BidirTable => "bidir_table",
+            ModelKind::Operator => "model4",
         }
     }
 

@@ -1,13 +1,15 @@
 //! The calibration blob: every model's parameters in fixed point, versioned and checksummed, as
 //! `hil-sim calibrate` writes it and the firmware loads it over the link.
 //!
-//! Layout (little-endian), version 2 (version 1 had no baselines):
+//! Layout (little-endian), version 3 (version 2 recorded only counts/mm and had no Model 4;
+//! version 1 had no baselines):
 //! ```text
 //! 0   magic "BDCB"
-//! 4   version u16 (= 2)          6  reserved u16 (= 0)
+//! 4   version u16 (= 3)          6  reserved u16 (= 0)
 //! 8   payload length u32        12  CRC-32 (IEEE) of bytes 0..12 followed by the payload
 //! 16  payload:
-//!     counts_per_mm   u32 Q16.16  the rig it was calibrated on (must match the drive's)
+//!     geometry        encoder lines u32, pulley teeth u32, gear ratio f64, belt pitch mm f64:
+//!                     the rig it was calibrated on (must match the drive's exactly)
 //!     deadband        u32 counts
 //!     model1          m, offset, h, h_g, a, b                         6 x i32
 //!     model2          m, offset, h, h_g, rate a, rate b, A, B          8 x i32
@@ -17,15 +19,21 @@
 //!     backlash        offset, backlash                                2 x i32 I16F16 um
 //!     bidir table     rows u16, 0 u16, x0 um i32, step um I24F8, rows x (forward, reverse)
 //!                     I16F16 um
+//!     model4          widths um I24F8, plays and forward plays um/mm I16F16   3 x N_OPS x i32
+//!                     x_ref um i32, offset um, slope um/mm I16F16
+//!                     knot start um i32, knot step um I24F8, knots N_KNOTS x um I16F16
+//!                     pitch um I20F12, sin, cos um I16F16, turn um I24F8, sin, cos um,
+//!                     um/A I16F16, Model 1's weight I16F16
 //! ```
 //! Slopes are I16F16 um per mm, errors I16F16 um, Model 2 rates I8F24 per mm. Decoding checks
 //! every length and count before reading and never panics; a blob that fails any check is
 //! refused with the reason and changes nothing.
 
+use crate::model::operator::{N_KNOTS, N_OPS};
 use crate::model::{
     build_coeffs, BacklashParams, BandParams, BidirParams, BidirSource, Model1Params, Model2Params,
-    Model3Params, Model3Source, ModelCoeffs, ModelParams, TransitionParams, MAX_BAND_POINTS,
-    MAX_BIDIR_ROWS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
+    Model3Params, Model3Source, Model4Params, ModelCoeffs, ModelParams, TransitionParams,
+    MAX_BAND_POINTS, MAX_BIDIR_ROWS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
 };
 use crate::rig::Rig;
 use crate::ConfigError;
@@ -35,15 +43,27 @@ use belt_link::Crc32;
 /// First four bytes of every blob.
 pub const MAGIC: [u8; 4] = *b"BDCB";
 /// The version this code writes and reads.
-pub const VERSION: u16 = 2;
+pub const VERSION: u16 = 3;
 const HEADER: usize = 16;
 const BAND_BYTES: usize = 4 + 8 * MAX_BAND_POINTS;
 const TRANSITION_BYTES: usize = 12 + 2 * MAX_TRANSITION_D * MAX_TRANSITION_G0;
 const BIDIR_BYTES: usize = 12 + 8 * MAX_BIDIR_ROWS;
+/// Size of Model 4's section (the last): 3 words per play, 5 for the band line and the knot
+/// grid, the knots, 8 for the two harmonics, the current and Model 1's weight.
+pub const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8);
+const RIG_BYTES: usize = 24;
 /// Largest blob: header, rig and dead band, Models 1 and 2, two full bands, two full tables,
 /// backlash and a full bidirectional table.
-pub const MAX_BYTES: usize =
-    HEADER + 8 + 4 * 6 + 4 * 8 + 2 * BAND_BYTES + 2 * TRANSITION_BYTES + 8 + BIDIR_BYTES;
+pub const MAX_BYTES: usize = HEADER
+    + RIG_BYTES
+    + 4
+    + 4 * 6
+    + 4 * 8
+    + 2 * BAND_BYTES
+    + 2 * TRANSITION_BYTES
+    + 8
+    + BIDIR_BYTES
+    + MODEL4_BYTES;
 
 /// Why a blob was refused.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -108,8 +128,27 @@ pub fn crc32(chunks: &[&[u8]]) -> u32 {
     c.finish()
 }
 
-fn rig_q16(rig: &Rig) -> u32 {
-    (rig.counts_per_mm() * 65536.0 + 0.5) as u32
+fn write_rig(w: &mut Writer, rig: &Rig) {
+    w.u32(rig.encoder_lines);
+    w.u32(rig.pulley_teeth);
+    w.u64(rig.gear_ratio.to_bits());
+    w.u64(rig.belt_pitch_mm.to_bits());
+}
+
+fn read_rig(r: &mut Reader) -> Result<Rig, BlobError> {
+    Ok(Rig {
+        encoder_lines: r.u32()?,
+        pulley_teeth: r.u32()?,
+        gear_ratio: f64::from_bits(r.u64()?),
+        belt_pitch_mm: f64::from_bits(r.u64()?),
+    })
+}
+
+/// The geometry a blob was calibrated for, read after its header and checksum are checked
+/// (to say which rig a refused blob belongs to).
+pub fn calibrated_rig(blob: &[u8]) -> Result<Rig, BlobError> {
+    check_header(blob)?;
+    read_rig(&mut Reader::new(&blob[HEADER..]))
 }
 
 impl From<Short> for BlobError {
@@ -155,7 +194,7 @@ const Q24: u32 = 24;
 pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, BlobError> {
     params.build(rig).map_err(BlobError::Invalid)?;
     let mut w = Writer::at(&mut *buf, HEADER);
-    w.u32(rig_q16(rig));
+    write_rig(&mut w, rig);
     w.u32(params.reversal_deadband_counts);
     let m1 = &params.model1;
     w.fixed(m1.m_mm_per_mm * 1000.0, Q16, "model1.m_mm_per_mm")?;
@@ -225,6 +264,7 @@ pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, 
         w.fixed(t.forward_um[i], Q16, "bidir_table.forward_um")?;
         w.fixed(t.reverse_um[i], Q16, "bidir_table.reverse_um")?;
     }
+    write_model4(&mut w, &params.model4)?;
     let len = w.finish().map_err(|_| BlobError::BufferTooSmall)?;
     let payload_len = (len - HEADER) as u32;
     let mut head = [0u8; 12];
@@ -245,6 +285,7 @@ struct Parsed<'a> {
     model3: BlobModel3<'a>,
     backlash: BacklashParams,
     bidir: BlobBidir<'a>,
+    model4: Model4Params,
 }
 
 /// The bidirectional table read straight from a checked blob.
@@ -308,7 +349,8 @@ impl Model3Source for BlobModel3<'_> {
     }
 }
 
-fn parse<'a>(blob: &'a [u8], rig: &Rig) -> Result<Parsed<'a>, BlobError> {
+/// Checks the header, the lengths and the checksum.
+fn check_header(blob: &[u8]) -> Result<(), BlobError> {
     if blob.len() < HEADER {
         return Err(BlobError::Truncated);
     }
@@ -334,8 +376,13 @@ fn parse<'a>(blob: &'a [u8], rig: &Rig) -> Result<Parsed<'a>, BlobError> {
     if crc32(&[&blob[..12], &blob[HEADER..]]) != crc {
         return Err(BlobError::BadChecksum);
     }
+    Ok(())
+}
+
+fn parse<'a>(blob: &'a [u8], rig: &Rig) -> Result<Parsed<'a>, BlobError> {
+    check_header(blob)?;
     let mut r = Reader::new(&blob[HEADER..]);
-    if r.u32()? != rig_q16(rig) {
+    if read_rig(&mut r)? != *rig {
         return Err(BlobError::RigMismatch);
     }
     let deadband = r.u32()?;
@@ -402,6 +449,7 @@ fn parse<'a>(blob: &'a [u8], rig: &Rig) -> Result<Parsed<'a>, BlobError> {
         step_mm,
         values: r.slice(8 * rows)?,
     };
+    let model4 = read_model4(&mut r)?;
     if r.remaining() != 0 {
         return Err(BlobError::TooLong);
     }
@@ -416,6 +464,7 @@ fn parse<'a>(blob: &'a [u8], rig: &Rig) -> Result<Parsed<'a>, BlobError> {
         },
         backlash,
         bidir,
+        model4,
     })
 }
 
@@ -427,6 +476,7 @@ pub fn decode_coeffs(blob: &[u8], rig: &Rig) -> Result<ModelCoeffs, BlobError> {
         &p.model1,
         &p.model2,
         &p.model3,
+        &p.model4,
         (&p.backlash, &p.bidir),
         p.deadband,
         rig,
@@ -475,10 +525,79 @@ pub fn decode(blob: &[u8], rig: &Rig) -> Result<ModelParams, BlobError> {
         model1: p.model1,
         model2: p.model2,
         model3,
+        model4: p.model4,
         backlash: p.backlash,
         bidir_table,
         reversal_deadband_counts: p.deadband,
     };
     params.build(rig).map_err(BlobError::Invalid)?;
     Ok(params)
+}
+
+/// Model 4's section (the last one).
+fn write_model4(w: &mut Writer<'_>, m4: &Model4Params) -> Result<(), BlobError> {
+    for v in m4.widths_mm {
+        w.fixed(v * 1000.0, 8, "model4.widths_mm")?;
+    }
+    for v in m4.play_um_per_mm {
+        w.fixed(v, Q16, "model4.play_um_per_mm")?;
+    }
+    for v in m4.play_forward_um_per_mm {
+        w.fixed(v, Q16, "model4.play_forward_um_per_mm")?;
+    }
+    w.fixed(m4.x_ref_mm * 1000.0, 0, "model4.x_ref_mm")?;
+    w.fixed(m4.offset_um, Q16, "model4.offset_um")?;
+    w.fixed(m4.slope_um_per_mm, Q16, "model4.slope_um_per_mm")?;
+    w.fixed(m4.knot_start_mm * 1000.0, 0, "model4.knot_start_mm")?;
+    w.fixed(m4.knot_step_mm * 1000.0, 8, "model4.knot_step_mm")?;
+    for v in m4.knot_um {
+        w.fixed(v, Q16, "model4.knot_um")?;
+    }
+    w.fixed(m4.pitch_mm * 1000.0, 12, "model4.pitch_mm")?;
+    w.fixed(m4.pitch_um[0], Q16, "model4.pitch_um")?;
+    w.fixed(m4.pitch_um[1], Q16, "model4.pitch_um")?;
+    w.fixed(m4.turn_mm * 1000.0, 8, "model4.turn_mm")?;
+    w.fixed(m4.turn_um[0], Q16, "model4.turn_um")?;
+    w.fixed(m4.turn_um[1], Q16, "model4.turn_um")?;
+    w.fixed(m4.current_um_per_a, Q16, "model4.current_um_per_a")?;
+    w.fixed(m4.model1_weight, Q16, "model4.model1_weight")?;
+    Ok(())
+}
+
+fn read_model4(r: &mut Reader<'_>) -> Result<Model4Params, BlobError> {
+    let mut model4 = Model4Params::zero(0.0, 0.0);
+    for v in model4.widths_mm.iter_mut() {
+        *v = r.fixed(8)? / 1000.0;
+    }
+    for v in model4.play_um_per_mm.iter_mut() {
+        *v = r.fixed(Q16)?;
+    }
+    for v in model4.play_forward_um_per_mm.iter_mut() {
+        *v = r.fixed(Q16)?;
+    }
+    model4.x_ref_mm = r.fixed(0)? / 1000.0;
+    model4.offset_um = r.fixed(Q16)?;
+    model4.slope_um_per_mm = r.fixed(Q16)?;
+    model4.knot_start_mm = r.fixed(0)? / 1000.0;
+    model4.knot_step_mm = r.fixed(8)? / 1000.0;
+    for v in model4.knot_um.iter_mut() {
+        *v = r.fixed(Q16)?;
+    }
+    model4.pitch_mm = r.fixed(12)? / 1000.0;
+    model4.pitch_um = [r.fixed(Q16)?, r.fixed(Q16)?];
+    model4.turn_mm = r.fixed(8)? / 1000.0;
+    model4.turn_um = [r.fixed(Q16)?, r.fixed(Q16)?];
+    model4.current_um_per_a = r.fixed(Q16)?;
+    model4.model1_weight = r.fixed(Q16)?;
+    Ok(model4)
+}
+
+/// Model 4's parameters as a blob holds them (its formats' rounding), for a calibration that
+/// must compute its features from the geometry the drive will use.
+pub fn quantise_model4(m4: &Model4Params) -> Result<Model4Params, BlobError> {
+    let mut buf = [0u8; MODEL4_BYTES];
+    let mut w = Writer::new(&mut buf);
+    write_model4(&mut w, m4)?;
+    w.finish().map_err(|_| BlobError::BufferTooSmall)?;
+    read_model4(&mut Reader::new(&buf))
 }

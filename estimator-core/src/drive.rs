@@ -1046,7 +1046,13 @@ impl Drive {
         self.prev_current_a = current_a;
         self.prev_saturated = saturated;
 
-        let est_error_um = model::estimate(&self.models, self.model, &mut self.model_state, x);
+        let est_error_um = model::estimate_with_current(
+            &self.models,
+            self.model,
+            &mut self.model_state,
+            x,
+            current_a,
+        );
         // Polarity last: everything above works in the drive's own frame.
         let command_a = if self.polarity.current_inverted {
             current_a.saturating_neg()

@@ -7,6 +7,7 @@
 //! values of the *quantised* coefficients converted back to `f64`, so that only the arithmetic is
 //! compared, not the quantisation of calibration data.
 
+use crate::model::operator::N_OPS;
 use crate::model::{BandCoeffs, Direction, ModelKind, ModelParams, TransitionCoeffs};
 use crate::model::{Model1Params, Model2Params};
 use crate::rig::Rig;
@@ -111,6 +112,60 @@ pub struct Reference {
     y_d_mm: f64,
     transition: bool,
     g0_mm: f64,
+    m4: RefModel4,
+    plays: [f64; N_OPS],
+    plays_valid: bool,
+    base: RefBase,
+}
+
+/// Model 4's quantised coefficients as `f64` (um, counts).
+#[derive(Clone, Debug)]
+struct RefModel4 {
+    widths: [f64; N_OPS],
+    /// Play weights moving in reverse and forward, um per count.
+    weight_um_per_count: [[f64; N_OPS]; 2],
+    x_ref: i32,
+    offset_um: f64,
+    slope_um_per_count: f64,
+    hat_start: f64,
+    hat_recip: f64,
+    knot_um: Vec<f64>,
+    rates: [u32; 2],
+    harmonic_um: [[f64; 2]; 2],
+    current_um_per_a: f64,
+    model1_weight: f64,
+}
+
+/// Model 4's Model 1 term: its own turning-point state (see `ModelState`'s `base_*`).
+#[derive(Clone, Debug, Default)]
+struct RefBase {
+    y_ext_mm: f64,
+    y_ext_valid: bool,
+    y_d_mm: f64,
+    transition: bool,
+}
+
+impl RefModel4 {
+    fn from_coeffs(c: &crate::model::Model4Coeffs) -> RefModel4 {
+        let q24 = |v: i32| v as f64 / (1u64 << 24) as f64;
+        RefModel4 {
+            widths: c.widths_counts.map(|w| w as f64),
+            weight_um_per_count: c.weight_q24.map(|w| w.map(q24)),
+            x_ref: c.x_ref_counts,
+            offset_um: c.offset_um.to_num(),
+            slope_um_per_count: c.slope_q31 as f64 / (1u64 << 31) as f64,
+            hat_start: c.hat_start_counts as f64,
+            hat_recip: c.hat_recip_q32 as f64 / (1u64 << 32) as f64,
+            knot_um: c.knot_um.iter().map(|k| k.to_num()).collect(),
+            rates: [c.pitch_rate, c.turn_rate],
+            harmonic_um: [
+                [c.pitch_um[0].to_num(), c.pitch_um[1].to_num()],
+                [c.turn_um[0].to_num(), c.turn_um[1].to_num()],
+            ],
+            current_um_per_a: c.current_um_per_a.to_num(),
+            model1_weight: c.model1_q16 as f64 / 65536.0,
+        }
+    }
 }
 
 impl Reference {
@@ -148,6 +203,10 @@ impl Reference {
             y_d_mm: 0.0,
             transition: false,
             g0_mm: 0.0,
+            m4: RefModel4::from_coeffs(c.model4()),
+            plays: [0.0; N_OPS],
+            plays_valid: false,
+            base: RefBase::default(),
         })
     }
 
@@ -161,6 +220,8 @@ impl Reference {
         self.y_d_mm = 0.0;
         self.transition = false;
         self.g0_mm = 0.0;
+        self.plays_valid = false;
+        self.base = RefBase::default();
     }
 
     /// Direction as last registered.
@@ -170,8 +231,23 @@ impl Reference {
 
     /// One step: the error estimate of `kind` at `x_counts`, in micrometres.
     pub fn estimate_um(&mut self, kind: ModelKind, x_counts: i32) -> f64 {
+        self.estimate_with_current_um(kind, x_counts, 0.0)
+    }
+
+    /// [`Reference::estimate_um`] with the motor current (amperes), which only Model 4 uses.
+    pub fn estimate_with_current_um(
+        &mut self,
+        kind: ModelKind,
+        x_counts: i32,
+        current_a: f64,
+    ) -> f64 {
         self.track(x_counts);
+        if kind != ModelKind::Operator {
+            self.plays_valid = false;
+            self.base.y_ext_valid = false;
+        }
         let y_mm = match kind {
+            ModelKind::Operator => self.model4(x_counts, current_a) / 1000.0,
             ModelKind::None => 0.0,
             ModelKind::Linear => self.model1(x_counts),
             ModelKind::Exponential => self.model2(x_counts),
@@ -205,6 +281,8 @@ impl Reference {
             self.x_d = self.x_ext;
             self.y_d_mm = self.y_ext_mm;
             self.transition = self.y_ext_valid;
+            self.base.y_d_mm = self.base.y_ext_mm;
+            self.base.transition = self.base.y_ext_valid;
             self.x_ext = x;
             let x_d = self.x_d as f64;
             self.g0_mm = match self.dir {
@@ -213,6 +291,50 @@ impl Reference {
             }
             .max(0.0);
         }
+    }
+
+    /// Model 4 (see [`crate::model::operator`]), in um.
+    fn model4(&mut self, x: i32, current_a: f64) -> f64 {
+        let xf = x as f64;
+        let widths = self.m4.widths;
+        if !self.plays_valid {
+            for (p, w) in self.plays.iter_mut().zip(&widths) {
+                *p = match self.dir {
+                    Direction::Forward => xf - w,
+                    Direction::Reverse => xf + w,
+                };
+            }
+            self.plays_valid = true;
+            self.base.transition = false;
+        }
+        let y1_mm = self.model1_at(self.base.transition, self.base.y_d_mm, x);
+        if x == self.x_ext {
+            self.base.y_ext_mm = y1_mm;
+            self.base.y_ext_valid = true;
+        }
+        let m = &self.m4;
+        let mut y = m.model1_weight * y1_mm * 1000.0
+            + m.offset_um
+            + m.slope_um_per_count * (xf - m.x_ref as f64);
+        for j in 0..N_OPS {
+            let p = self.plays[j].clamp(xf - m.widths[j], xf + m.widths[j]);
+            self.plays[j] = p;
+            y += m.weight_um_per_count[(self.dir == Direction::Forward) as usize][j] * (xf - p);
+        }
+        let pos = (xf - m.hat_start) * m.hat_recip;
+        for (k, v) in m.knot_um.iter().enumerate() {
+            y += v * (1.0 - (pos - (k + 1) as f64).abs()).max(0.0);
+        }
+        for (rate, w) in m.rates.iter().zip(&m.harmonic_um) {
+            let turns = (x as i64)
+                .wrapping_sub(m.x_ref as i64)
+                .wrapping_mul(*rate as i64) as u32;
+            let a = turns as f64 / (1u64 << 32) as f64 * core::f64::consts::TAU;
+            y += w[0] * a.sin() + w[1] * a.cos();
+        }
+        // Saturated like every output of the fixed-point models.
+        let max = crate::model::MAX_ABS_UM;
+        (y + m.current_um_per_a * current_a).clamp(-max, max)
     }
 
     /// The bidirectional table of the current direction, interpolated, held flat outside.
@@ -239,25 +361,26 @@ impl Reference {
 
     /// Eq. 14, bounded by the band on both sides.
     fn model1(&self, x: i32) -> f64 {
+        self.model1_at(self.transition, self.y_d_mm, x)
+    }
+
+    /// Model 1 from an explicit transition state (Model 4's own, or the drive's).
+    fn model1_at(&self, transition: bool, y_d_mm: f64, x: i32) -> f64 {
         let p = &self.m1;
         let xm = self.mm(x as f64);
         let (lower, upper) = (
             p.m_mm_per_mm * xm + p.offset_mm - p.h_mm,
             p.m_mm_per_mm * xm + p.offset_mm,
         );
-        if !self.transition {
+        if !transition {
             return match self.dir {
                 Direction::Forward => lower,
                 Direction::Reverse => upper,
             };
         }
         let u = match self.dir {
-            Direction::Forward => {
-                (self.y_d_mm - p.h_g_mm) - p.slope_a_mm_per_mm * self.since_turn_mm(x)
-            }
-            Direction::Reverse => {
-                (self.y_d_mm + p.h_g_mm) - p.slope_b_mm_per_mm * self.since_turn_mm(x)
-            }
+            Direction::Forward => (y_d_mm - p.h_g_mm) - p.slope_a_mm_per_mm * self.since_turn_mm(x),
+            Direction::Reverse => (y_d_mm + p.h_g_mm) - p.slope_b_mm_per_mm * self.since_turn_mm(x),
         };
         u.max(lower).min(upper)
     }

@@ -390,7 +390,7 @@ pub static FIELDS: [Field; 40] = [
     Field {
         key: 33,
         name: "drive.initial_model",
-        unit: "0 none, 1-3 Models 1-3, 4 backlash, 5 bidirectional table",
+        unit: "0 none, 1-3 Models 1-3, 4 backlash, 5 bidirectional table, 6 Model 4",
         min: 0.0,
         max: (ModelKind::ALL.len() - 1) as f64,
         whole: true,
@@ -456,7 +456,7 @@ mod tests {
         assert_eq!(e(s.set(0, 1.5)), "rig.encoder_lines");
         assert_eq!(e(s.set(1, f64::NAN)), "rig.gear_ratio");
         assert_eq!(e(s.set(11, 2.0)), "polarity.motor_encoder_inverted");
-        assert_eq!(e(s.set(33, 6.0)), "drive.initial_model");
+        assert_eq!(e(s.set(33, 7.0)), "drive.initial_model");
         assert_eq!(s.set(200, 1.0), Err(SettingsError::UnknownKey(200)));
         assert_eq!(s, Settings::PAPER, "refused values change nothing");
 

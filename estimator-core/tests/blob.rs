@@ -1,6 +1,8 @@
 //! The calibration blob: round trip, and every way a blob can be wrong is refused with a reason.
 
-use estimator_core::blob::{crc32, decode, decode_coeffs, encode, BlobError, MAX_BYTES};
+use estimator_core::blob::{
+    crc32, decode, decode_coeffs, encode, BlobError, MAX_BYTES, MODEL4_BYTES,
+};
 use estimator_core::drive::{Command, Drive, DriveConfig, Sample};
 use estimator_core::model::{ModelKind, ModelParams};
 use estimator_core::rig::Rig;
@@ -87,6 +89,12 @@ fn each_defect_has_its_reason() {
     );
 }
 
+/// Where fields sit in a blob: header 16, geometry 24 (lines, teeth, gear f64, pitch f64),
+/// deadband 4; then Model 1 (m, offset, h, ..) and Model 2 (8 words) before Model 3's bands.
+const PAYLOAD: usize = 16 + 24 + 4;
+const MODEL1_H: usize = PAYLOAD + 8;
+const MODEL3_BANDS: usize = PAYLOAD + 24 + 32;
+
 /// Re-signs a modified payload so that only the semantic checks can catch it.
 fn resign(b: &mut [u8]) {
     let crc = crc32(&[&b[..12], &b[16..]]);
@@ -97,20 +105,20 @@ fn resign(b: &mut [u8]) {
 fn well_signed_nonsense_is_refused_by_the_model_checks() {
     let rig = Rig::PAPER;
     let mut b = paper_blob();
-    // model1.h (payload offset 8 + 8) negative.
-    b[16 + 16..16 + 20].copy_from_slice(&(-5i32 << 16).to_le_bytes());
+    // model1.h (payload offset: geometry, deadband, then m and offset) negative.
+    b[MODEL1_H..MODEL1_H + 4].copy_from_slice(&(-5i32 << 16).to_le_bytes());
     resign(&mut b);
     assert!(matches!(decode(&b, &rig), Err(BlobError::Invalid(e)) if e.field() == "model1.h_mm"));
     // forward band count beyond the table.
     let mut b = paper_blob();
-    let band_at = 16 + 8 + 24 + 32;
+    let band_at = MODEL3_BANDS;
     b[band_at..band_at + 2].copy_from_slice(&500u16.to_le_bytes());
     resign(&mut b);
     assert_eq!(
         decode(&b, &rig),
         Err(BlobError::BadCount("model3.forward_band"))
     );
-    // The bidirectional table (the last section: rows, 0, x0, step, 2 rows of 2 values) with
+    // The bidirectional table (before Model 4: rows, 0, x0, step, 2 rows of 2 values) with
     // one row, with too many, and with a step of zero.
     for (rows, want) in [
         (1u16, Err(BlobError::BadCount("bidir_table.rows"))),
@@ -118,13 +126,13 @@ fn well_signed_nonsense_is_refused_by_the_model_checks() {
         (3, Err(BlobError::Truncated)),
     ] {
         let mut b = paper_blob();
-        let at = b.len() - 28;
+        let at = b.len() - MODEL4_BYTES - 28;
         b[at..at + 2].copy_from_slice(&rows.to_le_bytes());
         resign(&mut b);
         assert_eq!(decode(&b, &rig), want, "{rows} rows");
     }
     let mut b = paper_blob();
-    let at = b.len() - 20;
+    let at = b.len() - MODEL4_BYTES - 20;
     b[at..at + 4].copy_from_slice(&0i32.to_le_bytes());
     resign(&mut b);
     assert!(
@@ -179,7 +187,7 @@ fn in_place_decoding_builds_the_same_coefficients() {
     );
     // And refuses what decode refuses, for the same reason.
     let mut b = paper_blob();
-    let band_at = 16 + 8 + 24 + 32;
+    let band_at = MODEL3_BANDS;
     b[band_at..band_at + 2].copy_from_slice(&500u16.to_le_bytes());
     resign(&mut b);
     assert_eq!(
@@ -187,7 +195,7 @@ fn in_place_decoding_builds_the_same_coefficients() {
         Err(BlobError::BadCount("model3.forward_band"))
     );
     let mut b = paper_blob();
-    b[16 + 16..16 + 20].copy_from_slice(&(-5i32 << 16).to_le_bytes());
+    b[MODEL1_H..MODEL1_H + 4].copy_from_slice(&(-5i32 << 16).to_le_bytes());
     resign(&mut b);
     assert!(
         matches!(decode_coeffs(&b, &rig), Err(BlobError::Invalid(e)) if e.field() == "model1.h_mm")

@@ -79,8 +79,11 @@ fn coeffs_size_and_layout() {
     );
     // What is used today (host build, closing distances included): growth must be deliberate.
     assert!(m3 <= 2608, "Model 3 storage {m3} B");
-    assert!(size <= 4788, "ModelCoeffs {size} B");
-    assert!(core::mem::size_of::<ModelState>() <= 72);
+    let m4 = core::mem::size_of::<estimator_core::model::Model4Coeffs>();
+    assert!(m4 <= 204, "Model 4 storage {m4} B");
+    assert!(size <= 4992, "ModelCoeffs {size} B");
+    // Model 4 adds its ten plays (40 B), its Model 1 term and their validity to the state.
+    assert!(core::mem::size_of::<ModelState>() <= 128);
 }
 
 #[test]
@@ -391,8 +394,9 @@ fn model_kind_numbers_and_names() {
         assert_eq!(ModelKind::from_u8(i as u8), Some(k));
         assert_eq!(ModelKind::parse(k.as_str()), Some(k));
     }
-    assert_eq!(ModelKind::from_u8(6), None);
-    assert_eq!(ModelKind::parse("model4"), None);
+    assert_eq!(ModelKind::from_u8(ModelKind::ALL.len() as u8), None);
+    assert_eq!(ModelKind::parse("model4"), Some(ModelKind::Operator));
+    assert_eq!(ModelKind::parse("model5"), None);
     assert_eq!(ModelKind::BidirTable.as_str(), "bidir_table");
     assert_eq!(ModelKind::Exponential.as_str(), "model2");
 }

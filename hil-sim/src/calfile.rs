@@ -173,19 +173,14 @@ pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, String> {
     let bin = dir.join("calibration.bin");
     let bytes = std::fs::read(&bin).map_err(|e| format!("{}: {e}", bin.display()))?;
     let params: ModelParams = blob::decode(&bytes, rig).map_err(|e| match e {
-        // Say which geometries differ: the blob records the counts per mm it was made for.
-        blob::BlobError::RigMismatch => {
-            let made_for = bytes
-                .get(16..20)
-                .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64 / 65536.0)
-                .unwrap_or(f64::NAN);
-            format!(
-                "{}: calibrated for {made_for:.1} counts/mm; this plant has {}: calibrate \
-                 again on it",
-                bin.display(),
-                rig
-            )
-        }
+        // Say which geometries differ: the blob records the geometry it was made for.
+        blob::BlobError::RigMismatch => match blob::calibrated_rig(&bytes) {
+            Ok(made_for) => format!(
+                "{}: calibrated for {made_for}; this plant has {rig}: calibrate again on it",
+                bin.display()
+            ),
+            Err(e) => format!("{}: {e}", bin.display()),
+        },
         e => format!("{}: {e}", bin.display()),
     })?;
     let path = dir.join("calibration.toml");
@@ -224,6 +219,7 @@ pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, String> {
             (K::Linear, rms("model1")?),
             (K::Exponential, rms("model2")?),
             (K::Table, rms("model3")?),
+            (K::Operator, rms("model4")?),
         ],
         samples: 0,
     })

@@ -14,9 +14,11 @@
 //! 5. the two baselines of today's controllers from the same data.
 
 use estimator_core::blob;
+use estimator_core::model::operator::{N_KNOTS, N_OPS};
 use estimator_core::model::{
-    BandParams, Model1Params, Model2Params, Model3Params, ModelKind, ModelParams, TransitionParams,
-    MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
+    BandParams, Direction, Model1Params, Model2Params, Model3Params, Model4Params, ModelKind,
+    ModelParams, ModelState, TransitionParams, MAX_BAND_POINTS, MAX_TRANSITION_D,
+    MAX_TRANSITION_G0,
 };
 use estimator_core::reference::Reference;
 use estimator_core::rig::Rig;
@@ -41,7 +43,7 @@ pub struct Calibration {
     /// Every compensator's parameters, the baselines' included (what the firmware loads).
     pub params: ModelParams,
     /// RMS residual of each model on the calibration data, um.
-    pub fit_rms_um: [(ModelKind, f64); 3],
+    pub fit_rms_um: [(ModelKind, f64); 4],
     /// Samples used.
     pub samples: usize,
 }
@@ -49,6 +51,8 @@ pub struct Calibration {
 /// One calibration run prepared for fitting.
 struct Prepared {
     x_counts: Vec<i32>,
+    /// The motor current the drive commanded on each tick, amperes.
+    current_a: Vec<f64>,
     x_mm: Vec<f64>,
     dx_um: Vec<f64>,
 }
@@ -71,6 +75,11 @@ fn prepare(trace: &Trace) -> Prepared {
         .collect();
     Prepared {
         x_counts: trace.records.iter().map(|r| r.motor_counts).collect(),
+        current_a: trace
+            .records
+            .iter()
+            .map(|r| r.out.current_a.to_num::<f64>())
+            .collect(),
         x_mm: (0..n).map(|i| trace.x_pe_mm(i)).collect(),
         dx_um,
     }
@@ -87,8 +96,8 @@ fn sse(params: &ModelParams, rig: &Rig, kind: ModelKind, runs: &[Prepared]) -> (
         let Ok(mut m) = Reference::new(params, rig, x0) else {
             return (f64::INFINITY, 1);
         };
-        for (x, dx) in r.x_counts.iter().zip(&r.dx_um) {
-            let e = dx - m.estimate_um(kind, *x);
+        for ((x, dx), i) in r.x_counts.iter().zip(&r.dx_um).zip(&r.current_a) {
+            let e = dx - m.estimate_with_current_um(kind, *x, *i);
             s += e * e;
             n += 1;
         }
@@ -433,6 +442,8 @@ pub fn calibrate(
         }
     }
     params.model3 = model3(&params.model1, &runs, rig, deadband, best.1)?;
+    progress("Model 4", 0.0);
+    params.model4 = model4(&runs, rig, deadband, &params)?;
     params.backlash = Backlash::calibrate(traces)
         .ok_or("no approached samples in both directions")?
         .to_params();
@@ -452,12 +463,121 @@ pub fn calibrate(
         (ModelKind::Linear, rms(ModelKind::Linear)),
         (ModelKind::Exponential, rms(ModelKind::Exponential)),
         (ModelKind::Table, rms(ModelKind::Table)),
+        (ModelKind::Operator, rms(ModelKind::Operator)),
     ];
     Ok(Calibration {
         params,
         fit_rms_um,
         samples: runs.iter().map(|r| r.x_counts.len()).sum(),
     })
+}
+
+/// Model 4 by one linear least-squares fit of all its weights (plays with and without the
+/// forward share, band line and hats, both harmonics, current, and the weight of `base`'s
+/// calibrated Model 1) to Delta x on every calibration
+/// sample, lightly regularised (ridge 1e-6 of each column's energy) so that plays the data never
+/// move get no weight. Features are computed exactly as [`Reference`] evaluates them.
+fn model4(
+    runs: &[Prepared],
+    rig: &Rig,
+    deadband: u32,
+    base: &ModelParams,
+) -> Result<Model4Params, String> {
+    let (lo, hi) = runs
+        .iter()
+        .flat_map(|r| r.x_mm.iter())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &x| {
+            (l.min(x), h.max(x))
+        });
+    if (hi - lo).is_nan() || hi - lo <= 2.0 * rig.belt_pitch_mm {
+        return Err("calibration data covers less than two belt pitches of travel".into());
+    }
+    let mut m = Model4Params::zero(rig.belt_pitch_mm, rig.mm_per_pulley_rev());
+    m.x_ref_mm = ((lo + hi) / 2.0).round();
+    m.knot_step_mm = (hi - lo) / (N_KNOTS + 1) as f64;
+    m.knot_start_mm = lo + m.knot_step_mm;
+    // Geometry as the coefficients hold it (the features must match the fixed-point model).
+    let q = blob::quantise_model4(&m).map_err(|e| e.to_string())?;
+    // Model 1 as the drive will hold it.
+    let model1_only = quantised(base, rig)?;
+    let cpm = rig.counts_per_mm();
+    let c = q.build(cpm).map_err(|e| e.to_string())?;
+    let widths: Vec<f64> = c.widths_counts().iter().map(|&w| w as f64).collect();
+    let (hat_start, recip) = c.hat_grid();
+    let rates = c.phase_rates();
+    let x_ref = c.x_ref_counts();
+    const N: usize = 2 * N_OPS + 2 + N_KNOTS + 4 + 2;
+    let mut ata = vec![0.0f64; N * N];
+    let mut atb = vec![0.0f64; N];
+    let mut row = [0.0f64; N];
+    for r in runs {
+        let Some(&x0) = r.x_counts.first() else {
+            continue;
+        };
+        // The reversal detector, as the drive runs it.
+        let mut det = ModelState::new(x0);
+        // Model 1's estimate as Model 4 runs it (on its own turning points).
+        let mut model1 = Reference::new(&model1_only, rig, x0).map_err(|e| e.to_string())?;
+        let mut plays: Vec<f64> = widths.iter().map(|w| x0 as f64 - w).collect();
+        for i in 0..r.x_counts.len() {
+            let x = r.x_counts[i];
+            let xf = x as f64;
+            let fwd = det.track_direction(deadband, x) == Direction::Forward;
+            for j in 0..N_OPS {
+                plays[j] = plays[j].clamp(xf - widths[j], xf + widths[j]);
+                let f = (xf - plays[j]) / cpm;
+                row[2 * j] = f;
+                row[2 * j + 1] = if fwd { f } else { 0.0 };
+            }
+            let k = 2 * N_OPS;
+            row[k] = 1.0;
+            row[k + 1] = (xf - x_ref as f64) / cpm;
+            let pos = (xf - hat_start as f64) * recip as f64 / (1u64 << 32) as f64;
+            for j in 0..N_KNOTS {
+                row[k + 2 + j] = (1.0 - (pos - (j + 1) as f64).abs()).max(0.0);
+            }
+            let h = k + 2 + N_KNOTS;
+            for (n, rate) in [rates.0, rates.1].into_iter().enumerate() {
+                let turns = (x as i64)
+                    .wrapping_sub(x_ref as i64)
+                    .wrapping_mul(rate as i64) as u32;
+                let a = turns as f64 / (1u64 << 32) as f64 * std::f64::consts::TAU;
+                row[h + 2 * n] = a.sin();
+                row[h + 2 * n + 1] = a.cos();
+            }
+            row[N - 2] = r.current_a[i];
+            row[N - 1] = model1.estimate_um(ModelKind::Linear, x);
+            let y = r.dx_um[i];
+            for a in 0..N {
+                if row[a] == 0.0 {
+                    continue;
+                }
+                atb[a] += row[a] * y;
+                for b in 0..N {
+                    ata[a * N + b] += row[a] * row[b];
+                }
+            }
+        }
+    }
+    for a in 0..N {
+        ata[a * N + a] += 1e-6 * ata[a * N + a] + 1e-9;
+    }
+    let v =
+        crate::tables::solve_spd(ata, atb).ok_or("Model 4: the least-squares fit is singular")?;
+    for j in 0..N_OPS {
+        m.play_um_per_mm[j] = v[2 * j];
+        m.play_forward_um_per_mm[j] = v[2 * j + 1];
+    }
+    let k = 2 * N_OPS;
+    m.offset_um = v[k];
+    m.slope_um_per_mm = v[k + 1];
+    m.knot_um.copy_from_slice(&v[k + 2..k + 2 + N_KNOTS]);
+    let h = k + 2 + N_KNOTS;
+    m.pitch_um = [v[h], v[h + 1]];
+    m.turn_um = [v[h + 2], v[h + 3]];
+    m.current_um_per_a = v[N - 2];
+    m.model1_weight = v[N - 1];
+    Ok(m)
 }
 
 /// The parameters exactly as the firmware will hold them (through the blob's formats).

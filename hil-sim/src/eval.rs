@@ -14,6 +14,10 @@ use crate::stats::ErrorStats;
 
 /// Scenarios the calibration records (Figs. 9-15 experiments); never the test scenarios.
 pub const CALIBRATION_SCENARIOS: &[&str] = &["repeatability", "reversals", "velocities"];
+/// Seed of the default calibration plan's moves.
+pub const CALIBRATION_PLAN_SEED: u64 = 0xCA1;
+/// Length of the default calibration plan, simulated seconds.
+pub const CALIBRATION_PLAN_S: f64 = 60.0;
 /// Noise seeds of calibration runs start here; evaluation runs use their own seed.
 pub const CALIBRATION_SEED_BASE: u64 = 1_000;
 
@@ -25,6 +29,7 @@ pub const ESTIMATORS: &[&str] = &[
     "model3",
     "backlash",
     "bidir_table",
+    "model4",
 ];
 
 /// The drive simulations run: the paper rig's limits, gains and thresholds (all in millimetres
@@ -112,7 +117,18 @@ pub fn record_calibration(
         s.check_against(&drive_limits(plant.rig()), plant)
             .map_err(|e| format!("calibration scenario {e}"))?;
     }
-    for (k, (name, s)) in CALIBRATION_SCENARIOS.iter().zip(&scenarios).enumerate() {
+    // The default plan across the drive's configured range (see `workloads::calibration_plan`).
+    let lim = crate::workloads::Limits::of(&drive_limits(plant.rig()));
+    let plan = crate::workloads::calibration_plan(&lim, CALIBRATION_PLAN_SEED, CALIBRATION_PLAN_S);
+    plan.check_against(&drive_limits(plant.rig()), plant)
+        .map_err(|e| format!("calibration plan {e}"))?;
+    let names: Vec<String> = CALIBRATION_SCENARIOS
+        .iter()
+        .map(|s| s.to_string())
+        .chain([plan.name.clone()])
+        .collect();
+    let scenarios: Vec<Scenario> = scenarios.into_iter().chain([plan]).collect();
+    for (k, (name, s)) in names.iter().zip(&scenarios).enumerate() {
         let label = format!("record {name}");
         let t = run_in_process(
             s,
@@ -166,7 +182,17 @@ pub fn estimates(trace: &Trace, coeffs: &ModelCoeffs) -> Vec<(&'static str, Vec<
             let y = trace
                 .records
                 .iter()
-                .map(|r| model::estimate(coeffs, kind, &mut st, r.motor_counts).to_num::<f64>())
+                .map(|r| {
+                    // The current as commanded (the simulations wire it with normal polarity).
+                    model::estimate_with_current(
+                        coeffs,
+                        kind,
+                        &mut st,
+                        r.motor_counts,
+                        r.out.current_a,
+                    )
+                    .to_num::<f64>()
+                })
                 .collect();
             (kind.as_str(), y)
         })

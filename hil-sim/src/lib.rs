@@ -12,6 +12,7 @@ pub mod controller;
 pub mod eval;
 pub mod faults;
 pub mod fit;
+pub mod generalise;
 pub mod input;
 pub mod params;
 pub mod pil;
@@ -24,6 +25,7 @@ pub mod run;
 pub mod scenario;
 pub mod stats;
 pub mod tables;
+pub mod workloads;
 
 pub use params::PlantParams;
 pub use plant::{BeltForces, Plant};

@@ -10,7 +10,7 @@ use hil_sim::pil::PilOptions;
 use hil_sim::plant::PlantParams;
 use hil_sim::progress::Progress;
 use hil_sim::scenario::{preset_names, Scenario};
-use hil_sim::{calfile, eval, report};
+use hil_sim::{calfile, eval, generalise, report};
 
 #[derive(Parser)]
 #[command(
@@ -187,6 +187,21 @@ enum Cmd {
         /// Print one JSON object instead of the table.
         #[arg(long)]
         json: bool,
+    },
+    /// The generalisation table: every estimator and the floor on every scenario preset and a
+    /// generated workload of every class, on the paper rig and the built-in plant variants,
+    /// each calibrated by its own default plan (Markdown on stdout).
+    Generalise {
+        /// More plant files to include.
+        #[arg(long)]
+        plant: Vec<PathBuf>,
+        /// Seed of the generated workloads.
+        #[arg(long, default_value_t = generalise::TABLE_SEED)]
+        seed: u64,
+        /// Leave out the built-in variants (tight belt, worn belt, heavy carriage, other
+        /// geometry).
+        #[arg(long)]
+        no_variants: bool,
     },
     /// Calibrate, run the scenario, and write report.md with PNG figures (Figs. 11, 18-24).
     Report {
@@ -582,6 +597,32 @@ fn main() -> ExitCode {
                     .map(|c| format!(", firmware exit {c}"))
                     .unwrap_or_default()
             );
+            Ok(())
+        })(),
+        Cmd::Generalise {
+            plant,
+            seed,
+            no_variants,
+        } => (|| {
+            let mut plants = if no_variants {
+                vec![PlantParams::paper_rig()]
+            } else {
+                generalise::plants()?
+            };
+            for p in &plant {
+                plants.push(PlantParams::load(p)?);
+            }
+            let mut progress = Progress::new();
+            let mut tables = Vec::new();
+            for p in &plants {
+                let name = p.name().to_string();
+                let w = generalise::workloads(p, seed)?;
+                tables.push(generalise::measure(p, &w, &mut |s, f| {
+                    progress.stage(&format!("{name}: {s}"), f)
+                })?);
+            }
+            progress.finish();
+            print!("{}", generalise::markdown(&tables));
             Ok(())
         })(),
         Cmd::Report {

@@ -76,7 +76,7 @@
 //! (25 substeps per 2 kHz tick) stays within 0.5 um of a 5 us run (`substep_convergence`) and
 //! runs ~300 times faster than real time (`cargo bench -p hil-sim --bench sim_speed`).
 
-mod rng;
+pub(crate) mod rng;
 
 pub use crate::params::PlantParams;
 use core::f64::consts::TAU;

@@ -159,17 +159,31 @@ pub(crate) fn travel_since_turn(x_counts: i32, x_d_counts: i32) -> i32 {
 /// One step of eq. 14, bounded on both sides by the band (see the module docs of `model`).
 #[inline]
 pub(crate) fn eval(c: &Model1Coeffs, s: &ModelState, x_counts: i32) -> I16F16 {
+    eval_at(c, s.dir, s.transition, s.x_d_counts, s.y_d_um, x_counts)
+}
+
+/// [`eval`] from an explicit transition state (Model 4 runs Model 1 on its own turning-point
+/// output, not on the active model's).
+#[inline(always)]
+pub(crate) fn eval_at(
+    c: &Model1Coeffs,
+    dir: Direction,
+    transition: bool,
+    x_d_counts: i32,
+    y_d_um: I16F16,
+    x_counts: i32,
+) -> I16F16 {
     let (lower, upper) = c.band.edges(x_counts);
-    let y = if !s.transition {
-        match s.dir {
+    let y = if !transition {
+        match dir {
             Direction::Forward => lower,
             Direction::Reverse => upper,
         }
     } else {
-        let dx = travel_since_turn(x_counts, s.x_d_counts);
-        let y_d = s.y_d_um.to_bits();
+        let dx = travel_since_turn(x_counts, x_d_counts);
+        let y_d = y_d_um.to_bits();
         // u = y_d -/+ h_g - slope * (x - x_d)   (eqs. 14, 16)
-        let (start, slope) = match s.dir {
+        let (start, slope) = match dir {
             Direction::Forward => (
                 y_d.saturating_sub(c.h_g_um.to_bits()),
                 c.slope_a_um_per_count,

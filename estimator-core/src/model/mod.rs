@@ -90,6 +90,7 @@ pub mod fixmath;
 mod convert;
 pub mod exponential;
 mod linear;
+pub mod operator;
 pub mod table;
 
 use fixed::types::I16F16;
@@ -101,6 +102,7 @@ pub use convert::MAX_ABS_UM;
 pub use exponential::{Model2Coeffs, Model2Params};
 pub use fixmath::Scale;
 pub use linear::{LinearBand, Model1Coeffs, Model1Params};
+pub use operator::{Model4Coeffs, Model4Params};
 pub use table::{
     BandCoeffs, BandParams, Model3Coeffs, Model3Params, Model3Source, TransitionCoeffs,
     TransitionParams, MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
@@ -165,6 +167,8 @@ pub struct ModelParams {
     pub model2: Model2Params,
     /// Model 3 (lookup tables).
     pub model3: Model3Params,
+    /// Model 4 (play operators; see [`operator`]).
+    pub model4: Model4Params,
     /// Baseline: constant backlash.
     pub backlash: BacklashParams,
     /// Baseline: bidirectional table.
@@ -186,6 +190,7 @@ impl ModelParams {
         model1: Model1Params::PAPER,
         model2: Model2Params::PAPER,
         model3: Model3Params::from_model1(&Model1Params::PAPER, ModelParams::PAPER_TRAVEL_MM),
+        model4: Model4Params::zero(5.08, 101.6),
         backlash: BacklashParams::PAPER,
         bidir_table: BidirParams::from_model1(&Model1Params::PAPER, ModelParams::PAPER_TRAVEL_MM),
         reversal_deadband_counts: ModelParams::DEFAULT_DEADBAND_COUNTS,
@@ -198,6 +203,7 @@ impl ModelParams {
             &self.model1,
             &self.model2,
             &self.model3,
+            &self.model4,
             (&self.backlash, &self.bidir_table),
             self.reversal_deadband_counts,
             rig,
@@ -211,6 +217,7 @@ pub fn build_coeffs(
     model1: &Model1Params,
     model2: &Model2Params,
     model3: &impl Model3Source,
+    model4: &Model4Params,
     baselines: (&BacklashParams, &impl BidirSource),
     reversal_deadband_counts: u32,
     rig: &Rig,
@@ -221,6 +228,7 @@ pub fn build_coeffs(
         model1: model1.build(cpm)?,
         model2: model2.build(cpm)?,
         model3: table::build_model3(model3, cpm)?,
+        model4: model4.build(cpm)?,
         backlash: baselines.0.build()?,
         bidir: BidirCoeffs::build(baselines.1, cpm)?,
         deadband_counts: reversal_deadband_counts,
@@ -240,16 +248,18 @@ pub struct ModelCoeffs {
     model1: Model1Coeffs,
     model2: Model2Coeffs,
     model3: Model3Coeffs,
+    model4: Model4Coeffs,
     backlash: BacklashCoeffs,
     bidir: BidirCoeffs,
     deadband_counts: u32,
 }
 
 // The firmware keeps one `ModelCoeffs` in static RAM (budget 8 KiB) and moves it when a
-// calibration loads: any growth must be deliberate (4788 B with the host's closing distances,
-// the 256-row bidirectional table 2 KiB of it; ModelState 72 B).
-const _: () = assert!(core::mem::size_of::<ModelCoeffs>() <= 4800);
-const _: () = assert!(core::mem::size_of::<ModelState>() <= 72);
+// calibration loads: any growth must be deliberate (4992 B with the host's closing distances,
+// the 256-row bidirectional table 2 KiB and Model 4 204 B of it; ModelState 128 B, Model 4's
+// plays and Model 1 term 56 B of it).
+const _: () = assert!(core::mem::size_of::<ModelCoeffs>() <= 4992);
+const _: () = assert!(core::mem::size_of::<ModelState>() <= 128);
 
 impl ModelCoeffs {
     /// Model 1's coefficients.
@@ -265,6 +275,11 @@ impl ModelCoeffs {
     /// Model 3's coefficients (tables).
     pub fn model3(&self) -> &Model3Coeffs {
         &self.model3
+    }
+
+    /// Model 4's coefficients.
+    pub fn model4(&self) -> &Model4Coeffs {
+        &self.model4
     }
 
     /// The constant-backlash baseline.
@@ -288,7 +303,7 @@ impl ModelCoeffs {
     #[cfg(feature = "std")]
     pub fn closing(&self, kind: ModelKind) -> Closing {
         match kind {
-            ModelKind::None | ModelKind::Backlash | ModelKind::BidirTable => {
+            ModelKind::None | ModelKind::Backlash | ModelKind::BidirTable | ModelKind::Operator => {
                 Closing::from_mm(Some(0.0), Some(0.0))
             }
             ModelKind::Linear => self.model1.closing(),
@@ -322,6 +337,15 @@ pub struct ModelState {
     pub(crate) g0_cell: table::Cell,
     pub(crate) g0_valid: bool,
     pub(crate) rows: table::RowCache,
+    /// Model 4: the plays' states (counts), valid while Model 4 has run every tick.
+    pub(crate) plays: [i32; operator::N_OPS],
+    pub(crate) plays_valid: bool,
+    /// Model 4's Model 1 term: its output at `x_ext` (valid if Model 4 ran there) and at the
+    /// last turning point, and whether its transition runs.
+    pub(crate) base_y_ext_um: I16F16,
+    pub(crate) base_y_ext_valid: bool,
+    pub(crate) base_y_d_um: I16F16,
+    pub(crate) base_transition: bool,
 }
 
 impl ModelState {
@@ -339,6 +363,12 @@ impl ModelState {
             g0_cell: table::Cell { lo: 0, hi: 0, t: 0 },
             g0_valid: false,
             rows: table::RowCache::EMPTY,
+            plays: [0; operator::N_OPS],
+            plays_valid: false,
+            base_y_ext_um: I16F16::ZERO,
+            base_y_ext_valid: false,
+            base_y_d_um: I16F16::ZERO,
+            base_transition: false,
         }
     }
 
@@ -390,6 +420,13 @@ impl ModelState {
         };
     }
 
+    /// The reversal detector alone, as [`estimate`] runs it (for a calibration that needs the
+    /// direction the drive will register at each sample).
+    pub fn track_direction(&mut self, deadband_counts: u32, x_counts: i32) -> Direction {
+        self.track(deadband_counts, x_counts);
+        self.dir
+    }
+
     /// Eqs. 15-16 with the dead band: update the extreme, or register a reversal.
     #[inline]
     fn track(&mut self, deadband_counts: u32, x: i32) {
@@ -407,6 +444,8 @@ impl ModelState {
             self.x_d_counts = self.x_ext_counts;
             self.y_d_um = self.y_ext_um;
             self.transition = self.y_ext_valid;
+            self.base_y_d_um = self.base_y_ext_um;
+            self.base_transition = self.base_y_ext_valid;
             self.x_ext_counts = x;
             // Model 3's g0 cell is recomputed on its next tick.
             self.g0_valid = false;
@@ -415,7 +454,8 @@ impl ModelState {
 }
 
 /// One tick: update the reversal detector with `x_counts` (unwrapped motor encoder counts) and
-/// return the estimated error `y = x_LS - x_PE` of model `kind`, in micrometres.
+/// return the estimated error `y = x_LS - x_PE` of model `kind`, in micrometres. Model 4 sees
+/// no current here (a prediction at rest): see [`estimate_with_current`].
 ///
 /// Integer-only, bounded time, no panics for any input.
 pub fn estimate(
@@ -424,7 +464,25 @@ pub fn estimate(
     state: &mut ModelState,
     x_counts: i32,
 ) -> I16F16 {
+    estimate_with_current(coeffs, kind, state, x_counts, I16F16::ZERO)
+}
+
+/// [`estimate`] with the motor current commanded this tick (amperes in the drive's frame,
+/// positive pushing towards positive travel), which only Model 4 uses.
+pub fn estimate_with_current(
+    coeffs: &ModelCoeffs,
+    kind: ModelKind,
+    state: &mut ModelState,
+    x_counts: i32,
+    current_a: I16F16,
+) -> I16F16 {
     state.track(coeffs.deadband_counts, x_counts);
+    if kind != ModelKind::Operator {
+        // The plays and Model 4's Model 1 term only follow x while Model 4 runs; they restart
+        // on the band edge after.
+        state.plays_valid = false;
+        state.base_y_ext_valid = false;
+    }
     let y = match kind {
         ModelKind::None => I16F16::ZERO,
         ModelKind::Linear => linear::eval(&coeffs.model1, state, x_counts),
@@ -432,6 +490,9 @@ pub fn estimate(
         ModelKind::Table => table::eval(&coeffs.model3, state, x_counts),
         ModelKind::Backlash => baseline::eval_backlash(&coeffs.backlash, state),
         ModelKind::BidirTable => baseline::eval_bidir(&coeffs.bidir, state, x_counts),
+        ModelKind::Operator => {
+            operator::eval(&coeffs.model4, &coeffs.model1, state, x_counts, current_a)
+        }
     };
     if x_counts == state.x_ext_counts {
         state.y_ext_um = y;

@@ -1,0 +1,78 @@
+//! Model 4 on workloads that calibration never sees.
+
+use hil_sim::generalise::{self, PlantTable};
+
+/// Neither the calibration plan's seed nor the README table's.
+const HELD_OUT_SEED: u64 = 101;
+
+/// The mean square over the set's workloads (each workload weighs the same) of `estimator`.
+fn mean_square(t: &PlantTable, estimator: &str) -> f64 {
+    let v: Vec<f64> = t
+        .rows
+        .iter()
+        .filter_map(|r| r.rms_um.iter().find(|(k, _)| *k == estimator))
+        .map(|(_, v)| v * v)
+        .collect();
+    v.iter().sum::<f64>() / v.len() as f64
+}
+
+/// The paper rig, calibrated by its default plan, runs one generated workload of every class
+/// (printer raster, pick-and-place, slow feed, travel ends, mixed limits, high-acceleration
+/// reversals) at a held-out seed. Over that set, Model 4 has the lowest RMS error of every
+/// estimator (the paper's models and the baselines). Measured at this seed: Model 4 45.0,
+/// Model 3 47.1, Model 1 49.8, bidirectional table 65.5 um. On the variants (`hil-sim
+/// generalise --seed 101`) Model 4 is also lowest on the tight belt, heavy carriage and other
+/// geometry, and 0.5 um behind Model 3 on the worn belt (68.2 against 67.7).
+#[test]
+fn model4_is_best_over_held_out_workloads() {
+    let mut report = String::new();
+    let mut failed = Vec::new();
+    for plant in [hil_sim::PlantParams::paper_rig()] {
+        let all = generalise::workloads(&plant, HELD_OUT_SEED).unwrap();
+        let generated: Vec<_> = all
+            .into_iter()
+            .filter(|s| s.name.ends_with(&format!("-{HELD_OUT_SEED}")))
+            .collect();
+        assert_eq!(generated.len(), 6, "{}", plant.name());
+        let t = generalise::measure(&plant, &generated, &mut |_, _| {}).unwrap();
+        assert_eq!(t.rows.len(), 6, "{}: a workload was refused", plant.name());
+        let m4 = mean_square(&t, "model4").sqrt();
+        report += &format!("{}: model4 {m4:.1} um", t.plant);
+        for e in hil_sim::eval::ESTIMATORS {
+            if *e == "model4" {
+                continue;
+            }
+            let other = mean_square(&t, e).sqrt();
+            report += &format!(", {e} {other:.1}");
+            if other <= m4 {
+                failed.push(format!("{}: {e} {other:.1} <= model4 {m4:.1}", t.plant));
+            }
+        }
+        report += "\n";
+    }
+    println!("{report}");
+    assert!(failed.is_empty(), "{failed:?}\n{report}");
+}
+
+/// Every generated workload and calibration plan is a scenario the drive accepts on every
+/// plant: inside the travel and the limits, on the integer grid, no retarget on the last move.
+#[test]
+fn generated_workloads_are_valid_on_every_plant() {
+    use hil_sim::workloads::{calibration_plan, generate, Class, Limits};
+    for plant in generalise::plants().unwrap() {
+        let limits = hil_sim::eval::drive_limits(plant.rig());
+        let lim = Limits::of(&limits);
+        for seed in 0..150 {
+            for class in Class::ALL {
+                let s = generate(class, seed, &lim, generalise::WORKLOAD_S);
+                if let Err(e) = s.check_against(&limits, &plant) {
+                    panic!("{}: {}: {e}", plant.name(), s.name);
+                }
+            }
+            let plan = calibration_plan(&lim, seed, 60.0);
+            if let Err(e) = plan.check_against(&limits, &plant) {
+                panic!("{}: calibration plan seed {seed}: {e}", plant.name());
+            }
+        }
+    }
+}
