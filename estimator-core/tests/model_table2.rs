@@ -534,3 +534,35 @@ fn band_params_from_points() {
     let m3 = Model3Params::from_model1(&Model1Params::PAPER, 100.0);
     assert!(m3.build(cpm()).is_ok());
 }
+
+/// Model 4 with the narrowest knot grid `build` accepts (one count, the reciprocal at
+/// `u32::MAX`) and its knots as far below zero as allowed, run over the whole `i32` range: no
+/// overflow or index panic in the hat lookup, and beyond the knots the hats contribute nothing.
+#[test]
+fn model4_extreme_knot_grid_never_panics() {
+    let rig = Rig::PAPER;
+    let cpm = rig.counts_per_mm();
+    let mut p = ModelParams::PAPER;
+    p.model4.knot_step_mm = 1.0 / cpm;
+    p.model4.knot_start_mm = -((1u32 << 30) as f64 - 2.0) / cpm;
+    p.model4.knot_um = [100.0; estimator_core::model::operator::N_KNOTS];
+    let c = p.build(&rig).unwrap();
+    let mut s = ModelState::new(0);
+    for x in [
+        0,
+        -(1 << 30),
+        -(1 << 30) + 3,
+        1 << 30,
+        i32::MAX - 1,
+        i32::MAX,
+        i32::MIN,
+        i32::MIN + 1,
+        0,
+    ] {
+        let y = estimate(&c, ModelKind::Operator, &mut s, x);
+        if x > -(1 << 29) {
+            // Far past the knots: only the (zero) other terms.
+            assert_eq!(y, I16F16::ZERO, "x = {x}");
+        }
+    }
+}

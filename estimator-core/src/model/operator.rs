@@ -335,9 +335,11 @@ pub(crate) fn hat(x: i32, start: i32, recip_q32: u32) -> Option<(usize, i32)> {
     if s < 0 {
         return None;
     }
-    let pos = (s * recip_q32 as i64) >> 16; // Q16 knots from the start of the support
+    // s < 2^32 (x in i32, |start| <= 2^30 + 2^24) and recip < 2^32: the product fits a u64
+    // for any coefficients `build` accepts (a step of 1 count has recip = u32::MAX).
+    let pos = (s as u64 * recip_q32 as u64) >> 16; // Q16 knots from the start of the support
     let seg = pos >> 16;
-    if seg > N_KNOTS as i64 {
+    if seg > N_KNOTS as u64 {
         return None;
     }
     Some((seg as usize, (pos & 0xffff) as i32))
