@@ -7,7 +7,7 @@
 //! values of the *quantised* coefficients converted back to `f64`, so that only the arithmetic is
 //! compared, not the quantisation of calibration data.
 
-use crate::model::operator::N_OPS;
+use crate::model::operator::{N_KNOTS, N_OPS};
 use crate::model::{BandCoeffs, Direction, ModelKind, ModelParams, TransitionCoeffs};
 use crate::model::{Model1Params, Model2Params};
 use crate::rig::Rig;
@@ -129,11 +129,30 @@ struct RefModel4 {
     slope_um_per_count: f64,
     hat_start: f64,
     hat_recip: f64,
-    knot_um: Vec<f64>,
+    knot_um: [f64; N_KNOTS],
     rates: [u32; 2],
     harmonic_um: [[f64; 2]; 2],
     current_um_per_a: f64,
     model1_weight: f64,
+}
+
+/// Model 4's terms at one tick before their weights (see [`crate::model::operator`]).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Model4Terms {
+    /// Model 1's estimate on Model 4's own turning points, um.
+    pub model1_um: f64,
+    /// Each play's output `x - p`, counts.
+    pub plays_counts: [f64; N_OPS],
+    /// The forward play weights apply (the registered direction is forward).
+    pub forward: bool,
+    /// `x - x_ref`, counts.
+    pub from_ref_counts: f64,
+    /// Each interior knot's hat at `x`, 0..=1.
+    pub hats: [f64; N_KNOTS],
+    /// Sine and cosine at the belt pitch, then at one pulley turn.
+    pub harmonics: [[f64; 2]; 2],
+    /// The motor current, A.
+    pub current_a: f64,
 }
 
 /// Model 4's Model 1 term: its own turning-point state (see `ModelState`'s `base_*`).
@@ -146,6 +165,34 @@ struct RefBase {
 }
 
 impl RefModel4 {
+    /// The weighted sum of `t`, um, saturated like every output of the fixed-point models.
+    fn combine(&self, t: &Model4Terms) -> f64 {
+        let weights = &self.weight_um_per_count[t.forward as usize];
+        let y = self.model1_weight * t.model1_um
+            + self.offset_um
+            + self.slope_um_per_count * t.from_ref_counts
+            + weights
+                .iter()
+                .zip(&t.plays_counts)
+                .map(|(w, f)| w * f)
+                .sum::<f64>()
+            + self
+                .knot_um
+                .iter()
+                .zip(&t.hats)
+                .map(|(v, h)| v * h)
+                .sum::<f64>()
+            + self
+                .harmonic_um
+                .iter()
+                .zip(&t.harmonics)
+                .map(|(w, h)| w[0] * h[0] + w[1] * h[1])
+                .sum::<f64>()
+            + self.current_um_per_a * t.current_a;
+        let max = crate::model::MAX_ABS_UM;
+        y.clamp(-max, max)
+    }
+
     fn from_coeffs(c: &crate::model::Model4Coeffs) -> RefModel4 {
         let q24 = |v: i32| v as f64 / (1u64 << 24) as f64;
         RefModel4 {
@@ -156,7 +203,7 @@ impl RefModel4 {
             slope_um_per_count: c.slope_q31 as f64 / (1u64 << 31) as f64,
             hat_start: c.hat_start_counts as f64,
             hat_recip: c.hat_recip_q32 as f64 / (1u64 << 32) as f64,
-            knot_um: c.knot_um.iter().map(|k| k.to_num()).collect(),
+            knot_um: c.knot_um.map(|k| k.to_num()),
             rates: [c.pitch_rate, c.turn_rate],
             harmonic_um: [
                 [c.pitch_um[0].to_num(), c.pitch_um[1].to_num()],
@@ -241,14 +288,15 @@ impl Reference {
         x_counts: i32,
         current_a: f64,
     ) -> f64 {
-        self.track(x_counts);
-        if kind != ModelKind::Operator {
-            self.plays_valid = false;
-            self.base.y_ext_valid = false;
+        if kind == ModelKind::Operator {
+            return self.model4_step(x_counts, current_a).0;
         }
+        self.track(x_counts);
+        // Model 4's plays and Model 1 term only follow x while Model 4 runs.
+        self.plays_valid = false;
+        self.base.y_ext_valid = false;
         let y_mm = match kind {
-            ModelKind::Operator => self.model4(x_counts, current_a) / 1000.0,
-            ModelKind::None => 0.0,
+            ModelKind::Operator | ModelKind::None => 0.0,
             ModelKind::Linear => self.model1(x_counts),
             ModelKind::Exponential => self.model2(x_counts),
             ModelKind::Table => self.model3(x_counts),
@@ -293,12 +341,26 @@ impl Reference {
         }
     }
 
-    /// Model 4 (see [`crate::model::operator`]), in um.
-    fn model4(&mut self, x: i32, current_a: f64) -> f64 {
+    /// One step of Model 4 like [`Reference::estimate_with_current_um`], returning its terms
+    /// before their weights as well: the estimate is their weighted sum (saturated), and
+    /// calibration fits the weights to them.
+    pub fn model4_step(&mut self, x_counts: i32, current_a: f64) -> (f64, Model4Terms) {
+        self.track(x_counts);
+        let t = self.model4_terms(x_counts, current_a);
+        let y_um = self.m4.combine(&t);
+        if x_counts == self.x_ext {
+            self.y_ext_mm = y_um / 1000.0;
+            self.y_ext_valid = true;
+        }
+        (y_um, t)
+    }
+
+    /// Moves Model 4's plays and Model 1 term with `x` (see [`crate::model::operator`]).
+    fn model4_terms(&mut self, x: i32, current_a: f64) -> Model4Terms {
+        let m = &self.m4;
         let xf = x as f64;
-        let widths = self.m4.widths;
         if !self.plays_valid {
-            for (p, w) in self.plays.iter_mut().zip(&widths) {
+            for (p, w) in self.plays.iter_mut().zip(&m.widths) {
                 *p = match self.dir {
                     Direction::Forward => xf - w,
                     Direction::Reverse => xf + w,
@@ -307,34 +369,38 @@ impl Reference {
             self.plays_valid = true;
             self.base.transition = false;
         }
-        let y1_mm = self.model1_at(self.base.transition, self.base.y_d_mm, x);
-        if x == self.x_ext {
-            self.base.y_ext_mm = y1_mm;
-            self.base.y_ext_valid = true;
-        }
-        let m = &self.m4;
-        let mut y = m.model1_weight * y1_mm * 1000.0
-            + m.offset_um
-            + m.slope_um_per_count * (xf - m.x_ref as f64);
-        for j in 0..N_OPS {
-            let p = self.plays[j].clamp(xf - m.widths[j], xf + m.widths[j]);
-            self.plays[j] = p;
-            y += m.weight_um_per_count[(self.dir == Direction::Forward) as usize][j] * (xf - p);
+        let mut t = Model4Terms {
+            forward: self.dir == Direction::Forward,
+            from_ref_counts: xf - m.x_ref as f64,
+            current_a,
+            ..Model4Terms::default()
+        };
+        for ((p, w), f) in self
+            .plays
+            .iter_mut()
+            .zip(&m.widths)
+            .zip(&mut t.plays_counts)
+        {
+            *p = p.clamp(xf - w, xf + w);
+            *f = xf - *p;
         }
         let pos = (xf - m.hat_start) * m.hat_recip;
-        for (k, v) in m.knot_um.iter().enumerate() {
-            y += v * (1.0 - (pos - (k + 1) as f64).abs()).max(0.0);
+        for (k, h) in t.hats.iter_mut().enumerate() {
+            *h = (1.0 - (pos - (k + 1) as f64).abs()).max(0.0);
         }
-        for (rate, w) in m.rates.iter().zip(&m.harmonic_um) {
+        for (rate, h) in m.rates.iter().zip(&mut t.harmonics) {
             let turns = (x as i64)
                 .wrapping_sub(m.x_ref as i64)
                 .wrapping_mul(*rate as i64) as u32;
             let a = turns as f64 / (1u64 << 32) as f64 * core::f64::consts::TAU;
-            y += w[0] * a.sin() + w[1] * a.cos();
+            *h = [a.sin(), a.cos()];
         }
-        // Saturated like every output of the fixed-point models.
-        let max = crate::model::MAX_ABS_UM;
-        (y + m.current_um_per_a * current_a).clamp(-max, max)
+        t.model1_um = self.model1_at(self.base.transition, self.base.y_d_mm, x) * 1000.0;
+        if x == self.x_ext {
+            self.base.y_ext_mm = t.model1_um / 1000.0;
+            self.base.y_ext_valid = true;
+        }
+        t
     }
 
     /// The bidirectional table of the current direction, interpolated, held flat outside.

@@ -16,9 +16,8 @@
 use estimator_core::blob;
 use estimator_core::model::operator::{N_KNOTS, N_OPS};
 use estimator_core::model::{
-    BandParams, Direction, Model1Params, Model2Params, Model3Params, Model4Params, ModelKind,
-    ModelParams, ModelState, TransitionParams, MAX_BAND_POINTS, MAX_TRANSITION_D,
-    MAX_TRANSITION_G0,
+    BandParams, Model1Params, Model2Params, Model3Params, Model4Params, ModelKind, ModelParams,
+    TransitionParams, MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
 };
 use estimator_core::reference::Reference;
 use estimator_core::rig::Rig;
@@ -182,15 +181,7 @@ fn model3(
     };
 
     // Band tables: bins of one belt pitch over the travel seen.
-    let (lo, hi) = runs
-        .iter()
-        .flat_map(|r| r.x_mm.iter())
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &x| {
-            (l.min(x), h.max(x))
-        });
-    if (hi - lo).is_nan() || hi - lo <= 2.0 * rig.belt_pitch_mm {
-        return Err("calibration data covers less than two belt pitches of travel".into());
-    }
+    let (lo, hi) = travel_span_mm(runs, rig)?;
     let n_bins = (((hi - lo) / rig.belt_pitch_mm).ceil() as usize).clamp(2, MAX_BAND_POINTS);
     let bin_w = (hi - lo) / n_bins as f64;
     let band = |dir: i8| -> Vec<(f64, f64)> {
@@ -443,7 +434,7 @@ pub fn calibrate(
     }
     params.model3 = model3(&params.model1, &runs, rig, deadband, best.1)?;
     progress("Model 4", 0.0);
-    params.model4 = model4(&runs, rig, deadband, &params)?;
+    params.model4 = model4(&runs, rig, &params)?;
     params.backlash = Backlash::calibrate(traces)
         .ok_or("no approached samples in both directions")?
         .to_params();
@@ -472,17 +463,8 @@ pub fn calibrate(
     })
 }
 
-/// Model 4 by one linear least-squares fit of all its weights (plays with and without the
-/// forward share, band line and hats, both harmonics, current, and the weight of `base`'s
-/// calibrated Model 1) to Delta x on every calibration
-/// sample, lightly regularised (ridge 1e-6 of each column's energy) so that plays the data never
-/// move get no weight. Features are computed exactly as [`Reference`] evaluates them.
-fn model4(
-    runs: &[Prepared],
-    rig: &Rig,
-    deadband: u32,
-    base: &ModelParams,
-) -> Result<Model4Params, String> {
+/// The travel the calibration data covers, mm; at least two belt pitches.
+fn travel_span_mm(runs: &[Prepared], rig: &Rig) -> Result<(f64, f64), String> {
     let (lo, hi) = runs
         .iter()
         .flat_map(|r| r.x_mm.iter())
@@ -492,20 +474,28 @@ fn model4(
     if (hi - lo).is_nan() || hi - lo <= 2.0 * rig.belt_pitch_mm {
         return Err("calibration data covers less than two belt pitches of travel".into());
     }
+    Ok((lo, hi))
+}
+
+/// Model 4 by one linear least-squares fit of all its weights (plays with and without the
+/// forward share, band line and hats, both harmonics, current, and the weight of `base`'s
+/// calibrated Model 1) to Delta x on every calibration sample, lightly regularised (ridge 1e-6
+/// of each column's energy) so that plays the data never move get no weight. The terms are
+/// [`Reference::model4_step`]'s, the definitions the drive's Model 4 evaluates.
+fn model4(runs: &[Prepared], rig: &Rig, base: &ModelParams) -> Result<Model4Params, String> {
+    let (lo, hi) = travel_span_mm(runs, rig)?;
     let mut m = Model4Params::zero(rig.belt_pitch_mm, rig.mm_per_pulley_rev());
     m.x_ref_mm = ((lo + hi) / 2.0).round();
     m.knot_step_mm = (hi - lo) / (N_KNOTS + 1) as f64;
     m.knot_start_mm = lo + m.knot_step_mm;
     // Geometry as the coefficients hold it (the features must match the fixed-point model).
-    let q = blob::quantise_model4(&m).map_err(|e| e.to_string())?;
-    // Model 1 as the drive will hold it.
-    let model1_only = quantised(base, rig)?;
+    // The geometry as the blob holds it and Model 1 as the drive will hold it: the terms are
+    // those the drive's Model 4 computes (its reference evaluates the same definitions).
+    let probe = ModelParams {
+        model4: blob::quantise_model4(&m).map_err(|e| e.to_string())?,
+        ..quantised(base, rig)?
+    };
     let cpm = rig.counts_per_mm();
-    let c = q.build(cpm).map_err(|e| e.to_string())?;
-    let widths: Vec<f64> = c.widths_counts().iter().map(|&w| w as f64).collect();
-    let (hat_start, recip) = c.hat_grid();
-    let rates = c.phase_rates();
-    let x_ref = c.x_ref_counts();
     const N: usize = 2 * N_OPS + 2 + N_KNOTS + 4 + 2;
     let mut ata = vec![0.0f64; N * N];
     let mut atb = vec![0.0f64; N];
@@ -514,39 +504,21 @@ fn model4(
         let Some(&x0) = r.x_counts.first() else {
             continue;
         };
-        // The reversal detector, as the drive runs it.
-        let mut det = ModelState::new(x0);
-        // Model 1's estimate as Model 4 runs it (on its own turning points).
-        let mut model1 = Reference::new(&model1_only, rig, x0).map_err(|e| e.to_string())?;
-        let mut plays: Vec<f64> = widths.iter().map(|w| x0 as f64 - w).collect();
-        for i in 0..r.x_counts.len() {
-            let x = r.x_counts[i];
-            let xf = x as f64;
-            let fwd = det.track_direction(deadband, x) == Direction::Forward;
-            for j in 0..N_OPS {
-                plays[j] = plays[j].clamp(xf - widths[j], xf + widths[j]);
-                let f = (xf - plays[j]) / cpm;
-                row[2 * j] = f;
-                row[2 * j + 1] = if fwd { f } else { 0.0 };
+        let mut model4 = Reference::new(&probe, rig, x0).map_err(|e| e.to_string())?;
+        for (i, &x) in r.x_counts.iter().enumerate() {
+            let (_, t) = model4.model4_step(x, r.current_a[i]);
+            for (j, f) in t.plays_counts.iter().enumerate() {
+                row[2 * j] = f / cpm;
+                row[2 * j + 1] = if t.forward { f / cpm } else { 0.0 };
             }
             let k = 2 * N_OPS;
             row[k] = 1.0;
-            row[k + 1] = (xf - x_ref as f64) / cpm;
-            let pos = (xf - hat_start as f64) * recip as f64 / (1u64 << 32) as f64;
-            for j in 0..N_KNOTS {
-                row[k + 2 + j] = (1.0 - (pos - (j + 1) as f64).abs()).max(0.0);
-            }
+            row[k + 1] = t.from_ref_counts / cpm;
+            row[k + 2..k + 2 + N_KNOTS].copy_from_slice(&t.hats);
             let h = k + 2 + N_KNOTS;
-            for (n, rate) in [rates.0, rates.1].into_iter().enumerate() {
-                let turns = (x as i64)
-                    .wrapping_sub(x_ref as i64)
-                    .wrapping_mul(rate as i64) as u32;
-                let a = turns as f64 / (1u64 << 32) as f64 * std::f64::consts::TAU;
-                row[h + 2 * n] = a.sin();
-                row[h + 2 * n + 1] = a.cos();
-            }
-            row[N - 2] = r.current_a[i];
-            row[N - 1] = model1.estimate_um(ModelKind::Linear, x);
+            row[h..h + 4].copy_from_slice(t.harmonics.as_flattened());
+            row[N - 2] = t.current_a;
+            row[N - 1] = t.model1_um;
             let y = r.dx_um[i];
             for a in 0..N {
                 if row[a] == 0.0 {

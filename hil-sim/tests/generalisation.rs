@@ -20,7 +20,7 @@ fn mean_square(t: &PlantTable, estimator: &str) -> f64 {
 /// (printer raster, pick-and-place, slow feed, travel ends, mixed limits, high-acceleration
 /// reversals) at a held-out seed. Over that set, Model 4 has the lowest RMS error of every
 /// estimator (the paper's models and the baselines). Measured at this seed: Model 4 45.0,
-/// Model 3 47.1, Model 1 49.8, bidirectional table 65.5 um. On the variants (`hil-sim
+/// Model 3 47.1, Model 1 49.9, bidirectional table 65.5 um. On the variants (`hil-sim
 /// generalise --seed 101`) Model 4 is also lowest on the tight belt, heavy carriage and other
 /// geometry, and 0.5 um behind Model 3 on the worn belt (68.2 against 67.7).
 #[test]

@@ -420,13 +420,6 @@ impl ModelState {
         };
     }
 
-    /// The reversal detector alone, as [`estimate`] runs it (for a calibration that needs the
-    /// direction the drive will register at each sample).
-    pub fn track_direction(&mut self, deadband_counts: u32, x_counts: i32) -> Direction {
-        self.track(deadband_counts, x_counts);
-        self.dir
-    }
-
     /// Eqs. 15-16 with the dead band: update the extreme, or register a reversal.
     #[inline]
     fn track(&mut self, deadband_counts: u32, x: i32) {

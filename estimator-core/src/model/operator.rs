@@ -254,25 +254,6 @@ pub struct Model4Coeffs {
     pub(crate) model1_q16: i32,
 }
 
-impl Model4Coeffs {
-    /// Half-widths of the plays, counts.
-    pub fn widths_counts(&self) -> &[i32; N_OPS] {
-        &self.widths_counts
-    }
-    /// Where the slope is measured from, counts.
-    pub fn x_ref_counts(&self) -> i32 {
-        self.x_ref_counts
-    }
-    /// Start of the hats' support and its reciprocal step (Q32 per count).
-    pub fn hat_grid(&self) -> (i32, u32) {
-        (self.hat_start_counts, self.hat_recip_q32)
-    }
-    /// Phase rates (turns Q32 per count) of the pitch and pulley-turn harmonics.
-    pub fn phase_rates(&self) -> (u32, u32) {
-        (self.pitch_rate, self.turn_rate)
-    }
-}
-
 /// Sine of `i / 256` of a turn in Q15, `i = 0..=256`, for interpolation.
 const SINE_Q15: [i16; 257] = sine_table();
 
@@ -311,7 +292,7 @@ const fn sine_table() -> [i16; 257] {
 
 /// `sin(2 pi phase / 2^32)` in Q15 by linear interpolation in [`SINE_Q15`].
 #[inline(always)]
-pub(crate) fn sine_q15(phase: u32) -> i32 {
+fn sine_q15(phase: u32) -> i32 {
     let i = (phase >> 24) as usize;
     let frac = ((phase >> 8) & 0xffff) as i32;
     let a = SINE_Q15[i] as i32;
@@ -321,7 +302,7 @@ pub(crate) fn sine_q15(phase: u32) -> i32 {
 
 /// Phase in turns (Q32) of `x` along a period with `rate` turns per count.
 #[inline(always)]
-pub(crate) fn phase(x: i32, x_ref: i32, rate: u32) -> u32 {
+fn phase(x: i32, x_ref: i32, rate: u32) -> u32 {
     // The low 32 bits of `(x - x_ref) * rate` depend only on the operands' low 32 bits.
     (x.wrapping_sub(x_ref) as u32).wrapping_mul(rate)
 }
@@ -330,7 +311,7 @@ pub(crate) fn phase(x: i32, x_ref: i32, rate: u32) -> u32 {
 /// knot in Q16)`; the left knot's weight is `1 - t`. Index 0 or `N_KNOTS` means one of the two
 /// is outside the knots; `None`: outside the support.
 #[inline(always)]
-pub(crate) fn hat(x: i32, start: i32, recip_q32: u32) -> Option<(usize, i32)> {
+fn hat(x: i32, start: i32, recip_q32: u32) -> Option<(usize, i32)> {
     let s = x as i64 - start as i64;
     if s < 0 {
         return None;
@@ -347,7 +328,7 @@ pub(crate) fn hat(x: i32, start: i32, recip_q32: u32) -> Option<(usize, i32)> {
 
 /// The plays' states for `x` when the model starts moving `dir`: saturated on that side.
 #[inline]
-pub(crate) fn start_plays(c: &Model4Coeffs, dir: Direction, x: i32, plays: &mut [i32; N_OPS]) {
+fn start_plays(c: &Model4Coeffs, dir: Direction, x: i32, plays: &mut [i32; N_OPS]) {
     for (p, w) in plays.iter_mut().zip(&c.widths_counts) {
         *p = match dir {
             Direction::Forward => x.saturating_sub(*w),
