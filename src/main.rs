@@ -26,6 +26,7 @@ use belt_drive as _;
 #[cfg(target_os = "none")]
 #[rtic::app(device = stm32f4xx_hal::pac, peripherals = true, dispatchers = [SDIO])]
 mod app {
+    use core::mem::MaybeUninit;
     use core::sync::atomic::{AtomicBool, AtomicU16, Ordering};
 
     use heapless::spsc;
@@ -44,7 +45,7 @@ mod app {
         LinkError, Message, Receiver, RecordSample, Reply, Request, WireTelemetry, RECORD_BATCH,
     };
     use estimator_core::blob::{self, BlobError};
-    use estimator_core::endpoint::{answer, Effect, Endpoint, Event as LinkEvent};
+    use estimator_core::endpoint::{answer, BlobBuffer, Effect, Endpoint, Event as LinkEvent};
     use estimator_core::rig::Rig;
     use estimator_core::settings::{self, Settings};
     use estimator_core::ConfigError;
@@ -74,7 +75,8 @@ mod app {
 
     #[shared]
     struct Shared {
-        drive: Drive,
+        /// In a static of `init` (built there in place): not moved through the stack.
+        drive: &'static mut Drive,
         outbox: Outbox,
     }
 
@@ -88,7 +90,7 @@ mod app {
         bytes_in: spsc::Producer<'static, u8>,
         bytes_out: spsc::Consumer<'static, u8>,
         receiver: Receiver,
-        endpoint: &'static mut Endpoint,
+        endpoint: &'static mut Endpoint<&'static mut BlobBuffer>,
         persist: Persist,
         /// The previous tick's telemetry (for move start/end and fault events).
         prev: Telemetry,
@@ -97,14 +99,20 @@ mod app {
     }
 
     #[init(local = [
-        endpoint_storage: Endpoint = Endpoint::new(),
+        // Zero-initialised (`.bss`): no initial image in flash.
+        blob_buffer: BlobBuffer = [0; blob::MAX_BYTES],
+        endpoint_storage: MaybeUninit<Endpoint<&'static mut BlobBuffer>> = MaybeUninit::uninit(),
+        drive_storage: MaybeUninit<Drive> = MaybeUninit::uninit(),
         event_queue: events::Queue = events::Queue::new(),
         rx_queue: spsc::Queue<u8, RX_QUEUE> = spsc::Queue::new(),
     ])]
     fn init(cx: init::Context) -> (Shared, Local) {
         // The amplifier enable and the DAC pin are already safe (board: `__pre_init`).
         stack::paint();
-        let endpoint: &'static mut Endpoint = cx.local.endpoint_storage;
+        let endpoint = cx
+            .local
+            .endpoint_storage
+            .write(Endpoint::with_buffer(cx.local.blob_buffer));
         // The stored configuration and calibration, read before the clocks and timers start
         // (the control rate comes from it).
         let mut persist = Persist::open();
@@ -151,8 +159,8 @@ mod app {
             model: Models::Blob(PAPER_BLOB),
             ..DriveConfig::paper_rig()
         };
-        let mut drive = match Drive::new(&paper) {
-            Ok(d) => d,
+        let drive: &'static mut Drive = match Drive::new(&paper) {
+            Ok(d) => cx.local.drive_storage.write(d),
             Err(e) => defmt::panic!("drive configuration refused: {=str}", e.field()),
         };
         let mut configured = false;
@@ -195,7 +203,7 @@ mod app {
                     ),
                 }
             }
-            install_default_models(&mut drive);
+            install_default_models(drive);
             defmt::info!(
                 "configured from storage (record crc {=u32:#010x}): {=u32} encoder lines, gear {=f32}:1, {=u32}-tooth pulley, {=f32} mm pitch",
                 record_crc,
@@ -234,7 +242,7 @@ mod app {
         let mut outbox = Outbox::new(board.tx);
         outbox.send(
             0,
-            &Reply::Status(endpoint.status(&drive, &receiver, 0, cause)),
+            &Reply::Status(endpoint.status(drive, &receiver, 0, cause)),
         );
 
         let (events_in, events_out) = cx.local.event_queue.split();

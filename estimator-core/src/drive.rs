@@ -88,7 +88,8 @@ pub enum Models<'a> {
 pub struct DriveConfig<'a> {
     /// Drive-train geometry.
     pub rig: Rig,
-    /// Control rate (ticks per second); overrides the rate inside `pid`.
+    /// Control rate (ticks per second): the build context of every part (trajectory, PID,
+    /// fault monitors), none of which carries a rate of its own.
     pub rate_hz: f64,
     /// Lowest target a move may ask for, mm of nominal travel.
     pub travel_min_mm: f64,

@@ -2,6 +2,8 @@
 //! calibration transfer, status, the PIL tick), kept beside the drive. The protocol itself
 //! (wire types, codec, framing) is the `belt-link` crate, which knows nothing of the drive.
 
+use core::borrow::BorrowMut;
+
 use belt_link::{
     kind, status_flags, Command, CommandError, Crc32, LinkError, Message, ModelKind, Receiver,
     Reply, Request, WireStatus, WireTelemetry,
@@ -191,10 +193,14 @@ pub enum Event {
     SaveFailed(u8),
 }
 
+/// The calibration blob's buffer: owned on hosts, a `&'static mut` into zero-initialised RAM
+/// on the firmware (so that the 5 KiB buffer costs no flash for an initial image in `.data`).
+pub type BlobBuffer = [u8; blob::MAX_BYTES];
+
 /// The drive's end of the link: turns requests into drive commands, assembles calibration
 /// blobs, and says what to answer. Frame decoding stays in [`Receiver`].
-pub struct Endpoint {
-    blob: [u8; blob::MAX_BYTES],
+pub struct Endpoint<B = BlobBuffer> {
+    blob: B,
     /// Transfer in progress: announced length and CRC, bytes received, running CRC.
     transfer: Option<(usize, u32, usize, Crc32)>,
     /// Length and CRC of the installed calibration while its bytes are in `blob` (a new
@@ -216,10 +222,17 @@ impl Default for Endpoint {
 }
 
 impl Endpoint {
-    /// A fresh endpoint (drive disabled, nothing loaded).
+    /// A fresh endpoint owning its blob buffer (drive disabled, nothing loaded).
     pub const fn new() -> Self {
+        Self::with_buffer([0; blob::MAX_BYTES])
+    }
+}
+
+impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
+    /// A fresh endpoint assembling calibrations in `blob` (drive disabled, nothing loaded).
+    pub const fn with_buffer(blob: B) -> Self {
         Endpoint {
-            blob: [0; blob::MAX_BYTES],
+            blob,
             transfer: None,
             installed: None,
             calibrated: false,
@@ -241,14 +254,18 @@ impl Endpoint {
     /// Boot: a stored calibration of `len` bytes was copied into [`Endpoint::blob_buffer`] and
     /// installed.
     pub fn boot_calibration(&mut self, len: usize) {
-        let len = len.min(self.blob.len());
-        self.installed = Some((len, belt_link::crc32(&self.blob[..len])));
+        let len = len.min(blob::MAX_BYTES);
+        self.installed = Some((len, belt_link::crc32(&self.bytes()[..len])));
         self.calibrated = true;
     }
 
     /// The buffer a stored calibration is loaded into at boot.
     pub fn blob_buffer(&mut self) -> &mut [u8] {
-        &mut self.blob
+        self.blob.borrow_mut()
+    }
+
+    fn bytes(&self) -> &BlobBuffer {
+        self.blob.borrow()
     }
 
     /// The configuration in force.
@@ -265,7 +282,7 @@ impl Endpoint {
     /// later transfer overwrote them.
     pub fn installed_calibration(&self) -> Option<&[u8]> {
         match self.installed {
-            Some((len, _)) => Some(&self.blob[..len]),
+            Some((len, _)) => Some(&self.bytes()[..len]),
             None if !self.calibrated => Some(&[]),
             None => None,
         }
@@ -322,7 +339,7 @@ impl Endpoint {
 
     /// The assembled calibration blob of an [`Effect::Calibrate`] (`len` bytes).
     pub fn calibration(&self, len: usize) -> &[u8] {
-        &self.blob[..len.min(self.blob.len())]
+        &self.bytes()[..len.min(blob::MAX_BYTES)]
     }
 
     /// Reports the outcome of installing a calibration of `len` bytes.
@@ -334,8 +351,8 @@ impl Endpoint {
         match result {
             Ok(()) => {
                 self.calibrated = true;
-                let len = len.min(self.blob.len());
-                self.installed = Some((len, belt_link::crc32(&self.blob[..len])));
+                let len = len.min(blob::MAX_BYTES);
+                self.installed = Some((len, belt_link::crc32(&self.bytes()[..len])));
                 (
                     Reply::Ack {
                         of: kind::CAL_COMMIT,
@@ -497,7 +514,8 @@ impl Endpoint {
                     Some((total, _, got, _)) if *got + len as usize > *total => cal_error::TOO_LONG,
                     Some((_, _, got, crc)) => {
                         let piece = &data[..len as usize];
-                        self.blob[*got..*got + piece.len()].copy_from_slice(piece);
+                        let buffer: &mut BlobBuffer = self.blob.borrow_mut();
+                        buffer[*got..*got + piece.len()].copy_from_slice(piece);
                         crc.update(piece);
                         *got += piece.len();
                         return (ack, Event::None);

@@ -1,12 +1,13 @@
 //! Table 3: calibrate on the calibration scenarios (their own noise seeds), run a scenario, and
 //! report max, min and RMS of e = x_LS - x_PE - y (eq. 19) for every model and both baselines.
 
-use estimator_core::drive::{Drive, DriveConfig};
+use estimator_core::drive::Drive;
 use estimator_core::model::{self, ModelCoeffs, ModelKind, ModelParams, ModelState};
 use estimator_core::rig::Rig;
 
 use crate::calibrate::{calibrate, Calibration};
 use crate::controller::{Controller, InProcess};
+use crate::drive_setup::{drive_config, drive_limits};
 use crate::plant::PlantParams;
 use crate::run::{run, RunConfig, RunError, Trace};
 use crate::scenario::Scenario;
@@ -31,24 +32,6 @@ pub const ESTIMATORS: &[&str] = &[
     "bidir_table",
     "model4",
 ];
-
-/// The drive simulations run: the paper rig's limits, gains and thresholds (all in millimetres
-/// and seconds) with the plant's geometry (`rig`: encoder lines, gearbox, pulley, pitch).
-pub fn drive_limits(rig: Rig) -> DriveConfig<'static> {
-    DriveConfig {
-        rig,
-        ..DriveConfig::paper_rig()
-    }
-}
-
-/// [`drive_limits`] with `params` loaded and `model` active.
-pub fn drive_config(params: &ModelParams, model: ModelKind, rig: Rig) -> DriveConfig<'_> {
-    DriveConfig {
-        model: estimator_core::drive::Models::Params(params),
-        initial_model: model,
-        ..drive_limits(rig)
-    }
-}
 
 /// The firmware under QEMU boots configured for the paper rig (configuration over the link is
 /// not there yet): a plant of another geometry cannot run with it in the loop.

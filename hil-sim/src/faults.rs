@@ -11,7 +11,7 @@ use estimator_core::model::{ModelKind, ModelParams};
 use estimator_core::rig::Rig;
 
 use crate::controller::{ControlError, Controller, InProcess};
-use crate::eval::drive_config;
+use crate::drive_setup::drive_config;
 use crate::plant::{Plant, PlantParams};
 use crate::run::{home_and_enable, RunError, KEEPALIVE_TICKS};
 use crate::scenario::{Scenario, PRESETS};

@@ -6,10 +6,10 @@
 
 use estimator_core::model::{ModelKind, ModelParams};
 
-use crate::eval;
 use crate::params::PlantParams;
 use crate::scenario::{Scenario, PRESETS};
 use crate::workloads::{self, Class, Limits};
+use crate::{drive_setup, eval};
 
 /// The plant variants (each a change of the paper rig argued in its file's comments).
 pub const VARIANTS: [(&str, &str); 4] = [
@@ -82,7 +82,7 @@ pub struct PlantTable {
 
 /// The workloads of the table: every preset and one generated member of every class.
 pub fn workloads(plant: &PlantParams, seed: u64) -> Result<Vec<Scenario>, String> {
-    let lim = Limits::of(&eval::drive_limits(plant.rig()));
+    let lim = Limits::of(&drive_setup::drive_limits(plant.rig()));
     let mut out: Vec<Scenario> = PRESETS
         .iter()
         .map(|(n, _)| Scenario::load(n))
@@ -104,7 +104,7 @@ pub fn measure(
 ) -> Result<PlantTable, String> {
     let cal = eval::calibrate_plant(plant, progress)?;
     let coeffs = cal.params.build(&plant.rig()).map_err(|e| e.to_string())?;
-    let limits = eval::drive_limits(plant.rig());
+    let limits = drive_setup::drive_limits(plant.rig());
     let mut rows = Vec::new();
     for (k, s) in scenarios.iter().enumerate() {
         if s.check_against(&limits, plant).is_err() {

@@ -9,6 +9,7 @@ pub mod baseline;
 pub mod calfile;
 pub mod calibrate;
 pub mod controller;
+pub mod drive_setup;
 pub mod eval;
 pub mod faults;
 pub mod fit;

@@ -10,7 +10,7 @@ use hil_sim::pil::PilOptions;
 use hil_sim::plant::PlantParams;
 use hil_sim::progress::Progress;
 use hil_sim::scenario::{preset_names, Scenario};
-use hil_sim::{calfile, eval, generalise, report};
+use hil_sim::{calfile, drive_setup, eval, generalise, report};
 
 #[derive(Parser)]
 #[command(
@@ -290,7 +290,7 @@ fn scenario_and_plant(
 ) -> Result<(Scenario, PlantParams), String> {
     let scenario = Scenario::load(scenario)?;
     let plant = plant_params(plant)?;
-    scenario.check_against(&eval::drive_limits(plant.rig()), &plant)?;
+    scenario.check_against(&drive_setup::drive_limits(plant.rig()), &plant)?;
     Ok((scenario, plant))
 }
 

@@ -10,7 +10,7 @@ use estimator_core::model::{ModelKind, ModelParams};
 use estimator_core::rig::Rig;
 
 use crate::controller::{Controller, InProcess};
-use crate::eval::drive_config;
+use crate::drive_setup::drive_config;
 use crate::plant::{Plant, PlantParams};
 use crate::run::{home_and_enable, sample, KEEPALIVE_TICKS};
 

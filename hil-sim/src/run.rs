@@ -168,7 +168,7 @@ pub fn run(
     scenario
         .validate()
         .map_err(|e| format!("{}: {e}", scenario.source()))
-        .and_then(|_| scenario.check_against(&crate::eval::drive_limits(*rig), plant_params))
+        .and_then(|_| scenario.check_against(&crate::drive_setup::drive_limits(*rig), plant_params))
         .map_err(RunError::Scenario)?;
     let dt = 1.0 / cfg.rate_hz;
     let mut plant =

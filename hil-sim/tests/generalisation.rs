@@ -60,7 +60,7 @@ fn model4_is_best_over_held_out_workloads() {
 fn generated_workloads_are_valid_on_every_plant() {
     use hil_sim::workloads::{calibration_plan, generate, Class, Limits};
     for plant in generalise::plants().unwrap() {
-        let limits = hil_sim::eval::drive_limits(plant.rig());
+        let limits = hil_sim::drive_setup::drive_limits(plant.rig());
         let lim = Limits::of(&limits);
         for seed in 0..150 {
             for class in Class::ALL {

@@ -142,6 +142,11 @@ pub fn command_line(opts: &QemuOptions) -> Vec<String> {
         args.push("-icount".into());
         args.push(format!("shift={shift},align=off,sleep=off"));
     }
+    // Developer hook, e.g. a per-instruction trace for a tick profile (tools/tick-profile.sh):
+    // `BELT_QEMU_ARGS="-singlestep -d exec,nochain -D /tmp/trace.log"`.
+    if let Ok(extra) = std::env::var("BELT_QEMU_ARGS") {
+        args.extend(extra.split_whitespace().map(str::to_string));
+    }
     // The n-th -serial is the n-th USART: USART1 unused, USART2 the link.
     args.push("-serial".into());
     args.push("null".into());

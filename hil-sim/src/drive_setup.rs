@@ -1,0 +1,25 @@
+//! The drive configuration every simulation runs: the paper rig's limits, gains and thresholds
+//! with the plant's geometry. A leaf module: the runner, the evaluation, placement and the fault
+//! scenarios all build their drive here without importing one another.
+
+use estimator_core::drive::{DriveConfig, Models};
+use estimator_core::model::{ModelKind, ModelParams};
+use estimator_core::rig::Rig;
+
+/// The paper rig's limits, gains and thresholds (all in millimetres and seconds) with the
+/// plant's geometry (`rig`: encoder lines, gearbox, pulley, pitch).
+pub fn drive_limits(rig: Rig) -> DriveConfig<'static> {
+    DriveConfig {
+        rig,
+        ..DriveConfig::paper_rig()
+    }
+}
+
+/// [`drive_limits`] with `params` loaded and `model` active.
+pub fn drive_config(params: &ModelParams, model: ModelKind, rig: Rig) -> DriveConfig<'_> {
+    DriveConfig {
+        model: Models::Params(params),
+        initial_model: model,
+        ..drive_limits(rig)
+    }
+}

@@ -1,0 +1,76 @@
+"""Counts the instructions of a QEMU exec trace inside Drive::step (see tick-profile.sh)."""
+import bisect
+import collections
+import re
+import subprocess
+import sys
+
+
+def symbols(elf):
+    out = subprocess.run(["llvm-nm", "-C", "-S", elf], capture_output=True, text=True, check=True)
+    syms = []
+    for line in out.stdout.splitlines():
+        parts = line.split(None, 3)
+        if len(parts) == 4 and parts[2] in "tT":
+            start = int(parts[0], 16) & ~1
+            syms.append((start, start + int(parts[1], 16), parts[3]))
+    syms.sort()
+    return syms
+
+
+def main(elf, trace, top=40):
+    syms = symbols(elf)
+    starts = [s[0] for s in syms]
+    step = next(s for s in syms if "Drive::step" in s[2])
+    caller = next(s for s in syms if s[2] == "TIM7")
+    pc_re = re.compile(r"\[[0-9a-f]+/([0-9a-f]+)/")
+    counts, ticks, inside = collections.Counter(), 0, False
+    with open(trace, errors="replace") as f:
+        for line in f:
+            m = pc_re.search(line)
+            if not m:
+                continue
+            pc = int(m.group(1), 16)
+            if pc == step[0]:
+                inside, ticks = True, ticks + 1
+            elif inside and caller[0] <= pc < caller[1]:
+                inside = False
+            if inside:
+                counts[pc] += 1
+    if ticks == 0:
+        sys.exit("tick-profile: no Drive::step call in the trace")
+    print(f"\n{ticks} ticks, {sum(counts.values()) / ticks:.1f} instructions per tick in Drive::step")
+
+    def name(pc):
+        i = bisect.bisect_right(starts, pc) - 1
+        return syms[i][2] if i >= 0 and syms[i][0] <= pc < syms[i][1] else "?"
+
+    by_fn = collections.Counter()
+    for pc, n in counts.items():
+        by_fn[re.sub(r"::h[0-9a-f]{16}$", "", name(pc))] += n
+    print("\nper function (after inlining):")
+    for fn, n in by_fn.most_common(top):
+        print(f"{n / ticks:8.1f}  {fn}")
+
+    pcs = sorted(counts)
+    out = subprocess.run(["addr2line", "-e", elf, "-i", "-a"] + [hex(p) for p in pcs],
+                         capture_output=True, text=True, check=True).stdout.splitlines()
+    chains, cur = {}, None
+    for line in out:
+        if line.startswith("0x"):
+            cur = int(line, 16)
+            chains[cur] = []
+        elif cur is not None:
+            chains[cur].append(line)
+    by_line = collections.Counter()
+    for pc in pcs:
+        own = [c for c in chains.get(pc, []) if "/estimator-core/" in c or "/belt-link/" in c]
+        where = own[0] if own else (chains.get(pc) or ["?"])[0]
+        by_line[re.sub(r".*/(estimator-core|belt-link)/", r"\1/", where).split(" ")[0]] += counts[pc]
+    print("\nper source line (innermost line of this workspace):")
+    for where, n in by_line.most_common(top):
+        print(f"{n / ticks:8.1f}  {where}")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], sys.argv[2])
