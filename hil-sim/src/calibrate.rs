@@ -74,6 +74,9 @@ fn prepare(trace: &Trace) -> Prepared {
         .collect();
     Prepared {
         x_counts: trace.records.iter().map(|r| r.motor_counts).collect(),
+        // The drive-frame current Model 4 is fitted on: the simulated drives run the paper rig's
+        // polarity (not inverted), and recordings of an inverted drive are turned back into the
+        // drive's frame by `belt-tool`'s `to_trace`.
         current_a: trace
             .records
             .iter()
