@@ -71,6 +71,31 @@ impl ModelKind {
     }
 }
 
+/// A name that is no [`ModelKind`]; displays the names there are (for command lines and files).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct UnknownModel;
+
+impl core::fmt::Display for UnknownModel {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str("use one of")?;
+        for (i, k) in ModelKind::ALL.iter().enumerate() {
+            f.write_str(if i == 0 { " " } else { ", " })?;
+            f.write_str(k.as_str())?;
+        }
+        Ok(())
+    }
+}
+
+impl core::error::Error for UnknownModel {}
+
+impl core::str::FromStr for ModelKind {
+    type Err = UnknownModel;
+
+    fn from_str(s: &str) -> Result<ModelKind, UnknownModel> {
+        ModelKind::parse(s).ok_or(UnknownModel)
+    }
+}
+
 impl core::fmt::Display for ModelKind {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         f.write_str(self.as_str())

@@ -50,7 +50,7 @@ pub mod testing;
 pub mod wire;
 
 pub use cobs::{cobs_decode_in_place, cobs_encode};
-pub use command::{Command, CommandError, ModelKind};
+pub use command::{Command, CommandError, ModelKind, UnknownModel};
 pub use crc::{crc32, Crc32};
 pub use frame::{decode_raw, encode, Frame, Receiver, Rejected};
 pub use wire::*;

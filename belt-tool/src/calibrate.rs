@@ -10,7 +10,7 @@ use std::time::Duration;
 
 use belt_link::{crc32, Command, ModelKind, Reply, Request, CHUNK_MAX};
 use estimator_core::blob;
-use estimator_core::drive::{Faults, Output, Telemetry, SCALE_COUNTS_PER_UM};
+use estimator_core::drive::{Faults, Output, Polarity, Telemetry, SCALE_COUNTS_PER_UM};
 use estimator_core::fixed::types::I16F16;
 use estimator_core::model::ModelParams;
 use estimator_core::rig::Rig;
@@ -104,15 +104,14 @@ pub fn plan(
 /// A recording as a `hil-sim` trace: time from the recording's first tick, the scale in
 /// millimetres, the commanded direction held at rest, the current in the drive's own frame
 /// (positive pushes towards positive travel), which is what Model 4's current term sees: the
-/// drive records its amplifier command, negated when `current_inverted` (the drive's
-/// `polarity.current_inverted`), so it is negated back here.
+/// drive records its amplifier command, which `polarity` maps back to the drive's frame.
 pub fn to_trace(
     name: &str,
     samples: &[TickSample],
     rate_hz: f64,
     rig: &Rig,
     move_ticks: &[u32],
-    current_inverted: bool,
+    polarity: &Polarity,
 ) -> Trace {
     let t0 = samples.first().map_or(0, |s| s.tick);
     let mut cmd_dir: i8 = 1;
@@ -128,13 +127,8 @@ pub fn to_trace(
                 }
             }
             last_sp = Some(r.setpoint_counts);
-            let command_ma = r.current_ma as f64;
-            let drive_ma = if current_inverted {
-                -command_ma
-            } else {
-                command_ma
-            };
-            let current_a = I16F16::saturating_from_num(drive_ma / 1000.0);
+            let command_a = I16F16::saturating_from_num(r.current_ma as f64 / 1000.0);
+            let current_a = polarity.current_frame(command_a);
             Record {
                 t_s: s.tick.wrapping_sub(t0) as f64 / rate_hz,
                 motor_counts: r.motor_counts,
@@ -427,7 +421,7 @@ pub fn run(link: &mut Link, opts: &Options, progress: &mut Progress) -> Result<O
             settings.rate_hz,
             &rig,
             &move_ticks,
-            settings.polarity.current_inverted,
+            &settings.polarity,
         );
         check_scale(&t)?;
         traces.push(t);
@@ -601,7 +595,14 @@ mod tests {
                 },
             })
             .collect();
-        let t = to_trace("x", &samples, 2000.0, &rig, &[1003, 1010], false);
+        let t = to_trace(
+            "x",
+            &samples,
+            2000.0,
+            &rig,
+            &[1003, 1010],
+            &Polarity::NORMAL,
+        );
         let dirs: Vec<i8> = t.records.iter().map(|r| r.cmd_dir).collect();
         assert_eq!(dirs, [1, 1, 1, 1, 1, 1, -1, -1]);
         assert_eq!(t.records[3].t_s, 0.003);
@@ -609,7 +610,11 @@ mod tests {
         assert_eq!(t.records[0].out.current_a, I16F16::from_num(-1.5));
         assert_eq!(t.move_starts, [2, 5]);
         // Inverted amplifier wiring: the recorded command is the drive's current negated.
-        let inv = to_trace("x", &samples, 2000.0, &rig, &[1003, 1010], true);
+        let inverted = Polarity {
+            current_inverted: true,
+            ..Polarity::NORMAL
+        };
+        let inv = to_trace("x", &samples, 2000.0, &rig, &[1003, 1010], &inverted);
         assert_eq!(inv.records[0].out.current_a, I16F16::from_num(1.5));
         assert_eq!(
             inv.records[0].out.telemetry.current_a,
@@ -633,7 +638,7 @@ mod tests {
                     },
                 })
                 .collect();
-            to_trace("s", &samples, 2000.0, &rig, &[], false)
+            to_trace("s", &samples, 2000.0, &rig, &[], &Polarity::NORMAL)
         };
         // 2000 scale counts per mm, 1867.9 motor counts per mm.
         let right = 2000.0 / rig.counts_per_mm();
@@ -736,7 +741,14 @@ mod tests {
             .iter()
             .map(|&i| sim.records[i].out.telemetry.tick)
             .collect();
-        let t = to_trace("reversals", &samples, 2000.0, &plant.rig(), &ticks, false);
+        let t = to_trace(
+            "reversals",
+            &samples,
+            2000.0,
+            &plant.rig(),
+            &ticks,
+            &Polarity::NORMAL,
+        );
         assert_eq!(t.records.len(), sim.records.len());
         assert_eq!(t.counts_per_mm, sim.counts_per_mm);
         assert_eq!(t.move_starts, sim.move_starts);

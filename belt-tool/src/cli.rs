@@ -154,10 +154,8 @@ pub enum ConfigCmd {
 }
 
 fn model_kind(name: &str, flag: &str) -> Result<ModelKind, ToolError> {
-    ModelKind::parse(name).ok_or_else(|| {
-        let names: Vec<_> = ModelKind::ALL.iter().map(|k| k.as_str()).collect();
-        ToolError::Usage(format!("{flag}{name}: use one of {}", names.join(", ")))
-    })
+    name.parse()
+        .map_err(|e| ToolError::Usage(format!("{flag}{name}: {e}")))
 }
 
 fn connect(a: &LinkArgs) -> Result<Link, ToolError> {

@@ -156,6 +156,17 @@ impl Polarity {
         scale_inverted: false,
         current_inverted: false,
     };
+
+    /// A current between the drive's frame (positive pushes towards positive travel) and the
+    /// amplifier's: negated when the current is inverted. The same map both ways.
+    #[inline]
+    pub fn current_frame(&self, current_a: I16F16) -> I16F16 {
+        if self.current_inverted {
+            current_a.saturating_neg()
+        } else {
+            current_a
+        }
+    }
 }
 
 /// Scale counts per micrometre: the linear scale is 500 lines/mm, x4.
@@ -1055,11 +1066,7 @@ impl Drive {
             current_a,
         );
         // Polarity last: everything above works in the drive's own frame.
-        let command_a = if self.polarity.current_inverted {
-            current_a.saturating_neg()
-        } else {
-            current_a
-        };
+        let command_a = self.polarity.current_frame(current_a);
         self.last = Telemetry {
             tick: self.tick,
             motor_counts: x,

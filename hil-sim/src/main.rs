@@ -353,10 +353,7 @@ fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), String> {
 }
 
 fn run_csv(scenario: &str, common: &Common, model: &str, out: &str) -> Result<(), String> {
-    let kind = ModelKind::parse(model).ok_or_else(|| {
-        let names: Vec<_> = ModelKind::ALL.iter().map(|k| k.as_str()).collect();
-        format!("--model {model}: use one of {}", names.join(", "))
-    })?;
+    let kind: ModelKind = model.parse().map_err(|e| format!("--model {model}: {e}"))?;
     let (scenario, plant) = scenario_and_plant(scenario, &common.plant)?;
     let mut progress = Progress::new();
     // As documented for every command: the given calibration, or one made now on this plant.

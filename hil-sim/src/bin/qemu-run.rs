@@ -49,7 +49,7 @@ struct Args {
     #[arg(long, requires = "bench")]
     check: Option<PathBuf>,
     /// With --bench: run only this model (e.g. for a tick profile, tools/tick-profile.sh).
-    #[arg(long, requires = "bench", conflicts_with = "check", value_parser = parse_model)]
+    #[arg(long, requires = "bench", conflicts_with = "check")]
     model: Option<estimator_core::model::ModelKind>,
     /// N bad frames through USART2 in PIL mode (the emulated serial line, byte by byte).
     #[arg(long, value_name = "N", conflicts_with = "bench")]
@@ -145,16 +145,6 @@ fn main() -> ExitCode {
             ExitCode::from(2)
         }
     }
-}
-
-fn parse_model(s: &str) -> Result<estimator_core::model::ModelKind, String> {
-    estimator_core::model::ModelKind::parse(s).ok_or_else(|| {
-        let names: Vec<_> = estimator_core::model::ModelKind::ALL
-            .iter()
-            .map(|m| m.as_str())
-            .collect();
-        format!("unknown model `{s}` (one of {})", names.join(", "))
-    })
 }
 
 fn run_bench(
