@@ -239,7 +239,9 @@ fn model4(cpm: f64) -> impl Strategy<Value = Model4Params> {
                 let range_mm = ACCURATE_RANGE_COUNTS as f64 / cpm;
                 let mut m = Model4Params::zero(h.0, h.0 * h.3 as f64);
                 for (j, (scale, w, f)) in plays.into_iter().enumerate() {
-                    m.widths_mm[j] = (Model4Params::WIDTHS_MM[j] * scale).max(1.5 / cpm);
+                    // Strictly increasing, at least 1.5 counts apart, as the builder requires.
+                    let narrower = if j == 0 { 0.0 } else { m.widths_mm[j - 1] };
+                    m.widths_mm[j] = (Model4Params::WIDTHS_MM[j] * scale).max(narrower + 1.5 / cpm);
                     // Within the format's 128 um per count with both weights added.
                     let cap = 60.0 * m.widths_mm[j] * cpm;
                     m.play_um_per_mm[j] = w.clamp(-cap, cap) / m.widths_mm[j];
@@ -426,6 +428,11 @@ fn extreme_params() -> impl Strategy<Value = (Rig, ModelParams)> {
     )
         .prop_map(|((_, mut p), m, h, a, rate, db)| {
             let rig = Rig::PAPER;
+            // Model 4's widths were spaced for another rig: keep them 1.5 counts apart on this one.
+            let w = &mut p.model4.widths_mm;
+            for j in 1..w.len() {
+                w[j] = w[j].max(w[j - 1] + 1.5 / rig.counts_per_mm());
+            }
             p.model1.m_mm_per_mm = m;
             p.model1.h_mm = h;
             p.model1.h_g_mm = h;

@@ -255,11 +255,11 @@ pub struct ModelCoeffs {
 }
 
 // The firmware keeps one `ModelCoeffs` in static RAM (budget 8 KiB) and moves it when a
-// calibration loads: any growth must be deliberate (4992 B with the host's closing distances,
-// the 256-row bidirectional table 2 KiB and Model 4 204 B of it; ModelState 128 B, Model 4's
-// plays and Model 1 term 56 B of it).
-const _: () = assert!(core::mem::size_of::<ModelCoeffs>() <= 4992);
-const _: () = assert!(core::mem::size_of::<ModelState>() <= 128);
+// calibration loads: any growth must be deliberate (5016 B with the host's closing distances,
+// the 256-row bidirectional table 2 KiB and Model 4 224 B of it; ModelState 184 B, Model 4's
+// plays with their running sums and its Model 1 term 112 B of it).
+const _: () = assert!(core::mem::size_of::<ModelCoeffs>() <= 5016);
+const _: () = assert!(core::mem::size_of::<ModelState>() <= 184);
 
 impl ModelCoeffs {
     /// Model 1's coefficients.
@@ -337,9 +337,8 @@ pub struct ModelState {
     pub(crate) g0_cell: table::Cell,
     pub(crate) g0_valid: bool,
     pub(crate) rows: table::RowCache,
-    /// Model 4: the plays' states (counts), valid while Model 4 has run every tick.
-    pub(crate) plays: [i32; operator::N_OPS],
-    pub(crate) plays_valid: bool,
+    /// Model 4: the plays, valid while Model 4 has run every tick.
+    pub(crate) plays: operator::Plays,
     /// Model 4's Model 1 term: its output at `x_ext` (valid if Model 4 ran there) and at the
     /// last turning point, and whether its transition runs.
     pub(crate) base_y_ext_um: I16F16,
@@ -363,8 +362,7 @@ impl ModelState {
             g0_cell: table::Cell { lo: 0, hi: 0, t: 0 },
             g0_valid: false,
             rows: table::RowCache::EMPTY,
-            plays: [0; operator::N_OPS],
-            plays_valid: false,
+            plays: operator::Plays::NEW,
             base_y_ext_um: I16F16::ZERO,
             base_y_ext_valid: false,
             base_y_d_um: I16F16::ZERO,
@@ -473,7 +471,7 @@ pub fn estimate_with_current(
     if kind != ModelKind::Operator {
         // The plays and Model 4's Model 1 term only follow x while Model 4 runs; they restart
         // on the band edge after.
-        state.plays_valid = false;
+        state.plays.valid = false;
         state.base_y_ext_valid = false;
     }
     let y = match kind {

@@ -61,7 +61,8 @@ pub const N_KNOTS: usize = 8;
 /// Model 4's parameters in SI-ish units (mm, um); all zero predicts 0 everywhere.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Model4Params {
-    /// Half-widths of the play operators, mm, each in `(0, 500]`.
+    /// Half-widths of the play operators, mm, each in `(0, 500]`, strictly increasing (at least
+    /// one encoder count apart).
     pub widths_mm: [f64; N_OPS],
     /// Weight of each play, um of error per mm of operator output.
     pub play_um_per_mm: [f64; N_OPS],
@@ -173,7 +174,14 @@ impl Model4Params {
             }
             Ok(rnd((1u64 << 32) as f64 / p) as u32)
         };
+        // Narrowest first: the tick relies on the order (the plays that move are a prefix, see
+        // [`Plays`]), and two plays of one width would be one play.
+        if widths.windows(2).any(|w| w[1] <= w[0]) {
+            return Err(ConfigError::NotMonotonic("model4.widths_mm"));
+        }
+        let weight_total = weight_total(&weight);
         Ok(Model4Coeffs {
+            weight_total,
             widths_counts: widths,
             weight_q24: weight,
             x_ref_counts: x_ref as i32,
@@ -202,6 +210,12 @@ impl Model4Params {
             },
         })
     }
+}
+
+/// `sum weight` per direction; out of line, where the optimiser does not unroll it.
+#[inline(never)]
+fn weight_total(weight: &[[i32; N_OPS]; 2]) -> [i64; 2] {
+    weight.map(|w| w.iter().map(|&v| v as i64).sum())
 }
 
 /// Round half away from zero (`core` has no `f64::round`); saturates beyond `i64`.
@@ -252,6 +266,8 @@ pub struct Model4Coeffs {
     pub(crate) current_um_per_a: I16F16,
     /// Weight of Model 1's estimate, Q16.
     pub(crate) model1_q16: i32,
+    /// `sum weight_q24` over the plays, per direction (for [`Plays::term`]).
+    pub(crate) weight_total: [i64; 2],
 }
 
 /// Sine of `i / 256` of a turn in Q15, `i = 0..=256`, for interpolation.
@@ -326,14 +342,177 @@ fn hat(x: i32, start: i32, recip_q32: u32) -> Option<(usize, i32)> {
     Some((seg as usize, (pos & 0xffff) as i32))
 }
 
-/// The plays' states for `x` when the model starts moving `dir`: saturated on that side.
-#[inline]
-fn start_plays(c: &Model4Coeffs, dir: Direction, x: i32, plays: &mut [i32; N_OPS]) {
-    for (p, w) in plays.iter_mut().zip(&c.widths_counts) {
-        *p = match dir {
-            Direction::Forward => x.saturating_sub(*w),
-            Direction::Reverse => x.saturating_add(*w),
+/// Model 4's plays, narrowest first (the builder checks it), evaluated in O(1) per tick.
+///
+/// Started with every play on one side ([`Plays::start`]), the plays keep
+/// `|p_i - p_j| <= |w_i - w_j|`: when `x` drags a play, it drags every narrower one, and the
+/// plays that last moved together are a prefix, the *group*. The group's states are implied,
+/// `p_i = x_a - w_i` (forward; `+ w_i` reverse) at its anchor `x_a`, and not stored: while `x`
+/// drags it the anchor follows `x`; when `x` turns back the group holds at its anchor, and
+/// rejoins as a whole if `x` passes the anchor again (encoder jitter at a standstill costs
+/// nothing). Only when `x` drags the narrowest play the other way are the group's states
+/// written out. The other plays keep their stored `p` and enter through running sums, so
+///
+/// `sum (x - p_i) weight_i = +-D + x T - x_a W - S`
+///
+/// with `D = sum w_i weight_i` and `W = sum weight_i` over the group, `S = sum p_i weight_i`
+/// over the rest and `T` the total weight. Per weight set (reverse, forward), Q24 um, exact
+/// modulo 2^64 (wrapping): the sum itself is below `N_OPS * 2^24 * 2^31` in magnitude. Where
+/// `x -+ w` leaves `i32` (the last 2^24 counts of the range, outside the accuracy guarantee)
+/// the written-out states saturate and the sums do not: the result stays defined, not exact.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub(crate) struct Plays {
+    /// States of the plays outside the group, counts.
+    p: [i32; N_OPS],
+    /// `D`, `W` (the group) and `S` (the rest), per weight set.
+    group_drag: [i64; 2],
+    group_weight: [i64; 2],
+    rest_sum: [i64; 2],
+    /// The group's anchor `x_a`.
+    x_anchor: i32,
+    /// Plays in the group: `0..group`.
+    group: u8,
+    /// The group trails `x` forward (`p = x_a - w`) rather than leads it in reverse.
+    forward: bool,
+    /// The state follows `x`; otherwise it restarts at the next tick.
+    pub(crate) valid: bool,
+}
+
+impl Plays {
+    pub(crate) const NEW: Plays = Plays {
+        p: [0; N_OPS],
+        group_drag: [0; 2],
+        group_weight: [0; 2],
+        rest_sum: [0; 2],
+        x_anchor: 0,
+        group: 0,
+        forward: true,
+        valid: false,
+    };
+
+    /// Every play dragged to the side that moving `dir` puts it.
+    fn start(&mut self, c: &Model4Coeffs, dir: Direction, x: i32) {
+        let mut drag = [0i64; 2];
+        for (k, d) in drag.iter_mut().enumerate() {
+            for (&w, &weight) in c.widths_counts.iter().zip(&c.weight_q24[k]) {
+                *d = d.wrapping_add(w as i64 * weight as i64);
+            }
+        }
+        *self = Plays {
+            group_drag: drag,
+            group_weight: c.weight_total,
+            x_anchor: x,
+            group: N_OPS as u8,
+            forward: dir == Direction::Forward,
+            valid: true,
+            ..Plays::NEW
         };
+    }
+
+    /// Moves the plays with `x`: `p = clamp(p, x - w, x + w)` for every play.
+    #[inline(always)]
+    fn update(&mut self, c: &Model4Coeffs, x: i32) {
+        // How far x is past the anchor in the group's direction.
+        let ahead = if self.forward {
+            x as i64 - self.x_anchor as i64
+        } else {
+            self.x_anchor as i64 - x as i64
+        };
+        if self.group != 0 {
+            // Past the anchor the whole group moves (again); behind it, it holds.
+            if ahead >= 0 {
+                self.x_anchor = x;
+                self.join_from(c, x);
+                return;
+            }
+            // The narrowest play turns when x is `2 w_0` behind the anchor.
+            if -ahead <= 2 * c.widths_counts[0] as i64 {
+                return;
+            }
+            self.disband(c);
+            self.forward = !self.forward;
+        } else {
+            let d = x as i64 - self.p[0] as i64;
+            let w = c.widths_counts[0] as i64;
+            if d > w {
+                self.forward = true;
+            } else if d < -w {
+                self.forward = false;
+            } else {
+                return;
+            }
+        }
+        self.x_anchor = x;
+        self.join_from(c, x);
+    }
+
+    /// Adds to the dragged group every play from `group` on that `x` now drags.
+    #[inline(always)]
+    fn join_from(&mut self, c: &Model4Coeffs, x: i32) {
+        while (self.group as usize) < N_OPS {
+            let i = self.group as usize;
+            let d = x as i64 - self.p[i] as i64;
+            let w = c.widths_counts[i] as i64;
+            if (self.forward && d <= w) || (!self.forward && d >= -w) {
+                break;
+            }
+            self.join(c, i);
+        }
+    }
+
+    /// Play `i` (the first outside the group) joins it.
+    #[inline(never)]
+    fn join(&mut self, c: &Model4Coeffs, i: usize) {
+        let (w, p) = (c.widths_counts[i] as i64, self.p[i] as i64);
+        for k in 0..2 {
+            let weight = c.weight_q24[k][i] as i64;
+            self.group_drag[k] = self.group_drag[k].wrapping_add(w * weight);
+            self.group_weight[k] = self.group_weight[k].wrapping_add(weight);
+            self.rest_sum[k] = self.rest_sum[k].wrapping_sub(p * weight);
+        }
+        self.group += 1;
+    }
+
+    /// Writes out the group's states (they stay where it holds) and empties it.
+    #[inline(never)]
+    fn disband(&mut self, c: &Model4Coeffs) {
+        let a = self.x_anchor;
+        let group = self
+            .p
+            .iter_mut()
+            .zip(&c.widths_counts)
+            .take(self.group as usize);
+        if self.forward {
+            group.for_each(|(p, &w)| *p = a.saturating_sub(w));
+        } else {
+            group.for_each(|(p, &w)| *p = a.saturating_add(w));
+        }
+        for k in 0..2 {
+            // sum p_i weight_i over the group = x_a W -+ D.
+            let held = (a as i64).wrapping_mul(self.group_weight[k]);
+            let d = self.group_drag[k];
+            self.rest_sum[k] = self.rest_sum[k].wrapping_add(if self.forward {
+                held.wrapping_sub(d)
+            } else {
+                held.wrapping_add(d)
+            });
+        }
+        self.group_drag = [0; 2];
+        self.group_weight = [0; 2];
+        self.group = 0;
+    }
+
+    /// `sum (x - p_i) weight_i` with weight set `k` (0 reverse, 1 forward), Q24 um.
+    #[inline(always)]
+    fn term(&self, c: &Model4Coeffs, k: usize, x: i32) -> i64 {
+        let drag = if self.forward {
+            self.group_drag[k]
+        } else {
+            self.group_drag[k].wrapping_neg()
+        };
+        drag.wrapping_add((x as i64).wrapping_mul(c.weight_total[k]))
+            .wrapping_sub((self.x_anchor as i64).wrapping_mul(self.group_weight[k]))
+            .wrapping_sub(self.rest_sum[k])
     }
 }
 
@@ -345,10 +524,11 @@ pub(crate) fn eval(
     x: i32,
     current_a: I16F16,
 ) -> I16F16 {
-    if !state.plays_valid {
-        start_plays(c, state.dir, x, &mut state.plays);
-        state.plays_valid = true;
+    if !state.plays.valid {
+        state.plays.start(c, state.dir, x);
         state.base_transition = false;
+    } else {
+        state.plays.update(c, x);
     }
     let y1 = linear::eval_at(
         m1,
@@ -362,16 +542,15 @@ pub(crate) fn eval(
         state.base_y_ext_um = y1;
         state.base_y_ext_valid = true;
     }
-    let weights = &c.weight_q24[(state.dir == Direction::Forward) as usize];
     let mut acc: i64 = (c.offset_um.to_bits() as i64) << 8;
     acc += (y1.to_bits() as i64 * c.model1_q16 as i64) >> 8;
     let dx = (x as i64 - c.x_ref_counts as i64).clamp(i32::MIN as i64, i32::MAX as i64);
     acc += (dx * c.slope_q31 as i64) >> 7;
-    for ((p, &w), &weight) in state.plays.iter_mut().zip(&c.widths_counts).zip(weights) {
-        *p = (*p).clamp(x.saturating_sub(w), x.saturating_add(w));
-        // |x - p| <= w < 2^24: the product is one 32x32 -> 64 multiply-accumulate.
-        acc += x.wrapping_sub(*p) as i64 * weight as i64;
-    }
+    acc = acc.wrapping_add(
+        state
+            .plays
+            .term(c, (state.dir == Direction::Forward) as usize, x),
+    );
     if let Some((seg, t)) = hat(x, c.hat_start_counts, c.hat_recip_q32) {
         if seg >= 1 {
             acc += ((c.knot_um[seg - 1].to_bits() as i64) * (65536 - t) as i64) >> 8;
@@ -389,4 +568,96 @@ pub(crate) fn eval(
     acc += (c.current_um_per_a.to_bits() as i64 * current_a.to_bits() as i64) >> 8;
     let out = (acc >> 8).clamp(-(MAX_ABS_UM as i64) << 16, (MAX_ABS_UM as i64) << 16);
     I16F16::from_bits(out as i32)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// The plain definition: every play clamped every tick, `sum (x - p) weight` in `i64`.
+    fn naive(plays: &mut [i32; N_OPS], c: &Model4Coeffs, k: usize, x: i32) -> i64 {
+        let mut acc = 0i64;
+        for ((p, &w), &weight) in plays.iter_mut().zip(&c.widths_counts).zip(&c.weight_q24[k]) {
+            *p = (*p).clamp(x - w, x + w);
+            acc += (x - *p) as i64 * weight as i64;
+        }
+        acc
+    }
+
+    fn coeffs(widths_mm: [f64; N_OPS], weights: [(f64, f64); N_OPS]) -> Model4Coeffs {
+        let mut m = Model4Params::zero(5.08, 5.08 * 28.0);
+        m.widths_mm = widths_mm;
+        for (j, (r, f)) in weights.into_iter().enumerate() {
+            m.play_um_per_mm[j] = r;
+            m.play_forward_um_per_mm[j] = f;
+        }
+        m.build(1868.0).expect("plays build")
+    }
+
+    #[test]
+    fn widths_must_increase() {
+        let mut m = Model4Params::zero(5.08, 5.08 * 28.0);
+        assert!(m.build(1868.0).is_ok());
+        m.widths_mm.swap(3, 4);
+        assert_eq!(
+            m.build(1868.0),
+            Err(ConfigError::NotMonotonic("model4.widths_mm"))
+        );
+        // Distinct in mm but one count on the drive: one play, refused as well.
+        let mut m = Model4Params::zero(5.08, 5.08 * 28.0);
+        m.widths_mm[1] = m.widths_mm[0] + 0.1 / 1868.0;
+        assert_eq!(
+            m.build(1868.0),
+            Err(ConfigError::NotMonotonic("model4.widths_mm"))
+        );
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 512, failure_persistence: None, ..ProptestConfig::default() })]
+
+        /// The group form gives exactly the plain sum, on either weight set, for any increasing
+        /// widths, from either starting side, on walks with reversals of every size,
+        /// standstills and jitter.
+        #[test]
+        fn running_totals_equal_the_plain_sum(
+            first in 0.0006f64..0.5,
+            ratios in prop::array::uniform10(1.0f64..2.5),
+            weights in prop::array::uniform10((-60_000.0f64..60_000.0, -60_000.0f64..60_000.0)),
+            x0 in -(1i32 << 24)..(1 << 24),
+            forward in any::<bool>(),
+            steps in prop::collection::vec((-20_000i32..=20_000, 0u32..4, 0usize..300), 1..40),
+        ) {
+            // Increasing by at least 1.9 counts (0.001 mm) each.
+            let mut widths = [first; N_OPS];
+            for j in 1..N_OPS {
+                widths[j] = widths[j - 1] * ratios[j] + 0.001;
+            }
+            let c = coeffs(widths, weights);
+            let dir = if forward { Direction::Forward } else { Direction::Reverse };
+            let mut fast = Plays::NEW;
+            fast.start(&c, dir, x0);
+            let mut plain = [0i32; N_OPS];
+            for (p, &w) in plain.iter_mut().zip(&c.widths_counts) {
+                *p = if forward { x0 - w } else { x0 + w };
+            }
+            let mut x = x0;
+            for (k, &(step, shape, n)) in steps.iter().enumerate() {
+                for i in 0..n {
+                    // A ramp, a standstill, or jitter of a count around it.
+                    x += match shape {
+                        0 | 1 => step.signum() * (step.abs() / n as i32).max(1),
+                        2 => 0,
+                        _ => if i % 2 == 0 { 1 } else { -1 },
+                    };
+                    fast.update(&c, x);
+                    for set in 0..2 {
+                        let want = naive(&mut plain.clone(), &c, set, x);
+                        prop_assert_eq!(fast.term(&c, set, x), want, "walk {} tick {} x {}", k, i, x);
+                    }
+                    naive(&mut plain, &c, 0, x);
+                }
+            }
+        }
+    }
 }
