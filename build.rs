@@ -3,8 +3,9 @@
 //! the Cortex-M4 and compares bit for bit, so any host/target divergence in the integer and
 //! fixed-point core fails `cargo test-target`.
 //!
-//! It also writes the Table 2 parameters as a calibration blob (`paper_blob.bin`), which the
-//! firmware embeds as its default calibration: it then carries no `f64` parameter tables.
+//! It also writes the Table 2 parameters as a calibration blob (for the on-target blob test) and
+//! as the calibration image built from it (`paper_image.bin`), which the firmware embeds as its
+//! default calibration: coefficients built here, so the firmware needs no `f64` to boot.
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -107,6 +108,20 @@ fn blob_vectors(out: &mut String) {
     )
     .unwrap();
     writeln!(out, "pub const PAPER_BLOB: [u8; {n}] = {:?};", &buf[..n]).unwrap();
-    let path = PathBuf::from(std::env::var_os("OUT_DIR").unwrap()).join("paper_blob.bin");
-    std::fs::write(path, &buf[..n]).unwrap();
+    // What the drive loads: the coefficients built here, on the host.
+    let image = estimator_core::image::from_blob(&buf[..n]).unwrap();
+    writeln!(
+        out,
+        "/// `image::from_blob(&PAPER_BLOB)` on the host: the coefficients the firmware boots from."
+    )
+    .unwrap();
+    writeln!(
+        out,
+        "pub const PAPER_IMAGE: [u8; {}] = {:?};",
+        image.len(),
+        image
+    )
+    .unwrap();
+    let path = PathBuf::from(std::env::var_os("OUT_DIR").unwrap()).join("paper_image.bin");
+    std::fs::write(path, &image).unwrap();
 }

@@ -44,8 +44,9 @@ mod app {
     use belt_link::{
         LinkError, Message, Receiver, RecordSample, Reply, Request, WireTelemetry, RECORD_BATCH,
     };
-    use estimator_core::blob::{self, BlobError};
+    use estimator_core::blob::BlobError;
     use estimator_core::endpoint::{answer, BlobBuffer, Effect, Endpoint, Event as LinkEvent};
+    use estimator_core::image;
     use estimator_core::rig::Rig;
     use estimator_core::settings::{self, Settings};
     use estimator_core::ConfigError;
@@ -62,9 +63,9 @@ mod app {
     static RECORD_EVERY: AtomicU16 = AtomicU16::new(0);
     /// A recording (re)started: the control task restarts its batch and sequence.
     static RECORD_RESTART: AtomicBool = AtomicBool::new(false);
-    /// Table 2 as an embedded blob (made by build.rs): the paper rig's models when no
-    /// calibration is stored.
-    static PAPER_BLOB: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/paper_blob.bin"));
+    /// Table 2 as an embedded calibration image (built by build.rs): the paper rig's models when
+    /// no calibration is stored.
+    static PAPER_IMAGE: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/paper_image.bin"));
     /// The board accepts the drive's current limit (set once in `init`); otherwise the drive is
     /// kept disabled and the amplifier off.
     static AMP_PERMITTED: AtomicBool = AtomicBool::new(false);
@@ -100,7 +101,7 @@ mod app {
 
     #[init(local = [
         // Zero-initialised (`.bss`): no initial image in flash.
-        blob_buffer: BlobBuffer = [0; blob::MAX_BYTES],
+        blob_buffer: BlobBuffer = [0; image::MAX_BYTES],
         endpoint_storage: MaybeUninit<Endpoint<&'static mut BlobBuffer>> = MaybeUninit::uninit(),
         drive_storage: MaybeUninit<Drive> = MaybeUninit::uninit(),
         event_queue: events::Queue = events::Queue::new(),
@@ -156,7 +157,7 @@ mod app {
         // Built from the paper rig's configuration first (tested on the host: it cannot be
         // refused), then the stored one installed over it with the link's own checks.
         let paper = DriveConfig {
-            model: Models::Blob(PAPER_BLOB),
+            model: Models::Image(PAPER_IMAGE),
             ..DriveConfig::paper_rig()
         };
         let drive: &'static mut Drive = match Drive::new(&paper) {
@@ -180,11 +181,8 @@ mod app {
         if configured {
             endpoint.boot_with(active, record_crc);
             if stored_blob > 0 {
-                let rig = *drive.rig();
                 let len = stored_blob.min(endpoint.blob_buffer().len());
-                match blob::decode_coeffs(&endpoint.blob_buffer()[..len], &rig)
-                    .and_then(|c| drive.set_models(c))
-                {
+                match drive.load_calibration(&endpoint.blob_buffer()[..len]) {
                     Ok(()) => {
                         endpoint.boot_calibration(len);
                         // The geometry changed from the paper rig's: the configured model
@@ -218,7 +216,7 @@ mod app {
                 "no valid configuration stored: the drive is UNCONFIGURED and refuses to enable; set one over the link (ConfigSet, ConfigApply) and save it"
             );
         }
-        let config = active.drive_config(Models::Blob(&[]));
+        let config = active.drive_config(Models::Image(&[]));
         // A current limit beyond the amplifier's linear range would wind the integrator up
         // against the DAC buffer's rail: refused (the drive stays disabled), never a panic.
         let limit_ma = config.pid.max_current_a * 1000.0;
@@ -552,11 +550,12 @@ mod app {
                         }
                     }
                     Effect::Calibrate(len) => {
-                        // Milliseconds of soft-float: decoded here, outside the drive's lock, so
-                        // the control task keeps its ticks; only the swap below holds the lock.
+                        // Checked here, outside the drive's lock; the lock is held only while
+                        // the checked image is read into the coefficients (no staging copy).
                         let rig = drive.lock(|d| *d.rig());
-                        let result = blob::decode_coeffs(endpoint.calibration(len), &rig)
-                            .and_then(|c| drive.lock(|d| d.set_models(c)));
+                        let bytes = endpoint.calibration(len);
+                        let result = image::check(bytes, &rig)
+                            .and_then(|()| drive.lock(|d| d.load_checked_calibration(bytes)));
                         let (reply, event) = endpoint.calibration_done(len, result);
                         log_event(&event);
                         reply
@@ -648,16 +647,15 @@ mod app {
         if s.pid.max_current_a * 1000.0 > hardware::MAX_LINEAR_CURRENT_MA as f64 {
             return Err(ConfigError::OutOfRange("pid.max_current_a"));
         }
-        Parts::build(&s.drive_config(Models::Blob(&[])), &s.homing)
+        Parts::build(&s.drive_config(Models::Image(&[])), &s.homing)
     }
 
     /// The paper rig without a calibration runs on the paper's Table 2 (embedded); any other
     /// geometry runs uncompensated until its calibration loads.
     fn install_default_models(d: &mut Drive) {
         if !d.is_calibrated() && *d.rig() == Rig::PAPER {
-            if let Ok(c) = blob::decode_coeffs(PAPER_BLOB, &Rig::PAPER) {
-                let _ = d.set_models(c);
-            }
+            // Built on the host and checked by the tests: refused only by a broken build.
+            let _ = d.load_calibration(PAPER_IMAGE);
         }
     }
 

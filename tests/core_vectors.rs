@@ -149,17 +149,20 @@ mod tests {
     /// and travels through the link endpoint in chunks; damaged blobs are refused.
     #[test]
     fn calibration_blob_checks() {
-        use estimator_core::blob::{self, BlobError};
-        let good = &vectors::PAPER_BLOB[..];
+        use estimator_core::blob::BlobError;
+        use estimator_core::image;
         belt_drive::stack::paint();
-        super::blob_round_trips(good);
+        super::blob_round_trips(&vectors::PAPER_BLOB[..]);
 
-        // The large objects live in statics: decoding a blob already takes tens of KiB of stack.
+        // The image built from it on the host loads into a drive. The large objects live in
+        // statics.
+        let good = &vectors::PAPER_IMAGE[..];
         let drive = super::static_drive();
         defmt::assert!(super::load(drive, good).is_ok());
 
         // Damaged copies: every check must refuse them (and change nothing).
-        let Some(bad) = cortex_m::singleton!(: [u8; blob::MAX_BYTES] = [0; blob::MAX_BYTES]) else {
+        let Some(bad) = cortex_m::singleton!(: [u8; image::MAX_BYTES] = [0; image::MAX_BYTES])
+        else {
             defmt::panic!("twice")
         };
         let bad = &mut bad[..good.len()];
@@ -175,7 +178,7 @@ mod tests {
         // Through the endpoint: begin, chunks, commit.
         defmt::assert!(super::endpoint_transfer(drive, good));
         defmt::info!(
-            "calibration blob: {=usize} bytes, checks pass on target; stack peak so far {=u32} bytes",
+            "calibration image: {=usize} bytes, checks pass on target; stack peak so far {=u32} bytes",
             good.len(),
             belt_drive::stack::peak_bytes()
         );

@@ -9,7 +9,6 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use belt_link::{crc32, Command, ModelKind, Reply, Request, CHUNK_MAX};
-use estimator_core::blob;
 use estimator_core::drive::{Faults, Output, Polarity, Telemetry, SCALE_COUNTS_PER_UM};
 use estimator_core::fixed::types::I16F16;
 use estimator_core::model::ModelParams;
@@ -445,10 +444,10 @@ pub fn run(link: &mut Link, opts: &Options, progress: &mut Progress) -> Result<O
         &mut plot_warnings,
     );
 
-    let mut buf = vec![0u8; blob::MAX_BYTES];
-    let n = blob::encode(&cal.params, &rig, &mut buf)
-        .map_err(|e| ToolError::Drive(format!("calibration blob: {e}")))?;
-    let blob = &buf[..n];
+    // The drive loads the coefficients, built here: no floating point on its side.
+    let image = estimator_core::image::of_params(&cal.params, &rig)
+        .map_err(|e| ToolError::Drive(format!("calibration image: {e}")))?;
+    let blob = &image[..];
     progress.stage("upload calibration", 0.0);
     upload(link, blob)?;
     progress.stage("verify calibration", 0.5);
@@ -668,10 +667,7 @@ mod tests {
     }
 
     fn paper_blob() -> Vec<u8> {
-        let mut buf = vec![0u8; blob::MAX_BYTES];
-        let n = blob::encode(&ModelParams::PAPER, &Rig::PAPER, &mut buf).unwrap();
-        buf.truncate(n);
-        buf
+        estimator_core::image::of_params(&ModelParams::PAPER, &Rig::PAPER).unwrap()
     }
 
     #[test]

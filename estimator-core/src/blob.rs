@@ -1,5 +1,6 @@
 //! The calibration blob: every model's parameters in fixed point, versioned and checksummed, as
-//! `hil-sim calibrate` writes it and the firmware loads it over the link.
+//! `hil-sim calibrate` writes it (`calibration.bin`). The drive loads the image built from it
+//! on the host ([`crate::image::from_blob`]): the coefficients, with no `f64` on the drive.
 //!
 //! Layout (little-endian), version 3 (version 2 recorded only counts/mm and had no Model 4;
 //! version 1 had no baselines):
@@ -31,9 +32,9 @@
 
 use crate::model::operator::{N_KNOTS, N_OPS};
 use crate::model::{
-    build_coeffs, BacklashParams, BandParams, BidirParams, BidirSource, Model1Params, Model2Params,
-    Model3Params, Model3Source, Model4Params, ModelCoeffs, ModelParams, TransitionParams,
-    MAX_BAND_POINTS, MAX_BIDIR_ROWS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
+    BacklashParams, BandParams, BidirParams, BidirSource, Model1Params, Model2Params, Model3Params,
+    Model3Source, Model4Params, ModelParams, TransitionParams, MAX_BAND_POINTS, MAX_BIDIR_ROWS,
+    MAX_TRANSITION_D, MAX_TRANSITION_G0,
 };
 use crate::rig::Rig;
 use crate::ConfigError;
@@ -98,10 +99,9 @@ impl core::fmt::Display for BlobError {
             BlobError::Truncated => f.write_str("calibration blob truncated"),
             BlobError::TooLong => f.write_str("calibration blob longer than its header says"),
             BlobError::BadMagic => f.write_str("not a calibration blob (bad magic)"),
-            BlobError::UnsupportedVersion(v) => write!(
-                f,
-                "calibration blob version {v} is not supported (want {VERSION})"
-            ),
+            BlobError::UnsupportedVersion(v) => {
+                write!(f, "calibration blob version {v} is not supported")
+            }
             BlobError::BadChecksum => f.write_str("calibration blob checksum mismatch"),
             BlobError::RigMismatch => {
                 f.write_str("calibration blob is for another rig (counts per mm differ)")
@@ -128,14 +128,14 @@ pub fn crc32(chunks: &[&[u8]]) -> u32 {
     c.finish()
 }
 
-fn write_rig(w: &mut Writer, rig: &Rig) {
+pub(crate) fn write_rig(w: &mut Writer, rig: &Rig) {
     w.u32(rig.encoder_lines);
     w.u32(rig.pulley_teeth);
     w.u64(rig.gear_ratio.to_bits());
     w.u64(rig.belt_pitch_mm.to_bits());
 }
 
-fn read_rig(r: &mut Reader) -> Result<Rig, BlobError> {
+pub(crate) fn read_rig(r: &mut Reader) -> Result<Rig, BlobError> {
     Ok(Rig {
         encoder_lines: r.u32()?,
         pulley_teeth: r.u32()?,
@@ -266,15 +266,20 @@ pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, 
     }
     write_model4(&mut w, &params.model4)?;
     let len = w.finish().map_err(|_| BlobError::BufferTooSmall)?;
+    seal(buf, len, MAGIC, VERSION);
+    Ok(len)
+}
+
+/// Writes the header of a blob or image whose payload is `buf[16..len]` (`len >= 16`).
+pub(crate) fn seal(buf: &mut [u8], len: usize, magic: [u8; 4], version: u16) {
     let payload_len = (len - HEADER) as u32;
     let mut head = [0u8; 12];
-    head[..4].copy_from_slice(&MAGIC);
-    head[4..6].copy_from_slice(&VERSION.to_le_bytes());
+    head[..4].copy_from_slice(&magic);
+    head[4..6].copy_from_slice(&version.to_le_bytes());
     head[8..12].copy_from_slice(&payload_len.to_le_bytes());
     let crc = crc32(&[&head, &buf[HEADER..len]]);
     buf[..12].copy_from_slice(&head);
     buf[12..16].copy_from_slice(&crc.to_le_bytes());
-    Ok(len)
 }
 
 /// A checked blob: Models 1 and 2 read out, Model 3's tables left in place in the bytes.
@@ -351,18 +356,29 @@ impl Model3Source for BlobModel3<'_> {
 
 /// Checks the header, the lengths and the checksum.
 fn check_header(blob: &[u8]) -> Result<(), BlobError> {
+    check_header_of(blob, MAGIC, VERSION, MAX_BYTES)
+}
+
+/// Checks the header of a blob or image (`magic`, `version`, at most `max` bytes), the lengths
+/// and the checksum.
+pub(crate) fn check_header_of(
+    blob: &[u8],
+    magic: [u8; 4],
+    version: u16,
+    max: usize,
+) -> Result<(), BlobError> {
     if blob.len() < HEADER {
         return Err(BlobError::Truncated);
     }
-    if blob.len() > MAX_BYTES {
+    if blob.len() > max {
         return Err(BlobError::TooLong);
     }
-    if blob[..4] != MAGIC {
+    if blob[..4] != magic {
         return Err(BlobError::BadMagic);
     }
-    let version = u16::from_le_bytes([blob[4], blob[5]]);
-    if version != VERSION {
-        return Err(BlobError::UnsupportedVersion(version));
+    let found = u16::from_le_bytes([blob[4], blob[5]]);
+    if found != version {
+        return Err(BlobError::UnsupportedVersion(found));
     }
     let payload_len = u32::from_le_bytes([blob[8], blob[9], blob[10], blob[11]]) as usize;
     let total = HEADER.saturating_add(payload_len);
@@ -466,22 +482,6 @@ fn parse<'a>(blob: &'a [u8], rig: &Rig) -> Result<Parsed<'a>, BlobError> {
         bidir,
         model4,
     })
-}
-
-/// Checks a blob for a drive on `rig` and builds the fixed-point coefficients straight from its
-/// bytes: what the firmware does, without ever holding the `f64` parameters.
-pub fn decode_coeffs(blob: &[u8], rig: &Rig) -> Result<ModelCoeffs, BlobError> {
-    let p = parse(blob, rig)?;
-    build_coeffs(
-        &p.model1,
-        &p.model2,
-        &p.model3,
-        &p.model4,
-        (&p.backlash, &p.bidir),
-        p.deadband,
-        rig,
-    )
-    .map_err(BlobError::Invalid)
 }
 
 /// Checks and decodes a blob for a drive on `rig` into `f64` parameters (host tools).

@@ -9,7 +9,7 @@
 
 use fixed::types::{I16F16, I40F24};
 
-use crate::blob::{self, BlobError};
+use crate::blob::BlobError;
 use crate::fault;
 pub use crate::fault::Faults;
 use crate::model::{self, ModelCoeffs, ModelKind, ModelParams, ModelState};
@@ -76,9 +76,10 @@ pub use belt_link::{Command, CommandError};
 pub enum Models<'a> {
     /// `f64` parameters (presets, host tools).
     Params(&'a ModelParams),
-    /// A calibration blob (see [`crate::blob`]), built straight into fixed point: the firmware
-    /// boots from an embedded blob and so carries no `f64` tables (16 KiB) at all.
-    Blob(&'a [u8]),
+    /// A calibration image (see [`crate::image`]): coefficients the host built, read and
+    /// checked in integers. The firmware boots from an embedded image and carries no `f64` on
+    /// its calibration path.
+    Image(&'a [u8]),
 }
 
 /// The whole drive in SI units; `Drive::new` checks it and converts it once.
@@ -451,15 +452,8 @@ impl Drive {
     /// `Command::Home` or `Command::Homing`), with the default homing routine.
     pub fn new(cfg: &DriveConfig) -> Result<Drive, ConfigError> {
         let parts = Parts::build(cfg, &HomingConfig::DEFAULT)?;
-        let models = match cfg.model {
-            Models::Params(p) => p.build(&cfg.rig)?,
-            Models::Blob(b) => blob::decode_coeffs(b, &cfg.rig).map_err(|e| match e {
-                BlobError::Invalid(e) => e,
-                _ => ConfigError::OutOfRange("drive.model (calibration blob)"),
-            })?,
-        };
         let p = parts;
-        Ok(Drive {
+        let mut drive = Drive {
             rig: p.rig,
             rate_hz: p.rate_hz,
             limits: p.limits,
@@ -472,7 +466,8 @@ impl Drive {
             move_scale: p.move_scale,
             pid: p.pid,
             pid_state: pid::State::new(),
-            models,
+            // Read in place below: no second 5 KiB copy on the stack.
+            models: ModelCoeffs::ZERO,
             models_valid: true,
             model_state: ModelState::new(0),
             model: p.initial_model,
@@ -497,7 +492,17 @@ impl Drive {
                 model: p.initial_model,
                 ..Telemetry::default()
             },
-        })
+        };
+        match cfg.model {
+            Models::Params(p) => drive.models = p.build(&cfg.rig)?,
+            Models::Image(b) => {
+                crate::image::decode_into(b, &cfg.rig, &mut drive.models).map_err(|e| match e {
+                    BlobError::Invalid(e) => e,
+                    _ => ConfigError::OutOfRange("drive.model (calibration image)"),
+                })?
+            }
+        }
+        Ok(drive)
     }
 
     /// Marks the drive unconfigured: it refuses to enable until [`Drive::reconfigure`] (the
@@ -571,15 +576,35 @@ impl Drive {
         Ok(())
     }
 
-    /// Checks and loads a calibration blob (see [`crate::blob`]). Refused while a move is in
-    /// progress; a refused blob changes nothing.
-    pub fn load_calibration(&mut self, blob: &[u8]) -> Result<(), BlobError> {
+    /// Checks and loads a calibration image (see [`crate::image`]). Refused while a move is in
+    /// progress; a refused image changes nothing.
+    pub fn load_calibration(&mut self, image: &[u8]) -> Result<(), BlobError> {
         if !self.trajectory.is_done() {
             return Err(BlobError::Busy);
         }
-        // Straight into fixed point: the f64 parameters (8 KiB) never touch the stack.
-        let models = blob::decode_coeffs(blob, &self.rig)?;
-        self.set_models(models)
+        crate::image::check(image, &self.rig)?;
+        self.load_checked_calibration(image)
+    }
+
+    /// Loads an image that [`crate::image::check`] accepted for this drive's geometry, reading
+    /// it straight into the coefficients (no 5 KiB staging copy): the firmware checks outside
+    /// the control task's lock and holds the lock only for this read (tens of microseconds, at
+    /// rest). Refused while a move is in progress. Should the bytes fail after all, the drive
+    /// is left with no compensation (every table empty, model `None`), never with a mix.
+    pub fn load_checked_calibration(&mut self, image: &[u8]) -> Result<(), BlobError> {
+        if !self.trajectory.is_done() {
+            return Err(BlobError::Busy);
+        }
+        if let Err(e) = crate::image::decode_into(image, &self.rig, &mut self.models) {
+            self.models = ModelCoeffs::ZERO;
+            self.models_valid = false;
+            self.model = ModelKind::None;
+            self.model_state.settle(self.motor_state.position_counts());
+            return Err(e);
+        }
+        self.models_valid = true;
+        self.model_state.settle(self.motor_state.position_counts());
+        Ok(())
     }
 
     /// Installs coefficients decoded elsewhere (the firmware decodes outside the control task's

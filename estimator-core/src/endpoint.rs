@@ -10,8 +10,9 @@ use belt_link::{
 };
 use fixed::types::I16F16;
 
-use crate::blob::{self, BlobError};
+use crate::blob::BlobError;
 use crate::drive::{Drive, Faults, Output, Parts, Sample, Telemetry};
+use crate::image;
 use crate::settings::{self, Settings, SettingsError};
 use crate::ConfigError;
 
@@ -139,9 +140,9 @@ pub enum Effect {
     Stream(u16),
     /// QEMU: log the statistics and exit with this status.
     Shutdown(u8),
-    /// A complete, CRC-checked calibration of this many bytes awaits: decode it
-    /// ([`Endpoint::calibration`], [`crate::blob::decode_coeffs`]) outside any lock the control
-    /// task needs, install it with [`Drive::set_models`], then report with
+    /// A complete, CRC-checked calibration image of this many bytes awaits: check it
+    /// ([`Endpoint::calibration`], [`crate::image::check`]) outside any lock the control task
+    /// needs, read it in with [`Drive::load_checked_calibration`], then report with
     /// [`Endpoint::calibration_done`].
     Calibrate(usize),
     /// The staged configuration ([`Endpoint::staged`]) is to be applied: build it with
@@ -195,7 +196,7 @@ pub enum Event {
 
 /// The calibration blob's buffer: owned on hosts, a `&'static mut` into zero-initialised RAM
 /// on the firmware (so that the 5 KiB buffer costs no flash for an initial image in `.data`).
-pub type BlobBuffer = [u8; blob::MAX_BYTES];
+pub type BlobBuffer = [u8; image::MAX_BYTES];
 
 /// The drive's end of the link: turns requests into drive commands, assembles calibration
 /// blobs, and says what to answer. Frame decoding stays in [`Receiver`].
@@ -224,7 +225,7 @@ impl Default for Endpoint {
 impl Endpoint {
     /// A fresh endpoint owning its blob buffer (drive disabled, nothing loaded).
     pub const fn new() -> Self {
-        Self::with_buffer([0; blob::MAX_BYTES])
+        Self::with_buffer([0; image::MAX_BYTES])
     }
 }
 
@@ -254,7 +255,7 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
     /// Boot: a stored calibration of `len` bytes was copied into [`Endpoint::blob_buffer`] and
     /// installed.
     pub fn boot_calibration(&mut self, len: usize) {
-        let len = len.min(blob::MAX_BYTES);
+        let len = len.min(image::MAX_BYTES);
         self.installed = Some((len, belt_link::crc32(&self.bytes()[..len])));
         self.calibrated = true;
     }
@@ -339,7 +340,7 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
 
     /// The assembled calibration blob of an [`Effect::Calibrate`] (`len` bytes).
     pub fn calibration(&self, len: usize) -> &[u8] {
-        &self.bytes()[..len.min(blob::MAX_BYTES)]
+        &self.bytes()[..len.min(image::MAX_BYTES)]
     }
 
     /// Reports the outcome of installing a calibration of `len` bytes.
@@ -351,7 +352,7 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
         match result {
             Ok(()) => {
                 self.calibrated = true;
-                let len = len.min(blob::MAX_BYTES);
+                let len = len.min(image::MAX_BYTES);
                 self.installed = Some((len, belt_link::crc32(&self.bytes()[..len])));
                 (
                     Reply::Ack {
@@ -376,13 +377,12 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
     pub fn handle_inline(&mut self, req: &Request, drive: &mut Drive) -> (Effect, Event) {
         match self.handle(req, drive) {
             (Effect::Calibrate(len), _) => {
-                let result = crate::blob::decode_coeffs(self.calibration(len), drive.rig())
-                    .and_then(|c| drive.set_models(c));
+                let result = drive.load_calibration(self.calibration(len));
                 let (reply, event) = self.calibration_done(len, result);
                 (Effect::Reply(reply), event)
             }
             (Effect::Configure, _) => {
-                let cfg = self.staged.drive_config(crate::drive::Models::Blob(&[]));
+                let cfg = self.staged.drive_config(crate::drive::Models::Image(&[]));
                 let result = Parts::build(&cfg, &self.staged.homing)
                     .map_err(Ok)
                     .and_then(|p| drive.reconfigure(p).map_err(Err));
@@ -490,7 +490,7 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
                 )
             }
             Request::CalBegin { total_len, crc32 } => {
-                if total_len as usize > blob::MAX_BYTES {
+                if total_len as usize > image::MAX_BYTES {
                     self.transfer = None;
                     let d = cal_error::TOO_LONG;
                     return (
@@ -731,15 +731,11 @@ mod tests {
     }
 
     fn paper_blob() -> Vec<u8> {
-        let mut buf = vec![0u8; blob::MAX_BYTES];
-        let n = blob::encode(
+        crate::image::of_params(
             &crate::model::ModelParams::PAPER,
             &DriveConfig::paper_rig().rig,
-            &mut buf,
         )
-        .unwrap();
-        buf.truncate(n);
-        buf
+        .unwrap()
     }
 
     fn chunk(offset: usize, piece: &[u8]) -> Request {
@@ -769,7 +765,7 @@ mod tests {
         );
         // Too long for the drive.
         let huge = Request::CalBegin {
-            total_len: blob::MAX_BYTES as u32 + 1,
+            total_len: image::MAX_BYTES as u32 + 1,
             crc32: 0,
         };
         assert_eq!(

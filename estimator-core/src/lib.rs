@@ -22,6 +22,7 @@ pub mod model;
 pub mod blob;
 pub mod drive;
 pub mod fault;
+pub mod image;
 pub mod settings;
 
 pub mod endpoint;

@@ -1,8 +1,6 @@
 //! The calibration blob: round trip, and every way a blob can be wrong is refused with a reason.
 
-use estimator_core::blob::{
-    crc32, decode, decode_coeffs, encode, BlobError, MAX_BYTES, MODEL4_BYTES,
-};
+use estimator_core::blob::{crc32, decode, encode, BlobError, MAX_BYTES, MODEL4_BYTES};
 use estimator_core::drive::{Command, Drive, DriveConfig, Sample};
 use estimator_core::model::{ModelKind, ModelParams};
 use estimator_core::rig::Rig;
@@ -141,16 +139,28 @@ fn well_signed_nonsense_is_refused_by_the_model_checks() {
 }
 
 #[test]
-fn drive_loads_good_blobs_and_refuses_bad_ones_unchanged() {
+fn drive_loads_good_images_and_refuses_bad_ones_unchanged() {
     let mut d = Drive::new(&DriveConfig::paper_rig()).unwrap();
     d.step(Sample::default());
     d.command(Command::SelectModel(ModelKind::Linear)).unwrap();
     let before = d.models().clone();
-    let mut bad = paper_blob();
+    let good = estimator_core::image::from_blob(&paper_blob()).unwrap();
+    // A blob is a file for tools; the drive loads the image built from it.
+    assert_eq!(d.load_calibration(&paper_blob()), Err(BlobError::BadMagic));
+    let mut bad = good.clone();
     bad[30] ^= 1;
     assert_eq!(d.load_calibration(&bad), Err(BlobError::BadChecksum));
     assert_eq!(d.models(), &before);
-    d.load_calibration(&paper_blob()).unwrap();
+    // Well signed, a bad value in the last section: refused before anything is read in.
+    let mut bad = good.clone();
+    let at = bad.len() - 24 - 4;
+    bad[at..at + 4].copy_from_slice(&(9i32 << 16).to_le_bytes());
+    resign(&mut bad);
+    assert!(
+        matches!(d.load_calibration(&bad), Err(BlobError::Invalid(e)) if e.field() == "model4.model1_weight")
+    );
+    assert_eq!(d.models(), &before);
+    d.load_calibration(&good).unwrap();
     assert_ne!(d.models(), &before);
     // The offset shows in the estimate at rest on the forward edge: m*0 + c - h.
     let y = d
@@ -174,47 +184,5 @@ proptest! {
         let pos = pos % b.len();
         b[pos] ^= 1 << bit;
         prop_assert!(decode(&b, &Rig::PAPER).is_err());
-    }
-}
-
-#[test]
-fn in_place_decoding_builds_the_same_coefficients() {
-    let rig = Rig::PAPER;
-    let blob = paper_blob();
-    assert_eq!(
-        decode_coeffs(&blob, &rig).unwrap(),
-        decode(&blob, &rig).unwrap().build(&rig).unwrap()
-    );
-    // And refuses what decode refuses, for the same reason.
-    let mut b = paper_blob();
-    let band_at = MODEL3_BANDS;
-    b[band_at..band_at + 2].copy_from_slice(&500u16.to_le_bytes());
-    resign(&mut b);
-    assert_eq!(
-        decode_coeffs(&b, &rig),
-        Err(BlobError::BadCount("model3.forward_band"))
-    );
-    let mut b = paper_blob();
-    b[MODEL1_H..MODEL1_H + 4].copy_from_slice(&(-5i32 << 16).to_le_bytes());
-    resign(&mut b);
-    assert!(
-        matches!(decode_coeffs(&b, &rig), Err(BlobError::Invalid(e)) if e.field() == "model1.h_mm")
-    );
-}
-
-proptest! {
-    #![proptest_config(ProptestConfig::with_cases(2000))]
-    #[test]
-    fn both_decoders_agree_on_corrupted_blobs(pos in 0usize..5000, byte in any::<u8>()) {
-        let mut b = paper_blob();
-        let pos = pos % b.len();
-        b[pos] = byte;
-        resign(&mut b);
-        let rig = Rig::PAPER;
-        match (decode(&b, &rig), decode_coeffs(&b, &rig)) {
-            (Ok(p), Ok(c)) => prop_assert_eq!(p.build(&rig).unwrap(), c),
-            (Err(a), Err(b)) => prop_assert_eq!(a, b),
-            (a, b) => prop_assert!(false, "decoders disagree: {:?} vs {:?}", a.map(|_| ()), b.map(|_| ())),
-        }
     }
 }

@@ -1,5 +1,6 @@
-//! Calibration on disk: `calibration.bin` (the blob the firmware loads) and `calibration.toml`
-//! (the same parameters for people, plus the baselines and the fit quality).
+//! Calibration on disk: `calibration.bin` (the blob; the drive loads the image built from it)
+//! and `calibration.toml` (the same parameters for people, plus the baselines and the fit
+//! quality).
 
 use std::path::Path;
 
@@ -55,9 +56,10 @@ pub fn save(dir: &Path, cal: &Calibration, rig: &Rig) -> Result<(), String> {
     let p = blob::decode(&buf[..n], rig).map_err(|e| e.to_string())?;
     let file = CalFile {
         note: format!(
-            "belt-drive calibration from {} samples; units in the names; the firmware loads \
-             calibration.bin ({n} bytes), which holds the model sections below: edit neither \
-             by hand (a calibration.toml that no longer matches its calibration.bin is refused)",
+            "belt-drive calibration from {} samples; units in the names; the drive loads the \
+             coefficients built from calibration.bin ({n} bytes), which holds the model sections \
+             below: edit neither by hand (a calibration.toml that no longer matches its \
+             calibration.bin is refused)",
             cal.samples
         ),
         fit_rms_um: cal

@@ -261,10 +261,9 @@ pub fn run_pil(
 ) -> Result<Trace, String> {
     check_pil_geometry(plant)?;
     let rig = Rig::PAPER;
-    let mut buf = vec![0u8; estimator_core::blob::MAX_BYTES];
-    let n = estimator_core::blob::encode(params, &rig, &mut buf).map_err(|e| e.to_string())?;
+    let image = estimator_core::image::of_params(params, &rig).map_err(|e| e.to_string())?;
     let mut c = crate::pil::PilController::start(opts).map_err(|e| format!("PIL: {e}"))?;
-    c.load_calibration(&buf[..n])
+    c.load_calibration(&image)
         .map_err(|e| format!("PIL: loading the calibration: {e}"))?;
     c.send_command(estimator_core::drive::Command::SelectModel(model))
         .map_err(|e| format!("PIL: selecting {model}: {e}"))?;

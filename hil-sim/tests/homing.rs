@@ -22,7 +22,7 @@ fn settings() -> Settings {
 
 fn drive(s: &Settings) -> Drive {
     let mut d = Drive::new(&DriveConfig::paper_rig()).unwrap();
-    let cfg = s.drive_config(estimator_core::drive::Models::Blob(&[]));
+    let cfg = s.drive_config(estimator_core::drive::Models::Image(&[]));
     d.reconfigure(Parts::build(&cfg, &s.homing).unwrap())
         .unwrap();
     d

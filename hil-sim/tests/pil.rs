@@ -97,9 +97,8 @@ fn placement_pil_matches_the_host() {
     opts.transport = hil_sim::pil::Transport::Usart;
     let mut fw = hil_sim::pil::PilController::start(&opts).unwrap();
     let rig = estimator_core::rig::Rig::PAPER;
-    let mut blob = vec![0u8; estimator_core::blob::MAX_BYTES];
-    let n = estimator_core::blob::encode(&cal.params, &rig, &mut blob).unwrap();
-    fw.load_calibration(&blob[..n]).unwrap();
+    let image = estimator_core::image::of_params(&cal.params, &rig).unwrap();
+    fw.load_calibration(&image).unwrap();
     let pil = hil_sim::placement::arrival_errors(
         &mut fw,
         &plant,

@@ -49,8 +49,8 @@ impl BacklashParams {
 /// Constant backlash in fixed point: the estimate per direction.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct BacklashCoeffs {
-    forward_um: I16F16,
-    reverse_um: I16F16,
+    pub(crate) forward_um: I16F16,
+    pub(crate) reverse_um: I16F16,
 }
 
 impl BacklashCoeffs {
@@ -136,15 +136,15 @@ impl BidirSource for BidirParams {
 /// A bidirectional table in fixed point.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct BidirCoeffs {
-    x0_counts: i32,
-    step_counts: u32,
+    pub(crate) x0_counts: i32,
+    pub(crate) step_counts: u32,
     /// `(rows - 1) * step_counts`: positions beyond are held at the last row.
-    span_counts: u32,
-    step_recip: Recip,
+    pub(crate) span_counts: u32,
+    pub(crate) step_recip: Recip,
     /// Rows in use, `2..=MAX_BIDIR_ROWS`.
-    rows: u16,
+    pub(crate) rows: u16,
     /// Per direction (forward, reverse), I16F16 um.
-    values: [[I16F16; MAX_BIDIR_ROWS]; 2],
+    pub(crate) values: [[I16F16; MAX_BIDIR_ROWS]; 2],
 }
 
 impl BidirCoeffs {

@@ -16,13 +16,13 @@ use crate::ConfigError;
 /// 2^-32 lose precision gracefully (they only ever scale distances whose product is negligible).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub struct Scale {
-    mant: u32,
+    pub(crate) mant: u32,
     /// `0..=63`, enforced by [`Scale::from_f64`].
-    shift: u8,
+    pub(crate) shift: u8,
 }
 
 /// Largest shift a [`Scale`] uses; a smaller factor is rounded towards zero.
-const MAX_SHIFT: i32 = 63;
+pub(crate) const MAX_SHIFT: i32 = 63;
 
 impl Scale {
     /// The zero factor.

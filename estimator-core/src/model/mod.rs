@@ -245,13 +245,13 @@ impl Default for ModelParams {
 /// 3's tables take 2608.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct ModelCoeffs {
-    model1: Model1Coeffs,
-    model2: Model2Coeffs,
-    model3: Model3Coeffs,
-    model4: Model4Coeffs,
-    backlash: BacklashCoeffs,
-    bidir: BidirCoeffs,
-    deadband_counts: u32,
+    pub(crate) model1: Model1Coeffs,
+    pub(crate) model2: Model2Coeffs,
+    pub(crate) model3: Model3Coeffs,
+    pub(crate) model4: Model4Coeffs,
+    pub(crate) backlash: BacklashCoeffs,
+    pub(crate) bidir: BidirCoeffs,
+    pub(crate) deadband_counts: u32,
 }
 
 // The firmware keeps one `ModelCoeffs` in static RAM (budget 8 KiB) and moves it when a
@@ -262,6 +262,92 @@ const _: () = assert!(core::mem::size_of::<ModelCoeffs>() <= 5016);
 const _: () = assert!(core::mem::size_of::<ModelState>() <= 184);
 
 impl ModelCoeffs {
+    /// Everything zero and no tables: a value to decode a calibration image into
+    /// ([`crate::image::decode_into`]), not a model to run.
+    pub const ZERO: ModelCoeffs = {
+        use fixed::types::{I1F31, U11F5};
+        #[cfg(feature = "std")]
+        const NEVER: Closing = Closing {
+            forward_mm: None,
+            reverse_mm: None,
+        };
+        const BAND: LinearBand = LinearBand {
+            m_um_per_count: I1F31::ZERO,
+            offset_um: I16F16::ZERO,
+            h_um: I16F16::ZERO,
+        };
+        const TABLE: BandCoeffs = BandCoeffs {
+            len: 0,
+            x_counts: [0; MAX_BAND_POINTS],
+            y_um: [I16F16::ZERO; MAX_BAND_POINTS],
+        };
+        const TRANSITION: TransitionCoeffs = TransitionCoeffs {
+            n_d: 0,
+            n_g0: 0,
+            rows_q32: 0,
+            cols_q32: 0,
+            gap_um: [[U11F5::ZERO; MAX_TRANSITION_G0]; MAX_TRANSITION_D],
+        };
+        ModelCoeffs {
+            model1: Model1Coeffs {
+                band: BAND,
+                h_g_um: I16F16::ZERO,
+                slope_a_um_per_count: I1F31::ZERO,
+                slope_b_um_per_count: I1F31::ZERO,
+                #[cfg(feature = "std")]
+                closing: NEVER,
+            },
+            model2: Model2Coeffs {
+                band: BAND,
+                h_g_um: I16F16::ZERO,
+                amp_a_um: I16F16::ZERO,
+                amp_b_um: I16F16::ZERO,
+                rate_a: Scale::ZERO,
+                rate_b: Scale::ZERO,
+                #[cfg(feature = "std")]
+                closing: NEVER,
+            },
+            model3: Model3Coeffs {
+                forward_band: TABLE,
+                reverse_band: TABLE,
+                forward_transition: TRANSITION,
+                reverse_transition: TRANSITION,
+                #[cfg(feature = "std")]
+                closing: NEVER,
+            },
+            model4: Model4Coeffs {
+                widths_counts: [0; operator::N_OPS],
+                weight_q24: [[0; operator::N_OPS]; 2],
+                x_ref_counts: 0,
+                offset_um: I16F16::ZERO,
+                slope_q31: 0,
+                hat_start_counts: 0,
+                hat_recip_q32: 0,
+                knot_um: [I16F16::ZERO; operator::N_KNOTS],
+                pitch_rate: 0,
+                pitch_um: [I16F16::ZERO; 2],
+                turn_rate: 0,
+                turn_um: [I16F16::ZERO; 2],
+                current_um_per_a: I16F16::ZERO,
+                model1_q16: 0,
+                weight_total: [0; 2],
+            },
+            backlash: BacklashCoeffs {
+                forward_um: I16F16::ZERO,
+                reverse_um: I16F16::ZERO,
+            },
+            bidir: BidirCoeffs {
+                x0_counts: 0,
+                step_counts: 0,
+                span_counts: 0,
+                step_recip: fixmath::Recip::ZERO,
+                rows: 0,
+                values: [[I16F16::ZERO; MAX_BIDIR_ROWS]; 2],
+            },
+            deadband_counts: 0,
+        }
+    };
+
     /// Model 1's coefficients.
     pub fn model1(&self) -> &Model1Coeffs {
         &self.model1

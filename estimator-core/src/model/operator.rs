@@ -214,7 +214,7 @@ impl Model4Params {
 
 /// `sum weight` per direction; out of line, where the optimiser does not unroll it.
 #[inline(never)]
-fn weight_total(weight: &[[i32; N_OPS]; 2]) -> [i64; 2] {
+pub(crate) fn weight_total(weight: &[[i32; N_OPS]; 2]) -> [i64; 2] {
     weight.map(|w| w.iter().map(|&v| v as i64).sum())
 }
 

@@ -202,35 +202,35 @@ const fn model1_transition(p: &Model1Params, slope: f64, h_um: f64) -> Transitio
 /// A band table in fixed point: axis in encoder counts, values in Q16.16 um.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct BandCoeffs {
-    len: u8,
-    x_counts: [i32; MAX_BAND_POINTS],
-    y_um: [I16F16; MAX_BAND_POINTS],
+    pub(crate) len: u8,
+    pub(crate) x_counts: [i32; MAX_BAND_POINTS],
+    pub(crate) y_um: [I16F16; MAX_BAND_POINTS],
 }
 
 /// A transition table in fixed point.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct TransitionCoeffs {
-    n_d: u8,
-    n_g0: u8,
+    pub(crate) n_d: u8,
+    pub(crate) n_g0: u8,
     /// Rows per count of travel in Q0.32: `d * rows_q32` is the row position in Q32.32, one
     /// `UMULL` whose high word is the row and low word the fraction. Steps of at least two counts
     /// keep it below 2^31; the step is honoured to `1 / rows_q32` relative (the reference uses
     /// the same quantised value).
-    rows_q32: u32,
+    pub(crate) rows_q32: u32,
     /// Columns per Q16.16 unit of initial gap, in Q0.32 (steps of at least two units).
-    cols_q32: u32,
-    gap_um: [[U11F5; MAX_TRANSITION_G0]; MAX_TRANSITION_D],
+    pub(crate) cols_q32: u32,
+    pub(crate) gap_um: [[U11F5; MAX_TRANSITION_G0]; MAX_TRANSITION_D],
 }
 
 /// Model 3 in fixed point; build with [`Model3Params::build`].
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Model3Coeffs {
-    forward_band: BandCoeffs,
-    reverse_band: BandCoeffs,
-    forward_transition: TransitionCoeffs,
-    reverse_transition: TransitionCoeffs,
+    pub(crate) forward_band: BandCoeffs,
+    pub(crate) reverse_band: BandCoeffs,
+    pub(crate) forward_transition: TransitionCoeffs,
+    pub(crate) reverse_transition: TransitionCoeffs,
     #[cfg(feature = "std")]
-    closing: Closing,
+    pub(crate) closing: Closing,
 }
 
 struct BandFields {

@@ -4,7 +4,6 @@
 
 use std::path::{Path, PathBuf};
 
-use estimator_core::blob;
 use estimator_core::drive::{Command, Drive, DriveConfig, Output, Sample};
 use estimator_core::model::{ModelKind, ModelParams};
 
@@ -44,15 +43,12 @@ pub struct RunReport {
     pub final_mm: f64,
 }
 
-/// The calibration blob both sides load before a Model 3 run: the paper's parameters (Model 3
-/// sampled from Model 1), encoded exactly as `hil-sim calibrate` would.
+/// The calibration image both sides load before a Model 3 run: the paper's parameters (Model 3
+/// sampled from Model 1), built exactly as for a calibration `hil-sim calibrate` writes.
 pub fn paper_blob() -> Result<Vec<u8>, PilError> {
     let cfg = DriveConfig::paper_rig();
-    let mut buf = vec![0u8; blob::MAX_BYTES];
-    let n = blob::encode(&ModelParams::PAPER, &cfg.rig, &mut buf)
-        .map_err(|e| PilError::Link(format!("encoding the calibration blob: {e}")))?;
-    buf.truncate(n);
-    Ok(buf)
+    estimator_core::image::of_params(&ModelParams::PAPER, &cfg.rig)
+        .map_err(|e| PilError::Link(format!("building the calibration image: {e}")))
 }
 
 /// The in-process core, the firmware and the plant, stepped together.
@@ -102,7 +98,7 @@ pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilEr
     // The firmware boots from the Table 2 blob; so does its host twin.
     let boot_blob = paper_blob()?;
     let cfg = DriveConfig {
-        model: estimator_core::drive::Models::Blob(&boot_blob),
+        model: estimator_core::drive::Models::Image(&boot_blob),
         ..DriveConfig::paper_rig()
     };
     let host = Drive::new(&cfg).map_err(|e| PilError::Link(format!("drive config: {e}")))?;

@@ -33,7 +33,7 @@ pub fn run(opts: &PilOptions, n: u32) -> Result<FuzzReport, PilError> {
     // The firmware boots from the Table 2 blob; so does its host twin.
     let boot_blob = super::bench::paper_blob()?;
     let cfg = DriveConfig {
-        model: estimator_core::drive::Models::Blob(&boot_blob),
+        model: estimator_core::drive::Models::Image(&boot_blob),
         ..DriveConfig::paper_rig()
     };
     let mut host = Drive::new(&cfg).map_err(|e| PilError::Link(e.to_string()))?;

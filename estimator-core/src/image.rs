@@ -1,0 +1,606 @@
+//! The calibration image: every model's fixed-point coefficients as the drive uses them,
+//! versioned and checksummed. The host builds them (`f64`, from a calibration blob's parameters,
+//! see [`crate::blob`]) and the drive only reads and checks them, in integers: no floating point
+//! on the microcontroller's calibration path. A blob stays the file a calibration writes
+//! (`calibration.bin`, parameters for people and tools); [`from_blob`] turns it into the image a
+//! drive loads over the link, stores, and boots from.
+//!
+//! Layout (little-endian), version 1:
+//! ```text
+//! 0   magic "BDCI"
+//! 4   version u16 (= 1)          6  reserved u16 (= 0)
+//! 8   payload length u32        12  CRC-32 (IEEE) of bytes 0..12 followed by the payload
+//! 16  payload:
+//!     geometry        as in the blob (must match the drive's exactly)
+//!     deadband        u32 counts
+//!     model1          m I1F31 um/count, offset, h, h_g I16F16 um, slopes a, b I1F31  6 x i32
+//!     model2          m, offset, h, h_g, A, B (as Model 1), then per rate: mantissa u32,
+//!                     shift u16, 0 u16                                    6 x i32, 2 x 8
+//!     model3 bands    forward, reverse: n u16, 0 u16, n x (x counts i32, y I16F16 um)
+//!     model3 trans.   forward, reverse: n_d u16, n_g0 u16, rows per count Q0.32 u32,
+//!                     columns per Q16.16 um Q0.32 u32, n_d x n_g0 gaps U11F5 u16
+//!     backlash        forward, reverse I16F16 um                          2 x i32
+//!     bidir table     rows u16, 0 u16, x0 counts i32, step counts u32,
+//!                     rows x (forward, reverse) I16F16 um
+//!     model4          widths counts, weights reverse, weights forward Q24 um/count
+//!                     3 x N_OPS x i32; x_ref counts, offset I16F16, slope Q31 um/count, hat
+//!                     start counts, hat reciprocal u32, knots N_KNOTS x I16F16, pitch rate u32,
+//!                     sin, cos I16F16, turn rate u32, sin, cos, um/A I16F16, Model 1's weight Q16
+//!     closing         Models 1, 2, 3: forward, reverse I16F16 mm, -1 = never   6 x i32
+//!                     (host diagnostics: the drive skips them)
+//! ```
+//! What the per-tick code derives (reciprocals, spans, total weights) is derived again here, in
+//! integers, rather than trusted. Every field is checked against the range its builder
+//! guarantees (and the per-tick code is total on any value anyway); a refusal names the
+//! parameter it came from, as the builders do. What stays with the host builder is the one check
+//! that needs the parameters' `f64` interpolation: Model 3's reverse band at or above its forward
+//! band (a violation misplaces the estimate, never the drive).
+
+use fixed::types::{I16F16, I1F31, U11F5};
+
+use crate::blob::{check_header_of, BlobError};
+use crate::model::fixmath::{Recip, Scale, MAX_SHIFT};
+use crate::model::operator::{weight_total, N_KNOTS, N_OPS};
+use crate::model::LinearBand;
+use crate::model::{
+    BacklashCoeffs, BandCoeffs, BidirCoeffs, Model1Coeffs, Model2Coeffs, Model3Coeffs,
+    Model4Coeffs, ModelCoeffs, TransitionCoeffs, MAX_ABS_UM, MAX_BAND_POINTS, MAX_BIDIR_ROWS,
+    MAX_TRANSITION_D, MAX_TRANSITION_G0,
+};
+use crate::rig::Rig;
+use crate::ConfigError;
+use belt_link::bytes::Reader;
+
+/// First four bytes of every image.
+pub const MAGIC: [u8; 4] = *b"BDCI";
+/// The version this code writes and reads.
+pub const VERSION: u16 = 1;
+const HEADER: usize = 16;
+const RIG_BYTES: usize = 24;
+const BAND_BYTES: usize = 4 + 8 * MAX_BAND_POINTS;
+const TRANSITION_BYTES: usize = 12 + 2 * MAX_TRANSITION_D * MAX_TRANSITION_G0;
+const BIDIR_BYTES: usize = 12 + 8 * MAX_BIDIR_ROWS;
+const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8);
+/// Largest image: every table full.
+pub const MAX_BYTES: usize = HEADER
+    + RIG_BYTES
+    + 4
+    + 4 * 6
+    + (4 * 6 + 2 * 8)
+    + 2 * BAND_BYTES
+    + 2 * TRANSITION_BYTES
+    + 8
+    + BIDIR_BYTES
+    + MODEL4_BYTES
+    + 4 * 6;
+
+/// Micrometres in Q16.16 within `[min_um, MAX_ABS_UM]`, as the builders accept them.
+fn um(r: &mut Reader, min_um: i32, field: &'static str) -> Result<I16F16, BlobError> {
+    let bits = r.i32()?;
+    let max = (MAX_ABS_UM as i32) << 16;
+    if bits < min_um.saturating_mul(1 << 16) || bits > max {
+        return Err(out_of_range(field));
+    }
+    Ok(I16F16::from_bits(bits))
+}
+
+fn out_of_range(field: &'static str) -> BlobError {
+    BlobError::Invalid(ConfigError::OutOfRange(field))
+}
+
+/// The lower bound of values that may be negative (`[-MAX_ABS_UM, MAX_ABS_UM]`).
+const ANY: i32 = -(MAX_ABS_UM as i32);
+
+/// A band line: any Q1.31 slope, the offset within the range, a height of zero or more.
+fn read_band(r: &mut Reader, [c, h]: [&'static str; 2]) -> Result<LinearBand, BlobError> {
+    Ok(LinearBand {
+        m_um_per_count: I1F31::from_bits(r.i32()?),
+        offset_um: um(r, ANY, c)?,
+        h_um: um(r, 0, h)?,
+    })
+}
+
+fn read_model1(r: &mut Reader) -> Result<Model1Coeffs, BlobError> {
+    let band = read_band(r, ["model1.offset_mm", "model1.h_mm"])?;
+    let h_g_um = um(r, 0, "model1.h_g_mm")?;
+    let mut slope = |field| -> Result<I1F31, BlobError> {
+        let s = r.i32()?;
+        if s < 0 {
+            return Err(out_of_range(field));
+        }
+        Ok(I1F31::from_bits(s))
+    };
+    Ok(Model1Coeffs {
+        band,
+        h_g_um,
+        slope_a_um_per_count: slope("model1.slope_a_mm_per_mm")?,
+        slope_b_um_per_count: slope("model1.slope_b_mm_per_mm")?,
+        #[cfg(feature = "std")]
+        closing: Default::default(),
+    })
+}
+
+fn read_scale(r: &mut Reader, field: &'static str) -> Result<Scale, BlobError> {
+    let mant = r.u32()?;
+    let shift = r.u16()?;
+    r.u16()?;
+    if shift as i32 > MAX_SHIFT {
+        return Err(out_of_range(field));
+    }
+    Ok(Scale {
+        mant,
+        shift: shift as u8,
+    })
+}
+
+fn read_model2(r: &mut Reader) -> Result<Model2Coeffs, BlobError> {
+    let band = read_band(r, ["model2.offset_mm", "model2.h_mm"])?;
+    Ok(Model2Coeffs {
+        band,
+        h_g_um: um(r, 0, "model2.h_g_mm")?,
+        amp_a_um: um(r, 0, "model2.amplitude_a_mm")?,
+        amp_b_um: um(r, 0, "model2.amplitude_b_mm")?,
+        rate_a: read_scale(r, "model2.rate_a_per_mm")?,
+        rate_b: read_scale(r, "model2.rate_b_per_mm")?,
+        #[cfg(feature = "std")]
+        closing: Default::default(),
+    })
+}
+
+// The tables are read in place, into the caller's coefficients (`None`: checked only): a table
+// built by value and moved would put kilobytes on the stack for each copy.
+
+fn read_band_table(
+    r: &mut Reader,
+    mut out: Option<&mut BandCoeffs>,
+    [len_f, x_f, y_f]: [&'static str; 3],
+) -> Result<(), BlobError> {
+    let n = r.u16()? as usize;
+    r.u16()?;
+    if !(2..=MAX_BAND_POINTS).contains(&n) {
+        return Err(BlobError::Invalid(ConfigError::TableSize(len_f)));
+    }
+    let mut prev = i32::MIN;
+    for i in 0..MAX_BAND_POINTS {
+        let (x, y) = if i < n {
+            let (x, y) = (r.i32()?, um(r, ANY, y_f)?);
+            if i > 0 && x <= prev {
+                return Err(BlobError::Invalid(ConfigError::NotMonotonic(x_f)));
+            }
+            prev = x;
+            (x, y)
+        } else {
+            (0, I16F16::ZERO)
+        };
+        if let Some(b) = out.as_deref_mut() {
+            b.x_counts[i] = x;
+            b.y_um[i] = y;
+        }
+    }
+    if let Some(b) = out {
+        b.len = n as u8;
+    }
+    Ok(())
+}
+
+fn read_transition(
+    r: &mut Reader,
+    mut out: Option<&mut TransitionCoeffs>,
+    [nd_f, ng_f, d_f, g_f]: [&'static str; 4],
+) -> Result<(), BlobError> {
+    let (n_d, n_g0) = (r.u16()? as usize, r.u16()? as usize);
+    if !(2..=MAX_TRANSITION_D).contains(&n_d) {
+        return Err(BlobError::Invalid(ConfigError::TableSize(nd_f)));
+    }
+    if !(2..=MAX_TRANSITION_G0).contains(&n_g0) {
+        return Err(BlobError::Invalid(ConfigError::TableSize(ng_f)));
+    }
+    // Steps of at least two units: at most 2^31 rows (columns) per unit, and at least one.
+    let inv = |v: u32, field| {
+        if (1..=1 << 31).contains(&v) {
+            Ok(v)
+        } else {
+            Err(out_of_range(field))
+        }
+    };
+    let rows_q32 = inv(r.u32()?, d_f)?;
+    let cols_q32 = inv(r.u32()?, g_f)?;
+    for i in 0..MAX_TRANSITION_D {
+        for j in 0..MAX_TRANSITION_G0 {
+            let g = if i < n_d && j < n_g0 {
+                U11F5::from_bits(r.u16()?)
+            } else {
+                U11F5::ZERO
+            };
+            if let Some(t) = out.as_deref_mut() {
+                t.gap_um[i][j] = g;
+            }
+        }
+    }
+    if let Some(t) = out {
+        t.n_d = n_d as u8;
+        t.n_g0 = n_g0 as u8;
+        t.rows_q32 = rows_q32;
+        t.cols_q32 = cols_q32;
+    }
+    Ok(())
+}
+
+fn read_model3(r: &mut Reader, mut m: Option<&mut Model3Coeffs>) -> Result<(), BlobError> {
+    read_band_table(
+        r,
+        m.as_deref_mut().map(|m| &mut m.forward_band),
+        [
+            "model3.forward_band.len",
+            "model3.forward_band.x_mm",
+            "model3.forward_band.y_um",
+        ],
+    )?;
+    read_band_table(
+        r,
+        m.as_deref_mut().map(|m| &mut m.reverse_band),
+        [
+            "model3.reverse_band.len",
+            "model3.reverse_band.x_mm",
+            "model3.reverse_band.y_um",
+        ],
+    )?;
+    read_transition(
+        r,
+        m.as_deref_mut().map(|m| &mut m.forward_transition),
+        [
+            "model3.forward_transition.n_d",
+            "model3.forward_transition.n_g0",
+            "model3.forward_transition.d_step_mm",
+            "model3.forward_transition.g0_step_um",
+        ],
+    )?;
+    read_transition(
+        r,
+        m.map(|m| &mut m.reverse_transition),
+        [
+            "model3.reverse_transition.n_d",
+            "model3.reverse_transition.n_g0",
+            "model3.reverse_transition.d_step_mm",
+            "model3.reverse_transition.g0_step_um",
+        ],
+    )
+}
+
+fn read_bidir(r: &mut Reader, mut out: Option<&mut BidirCoeffs>) -> Result<(), BlobError> {
+    let rows = r.u16()? as usize;
+    r.u16()?;
+    if !(2..=MAX_BIDIR_ROWS).contains(&rows) {
+        return Err(out_of_range("bidir_table.rows"));
+    }
+    let x0_counts = r.i32()?;
+    let step_counts = r.u32()?;
+    // A step of one count at least; the span as the builder derives it (saturating: the tick
+    // clamps positions to it in `i64`, any value is safe).
+    if step_counts == 0 {
+        return Err(out_of_range("bidir_table.step_mm"));
+    }
+    let span = step_counts.saturating_mul(rows as u32 - 1);
+    for i in 0..MAX_BIDIR_ROWS {
+        let (f, v) = if i < rows {
+            (
+                um(r, ANY, "bidir_table.forward_um")?,
+                um(r, ANY, "bidir_table.reverse_um")?,
+            )
+        } else {
+            (I16F16::ZERO, I16F16::ZERO)
+        };
+        if let Some(b) = out.as_deref_mut() {
+            b.values[0][i] = f;
+            b.values[1][i] = v;
+        }
+    }
+    if let Some(b) = out {
+        b.x0_counts = x0_counts;
+        b.step_counts = step_counts;
+        b.span_counts = span;
+        b.step_recip = Recip::new(step_counts);
+        b.rows = rows as u16;
+    }
+    Ok(())
+}
+
+fn read_model4(r: &mut Reader) -> Result<Model4Coeffs, BlobError> {
+    let mut widths_counts = [0i32; N_OPS];
+    let mut narrower = 0;
+    for w in widths_counts.iter_mut() {
+        *w = r.i32()?;
+        // Narrowest first, one count at least, at most 2^24 (see `Model4Params::build`).
+        if !(1..=1 << 24).contains(w) {
+            return Err(out_of_range("model4.widths_mm"));
+        }
+        if *w <= narrower {
+            return Err(BlobError::Invalid(ConfigError::NotMonotonic(
+                "model4.widths_mm",
+            )));
+        }
+        narrower = *w;
+    }
+    let mut weight_q24 = [[0i32; N_OPS]; 2];
+    for set in weight_q24.iter_mut() {
+        for w in set.iter_mut() {
+            *w = r.i32()?;
+        }
+    }
+    let x_ref_counts = r.i32()?;
+    if x_ref_counts.unsigned_abs() > i32::MAX as u32 / 2 {
+        return Err(out_of_range("model4.x_ref_mm"));
+    }
+    let offset_um = um(r, ANY, "model4.offset_um")?;
+    let slope_q31 = r.i32()?;
+    if slope_q31 == i32::MIN {
+        return Err(out_of_range("model4.slope_um_per_mm"));
+    }
+    let hat_start_counts = r.i32()?;
+    if hat_start_counts.unsigned_abs() > 1 << 30 {
+        return Err(out_of_range("model4.knot_start_mm"));
+    }
+    // A step of 1..=2^24 counts.
+    let hat_recip_q32 = r.u32()?;
+    if hat_recip_q32 < 1 << 8 {
+        return Err(out_of_range("model4.knot_step_mm"));
+    }
+    let mut knot_um = [I16F16::ZERO; N_KNOTS];
+    for k in knot_um.iter_mut() {
+        *k = um(r, ANY, "model4.knot_um")?;
+    }
+    // Periods of 16 counts to 2^31 counts.
+    let rate = |r: &mut Reader, field| -> Result<u32, BlobError> {
+        let v = r.u32()?;
+        if (2..=1 << 28).contains(&v) {
+            Ok(v)
+        } else {
+            Err(out_of_range(field))
+        }
+    };
+    let pitch_rate = rate(r, "model4.pitch_mm")?;
+    let pitch_um = [
+        um(r, ANY, "model4.pitch_um")?,
+        um(r, ANY, "model4.pitch_um")?,
+    ];
+    let turn_rate = rate(r, "model4.turn_mm")?;
+    let turn_um = [um(r, ANY, "model4.turn_um")?, um(r, ANY, "model4.turn_um")?];
+    let current_um_per_a = um(r, ANY, "model4.current_um_per_a")?;
+    let model1_q16 = r.i32()?;
+    if model1_q16.unsigned_abs() > 8 << 16 {
+        return Err(out_of_range("model4.model1_weight"));
+    }
+    Ok(Model4Coeffs {
+        weight_total: weight_total(&weight_q24),
+        widths_counts,
+        weight_q24,
+        x_ref_counts,
+        offset_um,
+        slope_q31,
+        hat_start_counts,
+        hat_recip_q32,
+        knot_um,
+        pitch_rate,
+        pitch_um,
+        turn_rate,
+        turn_um,
+        current_um_per_a,
+        model1_q16,
+    })
+}
+
+/// Closing distances as the image carries them: I16F16 mm, -1 for never.
+#[cfg(feature = "std")]
+fn read_closing(r: &mut Reader) -> Result<crate::model::Closing, BlobError> {
+    let mut one = || -> Result<Option<I16F16>, BlobError> {
+        let bits = r.i32()?;
+        Ok((bits >= 0).then_some(I16F16::from_bits(bits)))
+    };
+    Ok(crate::model::Closing {
+        forward_mm: one()?,
+        reverse_mm: one()?,
+    })
+}
+
+/// Checks an image for a drive on `rig` and, if `out` is given, reads its coefficients into it.
+fn read_image(image: &[u8], rig: &Rig, mut out: Option<&mut ModelCoeffs>) -> Result<(), BlobError> {
+    check_header_of(image, MAGIC, VERSION, MAX_BYTES)?;
+    let mut r = Reader::new(&image[HEADER..]);
+    if crate::blob::read_rig(&mut r)? != *rig {
+        return Err(BlobError::RigMismatch);
+    }
+    let deadband_counts = r.u32()?;
+    let model1 = read_model1(&mut r)?;
+    let model2 = read_model2(&mut r)?;
+    read_model3(&mut r, out.as_deref_mut().map(|c| &mut c.model3))?;
+    // Offset -+ half the backlash: each up to 1.5 MAX_ABS_UM, any I16F16 serves the tick.
+    let backlash = BacklashCoeffs {
+        forward_um: I16F16::from_bits(r.i32()?),
+        reverse_um: I16F16::from_bits(r.i32()?),
+    };
+    read_bidir(&mut r, out.as_deref_mut().map(|c| &mut c.bidir))?;
+    let model4 = read_model4(&mut r)?;
+    #[cfg(feature = "std")]
+    let closing = [
+        read_closing(&mut r)?,
+        read_closing(&mut r)?,
+        read_closing(&mut r)?,
+    ];
+    #[cfg(not(feature = "std"))]
+    r.slice(4 * 6)?;
+    if r.remaining() != 0 {
+        return Err(BlobError::TooLong);
+    }
+    if let Some(c) = out {
+        c.deadband_counts = deadband_counts;
+        c.model1 = model1;
+        c.model2 = model2;
+        c.backlash = backlash;
+        c.model4 = model4;
+        #[cfg(feature = "std")]
+        {
+            c.model1.closing = closing[0];
+            c.model2.closing = closing[1];
+            c.model3.closing = closing[2];
+        }
+    }
+    Ok(())
+}
+
+/// Checks an image for a drive on `rig` without keeping anything. Integer-only: lengths and the
+/// checksum first, then every field against its range; a refusal names the field.
+pub fn check(image: &[u8], rig: &Rig) -> Result<(), BlobError> {
+    read_image(image, rig, None)
+}
+
+/// Reads an image's coefficients into `out`, checking it as [`check`] does. On a refusal `out`
+/// holds part of the image: read into a staging copy, or [`check`] first (the drive does, and
+/// then reads straight into its own coefficients without a 5 KiB copy).
+pub fn decode_into(image: &[u8], rig: &Rig, out: &mut ModelCoeffs) -> Result<(), BlobError> {
+    read_image(image, rig, Some(out))
+}
+
+/// [`decode_into`] a fresh set of coefficients: the refusal changes nothing.
+pub fn decode(image: &[u8], rig: &Rig) -> Result<ModelCoeffs, BlobError> {
+    let mut c = ModelCoeffs::ZERO;
+    decode_into(image, rig, &mut c)?;
+    Ok(c)
+}
+
+#[cfg(feature = "std")]
+mod write {
+    use super::*;
+    use belt_link::bytes::Writer;
+
+    fn band(w: &mut Writer, b: &LinearBand) {
+        w.i32(b.m_um_per_count.to_bits());
+        w.i32(b.offset_um.to_bits());
+        w.i32(b.h_um.to_bits());
+    }
+
+    fn scale(w: &mut Writer, s: &Scale) {
+        w.u32(s.mant);
+        w.u16(s.shift as u16);
+        w.u16(0);
+    }
+
+    fn closing(w: &mut Writer, c: &crate::model::Closing) {
+        for d in [c.forward_mm, c.reverse_mm] {
+            w.i32(d.map_or(-1, |d| d.to_bits()));
+        }
+    }
+
+    fn model3(w: &mut Writer, m: &Model3Coeffs) {
+        for b in [&m.forward_band, &m.reverse_band] {
+            w.u16(b.len as u16);
+            w.u16(0);
+            for i in 0..(b.len as usize).min(MAX_BAND_POINTS) {
+                w.i32(b.x_counts[i]);
+                w.i32(b.y_um[i].to_bits());
+            }
+        }
+        for t in [&m.forward_transition, &m.reverse_transition] {
+            w.u16(t.n_d as u16);
+            w.u16(t.n_g0 as u16);
+            w.u32(t.rows_q32);
+            w.u32(t.cols_q32);
+            for row in t.gap_um.iter().take(t.n_d as usize) {
+                for g in row.iter().take(t.n_g0 as usize) {
+                    w.u16(g.to_bits());
+                }
+            }
+        }
+    }
+
+    fn model4(w: &mut Writer, m: &Model4Coeffs) {
+        for v in m
+            .widths_counts
+            .iter()
+            .chain(&m.weight_q24[0])
+            .chain(&m.weight_q24[1])
+        {
+            w.i32(*v);
+        }
+        w.i32(m.x_ref_counts);
+        w.i32(m.offset_um.to_bits());
+        w.i32(m.slope_q31);
+        w.i32(m.hat_start_counts);
+        w.u32(m.hat_recip_q32);
+        for k in m.knot_um {
+            w.i32(k.to_bits());
+        }
+        w.u32(m.pitch_rate);
+        w.i32(m.pitch_um[0].to_bits());
+        w.i32(m.pitch_um[1].to_bits());
+        w.u32(m.turn_rate);
+        w.i32(m.turn_um[0].to_bits());
+        w.i32(m.turn_um[1].to_bits());
+        w.i32(m.current_um_per_a.to_bits());
+        w.i32(m.model1_q16);
+    }
+
+    /// Writes coefficients built for `rig` into `buf`; returns the image's length.
+    pub fn encode(c: &ModelCoeffs, rig: &Rig, buf: &mut [u8]) -> Result<usize, BlobError> {
+        let mut w = Writer::at(&mut *buf, HEADER);
+        crate::blob::write_rig(&mut w, rig);
+        w.u32(c.deadband_counts);
+        let m1 = &c.model1;
+        band(&mut w, &m1.band);
+        w.i32(m1.h_g_um.to_bits());
+        w.i32(m1.slope_a_um_per_count.to_bits());
+        w.i32(m1.slope_b_um_per_count.to_bits());
+        let m2 = &c.model2;
+        band(&mut w, &m2.band);
+        for v in [m2.h_g_um, m2.amp_a_um, m2.amp_b_um] {
+            w.i32(v.to_bits());
+        }
+        scale(&mut w, &m2.rate_a);
+        scale(&mut w, &m2.rate_b);
+        model3(&mut w, &c.model3);
+        w.i32(c.backlash.forward_um.to_bits());
+        w.i32(c.backlash.reverse_um.to_bits());
+        let b = &c.bidir;
+        w.u16(b.rows);
+        w.u16(0);
+        w.i32(b.x0_counts);
+        w.u32(b.step_counts);
+        for i in 0..(b.rows as usize).min(MAX_BIDIR_ROWS) {
+            w.i32(b.values[0][i].to_bits());
+            w.i32(b.values[1][i].to_bits());
+        }
+        model4(&mut w, &c.model4);
+        closing(&mut w, &c.model1.closing);
+        closing(&mut w, &c.model2.closing);
+        closing(&mut w, &c.model3.closing);
+        let len = w.finish().map_err(|_| BlobError::BufferTooSmall)?;
+        crate::blob::seal(buf, len, MAGIC, VERSION);
+        Ok(len)
+    }
+}
+
+#[cfg(feature = "std")]
+pub use write::encode;
+
+/// The image a drive loads for `params` on `rig` (host tools): the parameters quantised to a
+/// calibration blob's formats first, as a calibration file holds them, then built. The same
+/// as [`from_blob`] of their blob.
+#[cfg(feature = "std")]
+pub fn of_params(params: &crate::model::ModelParams, rig: &Rig) -> Result<Vec<u8>, BlobError> {
+    let mut blob = vec![0u8; crate::blob::MAX_BYTES];
+    let n = crate::blob::encode(params, rig, &mut blob)?;
+    from_blob(&blob[..n])
+}
+
+/// The image a drive loads for a calibration blob: its parameters (checked as the blob's own
+/// decoder checks them) built for the geometry the blob records.
+#[cfg(feature = "std")]
+pub fn from_blob(blob: &[u8]) -> Result<Vec<u8>, BlobError> {
+    let rig = crate::blob::calibrated_rig(blob)?;
+    let c = crate::blob::decode(blob, &rig)?
+        .build(&rig)
+        .map_err(BlobError::Invalid)?;
+    let mut buf = vec![0u8; MAX_BYTES];
+    let n = encode(&c, &rig, &mut buf)?;
+    buf.truncate(n);
+    Ok(buf)
+}
