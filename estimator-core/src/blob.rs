@@ -272,14 +272,19 @@ pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, 
 
 /// Writes the header of a blob or image whose payload is `buf[16..len]` (`len >= 16`).
 pub(crate) fn seal(buf: &mut [u8], len: usize, magic: [u8; 4], version: u16) {
-    let payload_len = (len - HEADER) as u32;
     let mut head = [0u8; 12];
-    head[..4].copy_from_slice(&magic);
-    head[4..6].copy_from_slice(&version.to_le_bytes());
-    head[8..12].copy_from_slice(&payload_len.to_le_bytes());
+    let mut w = Writer::new(&mut head);
+    w.put(&magic);
+    w.u16(version);
+    w.u16(0); // reserved
+    w.u32((len - HEADER) as u32);
+    // Twelve bytes of fields into twelve: cannot fall short.
+    let _ = w.finish();
     let crc = crc32(&[&head, &buf[HEADER..len]]);
-    buf[..12].copy_from_slice(&head);
-    buf[12..16].copy_from_slice(&crc.to_le_bytes());
+    let mut w = Writer::new(&mut buf[..HEADER]);
+    w.put(&head);
+    w.u32(crc);
+    let _ = w.finish();
 }
 
 /// A checked blob: Models 1 and 2 read out, Model 3's tables left in place in the bytes.
@@ -373,14 +378,17 @@ pub(crate) fn check_header_of(
     if blob.len() > max {
         return Err(BlobError::TooLong);
     }
-    if blob[..4] != magic {
+    let mut r = Reader::new(blob);
+    if r.take::<4>()? != magic {
         return Err(BlobError::BadMagic);
     }
-    let found = u16::from_le_bytes([blob[4], blob[5]]);
+    let found = r.u16()?;
+    r.u16()?;
+    let payload_len = r.u32()? as usize;
+    let crc = r.u32()?;
     if found != version {
         return Err(BlobError::UnsupportedVersion(found));
     }
-    let payload_len = u32::from_le_bytes([blob[8], blob[9], blob[10], blob[11]]) as usize;
     let total = HEADER.saturating_add(payload_len);
     if blob.len() < total {
         return Err(BlobError::Truncated);
@@ -388,7 +396,6 @@ pub(crate) fn check_header_of(
     if blob.len() > total {
         return Err(BlobError::TooLong);
     }
-    let crc = u32::from_le_bytes([blob[12], blob[13], blob[14], blob[15]]);
     if crc32(&[&blob[..12], &blob[HEADER..]]) != crc {
         return Err(BlobError::BadChecksum);
     }

@@ -7,6 +7,8 @@
 //! Order inside a tick (sampling first, as ODrive's `sampling_cb`): unwrap the motor counter,
 //! advance the trajectory, run the PID, run the error model, check faults, saturate.
 
+use core::mem::MaybeUninit;
+
 use fixed::types::{I16F16, I40F24};
 
 use crate::blob::BlobError;
@@ -451,9 +453,41 @@ impl Drive {
     /// Checks `cfg` and builds a disabled, configured drive at position 0 (home it with
     /// `Command::Home` or `Command::Homing`), with the default homing routine.
     pub fn new(cfg: &DriveConfig) -> Result<Drive, ConfigError> {
+        let mut drive = Drive::assemble(Parts::build(cfg, &HomingConfig::DEFAULT)?);
+        drive.install_models(cfg)?;
+        Ok(drive)
+    }
+
+    /// [`Drive::new`] built in place in `slot` (the firmware's static): the 5.6 KB drive never
+    /// passes through the caller's stack. On a refusal `slot` may hold a drive; do not use it.
+    pub fn new_in<'a>(
+        slot: &'a mut MaybeUninit<Drive>,
+        cfg: &DriveConfig,
+    ) -> Result<&'a mut Drive, ConfigError> {
         let parts = Parts::build(cfg, &HomingConfig::DEFAULT)?;
-        let p = parts;
-        let mut drive = Drive {
+        let drive = slot.write(Drive::assemble(parts));
+        drive.install_models(cfg)?;
+        Ok(drive)
+    }
+
+    /// The models of `cfg`, into the drive's coefficients in place.
+    fn install_models(&mut self, cfg: &DriveConfig) -> Result<(), ConfigError> {
+        match cfg.model {
+            Models::Params(p) => self.models = p.build(&cfg.rig)?,
+            Models::Image(b) => {
+                crate::image::decode_into(b, &cfg.rig, &mut self.models).map_err(|e| match e {
+                    BlobError::Invalid(e) => e,
+                    _ => ConfigError::OutOfRange("drive.model (calibration image)"),
+                })?
+            }
+        }
+        Ok(())
+    }
+
+    /// A disabled drive with `parts` and no models yet (every table empty).
+    #[inline(always)]
+    fn assemble(p: Parts) -> Drive {
+        Drive {
             rig: p.rig,
             rate_hz: p.rate_hz,
             limits: p.limits,
@@ -466,7 +500,7 @@ impl Drive {
             move_scale: p.move_scale,
             pid: p.pid,
             pid_state: pid::State::new(),
-            // Read in place below: no second 5 KiB copy on the stack.
+            // Read in place by `install_models`: no second 5 KiB copy on the stack.
             models: ModelCoeffs::ZERO,
             models_valid: true,
             model_state: ModelState::new(0),
@@ -492,17 +526,7 @@ impl Drive {
                 model: p.initial_model,
                 ..Telemetry::default()
             },
-        };
-        match cfg.model {
-            Models::Params(p) => drive.models = p.build(&cfg.rig)?,
-            Models::Image(b) => {
-                crate::image::decode_into(b, &cfg.rig, &mut drive.models).map_err(|e| match e {
-                    BlobError::Invalid(e) => e,
-                    _ => ConfigError::OutOfRange("drive.model (calibration image)"),
-                })?
-            }
         }
-        Ok(drive)
     }
 
     /// Marks the drive unconfigured: it refuses to enable until [`Drive::reconfigure`] (the

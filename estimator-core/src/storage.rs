@@ -23,6 +23,7 @@
 //! `READ_SIZE` / `WRITE_SIZE` (padding written as 0xFF); the CRC is computed while streaming.
 //! Nothing here panics, whatever the flash holds.
 
+use belt_link::bytes::{Reader, Writer};
 use belt_link::Crc32;
 use embedded_storage::nor_flash::{NorFlash, NorFlashError};
 
@@ -462,33 +463,38 @@ struct Header {
 impl Header {
     fn encode(&self) -> [u8; HEADER_BYTES] {
         let mut h = [0u8; HEADER_BYTES];
-        h[0..4].copy_from_slice(&MAGIC);
-        h[4..6].copy_from_slice(&SCHEMA_VERSION.to_le_bytes());
-        // 6..8 reserved: 0.
-        h[8..12].copy_from_slice(&self.seq.to_le_bytes());
-        h[12..16].copy_from_slice(&self.settings_len.to_le_bytes());
-        h[16..20].copy_from_slice(&self.blob_len.to_le_bytes());
-        h[20..24].copy_from_slice(&self.crc32.to_le_bytes());
+        let mut w = Writer::new(&mut h);
+        w.put(&MAGIC);
+        w.u16(SCHEMA_VERSION);
+        w.u16(0); // reserved
+        w.u32(self.seq);
+        w.u32(self.settings_len);
+        w.u32(self.blob_len);
+        w.u32(self.crc32);
+        // Exactly HEADER_BYTES fields: cannot fall short (the round-trip tests read them back).
+        let _ = w.finish();
         h
     }
 
     /// The fields of a header with the right magic and schema.
     fn parse(h: &[u8; HEADER_BYTES]) -> Option<Header> {
-        (h[0..4] == MAGIC && schema(h) == SCHEMA_VERSION).then(|| Header {
-            seq: le32(h, 8),
-            settings_len: le32(h, 12),
-            blob_len: le32(h, 16),
-            crc32: le32(h, 20),
+        let mut r = Reader::new(h);
+        if r.take::<4>().ok()? != MAGIC || r.u16().ok()? != SCHEMA_VERSION {
+            return None;
+        }
+        r.u16().ok()?;
+        Some(Header {
+            seq: r.u32().ok()?,
+            settings_len: r.u32().ok()?,
+            blob_len: r.u32().ok()?,
+            crc32: r.u32().ok()?,
         })
     }
 }
 
 fn schema(h: &[u8; HEADER_BYTES]) -> u16 {
-    u16::from_le_bytes([h[4], h[5]])
-}
-
-fn le32(h: &[u8; HEADER_BYTES], at: usize) -> u32 {
-    u32::from_le_bytes([h[at], h[at + 1], h[at + 2], h[at + 3]])
+    let mut r = Reader::new(&h[4..]);
+    r.u16().unwrap_or(0)
 }
 
 fn scan<F: NorFlash>(flash: &mut F, g: &Geometry) -> Result<[SlotState; 2], F::Error> {

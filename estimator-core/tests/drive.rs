@@ -534,3 +534,41 @@ fn moves_to_the_travel_ends_are_accepted_and_one_um_past_refused() {
         Err(CommandError::VelocityOutOfRange)
     );
 }
+
+#[test]
+fn a_drive_built_in_place_is_the_drive_built_by_value() {
+    use core::mem::MaybeUninit;
+    use estimator_core::drive::Models;
+    let image = estimator_core::image::of_params(
+        &estimator_core::model::ModelParams::PAPER,
+        &DriveConfig::paper_rig().rig,
+    )
+    .unwrap();
+    let cfg = DriveConfig {
+        model: Models::Image(&image),
+        ..DriveConfig::paper_rig()
+    };
+    let mut by_value = Drive::new(&cfg).unwrap();
+    let mut slot = MaybeUninit::uninit();
+    let in_place = Drive::new_in(&mut slot, &cfg).unwrap();
+    assert_eq!(in_place.models(), by_value.models());
+    for d in [&mut by_value, &mut *in_place] {
+        d.command(Command::Enable).unwrap();
+    }
+    for k in 0..200 {
+        let s = Sample {
+            motor_counter: (k * 3) as u16,
+            ..Sample::default()
+        };
+        assert_eq!(in_place.step(s), by_value.step(s));
+    }
+    // A refused image leaves an error, not a drive.
+    let mut bad = image.clone();
+    bad[20] ^= 1;
+    let cfg = DriveConfig {
+        model: Models::Image(&bad),
+        ..DriveConfig::paper_rig()
+    };
+    let mut slot = MaybeUninit::uninit();
+    assert!(Drive::new_in(&mut slot, &cfg).is_err());
+}
