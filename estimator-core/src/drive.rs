@@ -966,14 +966,13 @@ impl Drive {
     /// looks for): the current limited to the homing current, the stop found when the following
     /// error passes the detection threshold. Then the stop is the homing position, the scale
     /// reads it too (the carriage touches the stop), the models start on the band edge of the
-    /// approach direction, and the drive backs off. Kept out of line: the per-tick path of a
-    /// homed drive does not pay for it.
+    /// approach direction, and the drive backs off. Runs after the profile's and the loop's
+    /// tick, which the control tick shares with normal motion (one inlined copy of each);
+    /// kept out of line: the per-tick path of a homed drive does not pay for it.
     #[cold]
     #[inline(never)]
-    fn homing_tick(&mut self, x: i32) -> (I16F16, i32, i32) {
+    fn homing_tick(&mut self, sp: &trajectory::Setpoint, out: &pid::Output) -> (I16F16, i32, i32) {
         let h = self.homing_cfg;
-        let sp = self.trajectory.tick();
-        let out = self.pid.update(&mut self.pid_state, &sp, x);
         let fe = out.following_error_counts.to_num::<i32>();
         let setpoint = sp.position_floor_counts();
         if fe.unsigned_abs() > h.detect_counts {
@@ -1062,39 +1061,41 @@ impl Drive {
         let mut saturated = false;
         let mut following_error_counts = 0;
         let mut setpoint_counts = x;
-        if self.homing && self.enabled && self.faults.is_clear() {
-            (current_a, following_error_counts, setpoint_counts) = self.homing_tick(x);
-            if self.homed {
-                // Found this tick: report the positions it assigned.
-                x = self.motor_state.position_counts();
-                scale = self.scale_state.position_counts();
-            }
-            self.link_watchdog();
-        } else if self.enabled && self.faults.is_clear() {
+        if self.enabled && self.faults.is_clear() {
             let sp = self.trajectory.tick();
             let out = self.pid.update(&mut self.pid_state, &sp, x);
-            // The floor of the I24F8 error (always within i32).
-            following_error_counts = out.following_error_counts.to_num::<i32>();
-            setpoint_counts = sp.position_floor_counts();
-            let limit = self
-                .monitor
-                .following_error_limit_counts(sp.velocity_counts_per_tick());
-            if following_error_counts.unsigned_abs() > limit {
-                self.faults.0 |= Faults::FOLLOWING_ERROR;
+            if self.homing {
+                (current_a, following_error_counts, setpoint_counts) = self.homing_tick(&sp, &out);
+                if self.homed {
+                    // Found this tick: report the positions it assigned.
+                    x = self.motor_state.position_counts();
+                    scale = self.scale_state.position_counts();
+                }
+                self.link_watchdog();
             } else {
-                current_a = out.current_a;
-                saturated = out.saturated;
+                // The floor of the I24F8 error (always within i32).
+                following_error_counts = out.following_error_counts.to_num::<i32>();
+                setpoint_counts = sp.position_floor_counts();
+                let limit = self
+                    .monitor
+                    .following_error_limit_counts(sp.velocity_counts_per_tick());
+                if following_error_counts.unsigned_abs() > limit {
+                    self.faults.0 |= Faults::FOLLOWING_ERROR;
+                } else {
+                    current_a = out.current_a;
+                    saturated = out.saturated;
+                }
+                self.faults.0 |= fault::check(
+                    &self.monitor,
+                    &mut self.monitor_state,
+                    fault::Inputs {
+                        position_counts: x,
+                        prev_current_a: self.prev_current_a,
+                        prev_saturated: self.prev_saturated,
+                    },
+                );
+                self.link_watchdog();
             }
-            self.faults.0 |= fault::check(
-                &self.monitor,
-                &mut self.monitor_state,
-                fault::Inputs {
-                    position_counts: x,
-                    prev_current_a: self.prev_current_a,
-                    prev_saturated: self.prev_saturated,
-                },
-            );
-            self.link_watchdog();
         }
         if !self.faults.is_clear() {
             // Safe state: zero current, disabled until the host clears the fault and re-enables.
