@@ -501,10 +501,12 @@ impl BandCoeffs {
     /// control rates), otherwise a binary search of at most 7 steps. The fraction within the
     /// segment needs a division only when the segment changes (two `UDIV`s in
     /// [`Recip::new`]); otherwise it is one `UMULL` with the cached reciprocal.
-    #[inline]
+    ///
+    /// The fast path is inlined into the tick; the rest is out of line (it needs many more
+    /// registers, which the fast path would otherwise save and restore on every tick).
+    #[inline(always)]
     pub(crate) fn eval(&self, x: i32, cache: &mut SegmentCache) -> i32 {
-        let n = self.len();
-        let last = n.saturating_sub(1);
+        let last = self.len().saturating_sub(1);
         // Fast path: still in the cached segment (its length matches: same table).
         let h = cache.seg as usize;
         if h < last {
@@ -514,6 +516,15 @@ impl BandCoeffs {
                 return lerp_q32(self.y(h), self.y(h + 1), t);
             }
         }
+        self.eval_moved(x, cache)
+    }
+
+    /// [`BandCoeffs::eval`] off the cached segment: at an end, a neighbour, or a search.
+    #[inline(never)]
+    fn eval_moved(&self, x: i32, cache: &mut SegmentCache) -> i32 {
+        let n = self.len();
+        let last = n.saturating_sub(1);
+        let h = cache.seg as usize;
         if n < 2 || x <= self.x(0) {
             return self.y(0);
         }
