@@ -487,7 +487,9 @@ impl Trajectory {
     /// it when a command arrives, not every tick.
     pub fn set_coeffs(&mut self, coeffs: Coeffs) -> Result<(), CannotBrake> {
         let speed = self.velocity.unsigned_abs();
-        let d = coeffs.decel as u64;
+        // `Coeffs` hold a deceleration of one LSB at least; `max(1)` lets the compiler see it
+        // (no division-by-zero panic path below).
+        let d = (coeffs.decel as u64).max(1);
         let (n, r) = if speed == 0 {
             (0, coeffs.decel)
         } else {
