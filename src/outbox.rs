@@ -57,7 +57,8 @@ impl Outbox {
     /// ring is empty.
     pub fn pump(&mut self) {
         while self.len > 0 && self.tx.can_write() {
-            self.tx.write(self.ring[self.head]);
+            // `head < CAPACITY` always; the `%` lets the compiler see it (no panic path).
+            self.tx.write(self.ring[self.head % CAPACITY]);
             self.head = (self.head + 1) % CAPACITY;
             self.len -= 1;
         }

@@ -30,11 +30,15 @@ pub fn cobs_encode(src: &[u8], dst: &mut [u8]) -> Option<usize> {
 }
 
 /// Decodes a COBS block (no delimiter) in place; returns the decoded length.
+///
+/// `write <= read` throughout (a block of `code` bytes decodes to at most `code`), so every
+/// store lands in bytes already read; the accesses are checked (`get`) all the same, so the
+/// firmware carries no panic path for any input.
 pub fn cobs_decode_in_place(buf: &mut [u8]) -> Result<usize, LinkError> {
     let mut read = 0usize;
     let mut write = 0usize;
-    while read < buf.len() {
-        let code = buf[read] as usize;
+    while let Some(&code) = buf.get(read) {
+        let code = code as usize;
         if code == 0 {
             return Err(LinkError::Framing);
         }
@@ -44,17 +48,17 @@ pub fn cobs_decode_in_place(buf: &mut [u8]) -> Result<usize, LinkError> {
         }
         read += 1;
         while read < end {
-            let b = buf[read];
+            let b = buf.get(read).copied().unwrap_or(0);
             if b == 0 {
                 return Err(LinkError::Framing);
             }
-            buf[write] = b;
+            *buf.get_mut(write).ok_or(LinkError::Framing)? = b;
             write += 1;
             read += 1;
         }
         // A short block stands for a zero byte, except at the very end of the frame.
         if code < 0xff && read < buf.len() {
-            buf[write] = 0;
+            *buf.get_mut(write).ok_or(LinkError::Framing)? = 0;
             write += 1;
         }
     }

@@ -37,6 +37,8 @@ pub fn encode<M: Message>(seq: u8, msg: &M, out: &mut [u8; MAX_FRAME]) -> usize 
     raw[2 + n..6 + n].copy_from_slice(&crc.to_le_bytes());
     // Cannot fail: `out` holds the worst case of the largest raw frame.
     let len = cobs_encode(&raw[..OVERHEAD + n], &mut out[..MAX_ENCODED]).unwrap_or(0);
+    // `len <= MAX_ENCODED < MAX_FRAME`; `min` lets the compiler see it (no panic path).
+    let len = len.min(MAX_FRAME - 1);
     out[len] = 0;
     len + 1
 }

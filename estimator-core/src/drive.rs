@@ -1004,8 +1004,10 @@ impl Drive {
             self.homing = false;
             self.faults.0 |= Faults::HOMING_FAILED;
         }
+        // `max`/`min`, not `clamp`: the same for the positive limit the configuration
+        // guarantees, without `clamp`'s panic path for `min > max`.
         let limit = h.current_limit_a;
-        (out.current_a.clamp(-limit, limit), fe, setpoint)
+        (out.current_a.max(-limit).min(limit), fe, setpoint)
     }
 
     /// Counts a tick without a frame from the host; latches `LINK_TIMEOUT` when too many pass.
