@@ -283,7 +283,7 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
     /// later transfer overwrote them.
     pub fn installed_calibration(&self) -> Option<&[u8]> {
         match self.installed {
-            Some((len, _)) => Some(&self.bytes()[..len]),
+            Some((len, _)) => self.bytes().get(..len),
             None if !self.calibrated => Some(&[]),
             None => None,
         }
@@ -513,12 +513,19 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
                     Some((_, _, got, _)) if offset as usize != *got => cal_error::OFFSET,
                     Some((total, _, got, _)) if *got + len as usize > *total => cal_error::TOO_LONG,
                     Some((_, _, got, crc)) => {
-                        let piece = &data[..len as usize];
+                        let piece = &data[..(len as usize).min(belt_link::CHUNK_MAX)];
                         let buffer: &mut BlobBuffer = self.blob.borrow_mut();
-                        buffer[*got..*got + piece.len()].copy_from_slice(piece);
-                        crc.update(piece);
-                        *got += piece.len();
-                        return (ack, Event::None);
+                        match buffer.get_mut(*got..*got + piece.len()) {
+                            Some(dst) => {
+                                dst.copy_from_slice(piece);
+                                crc.update(piece);
+                                *got += piece.len();
+                                return (ack, Event::None);
+                            }
+                            // `got + len <= total <= MAX_BYTES`: cannot happen; a refusal,
+                            // not a panic path, all the same.
+                            None => cal_error::TOO_LONG,
+                        }
                     }
                 };
                 (
