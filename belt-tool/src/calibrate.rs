@@ -666,13 +666,13 @@ mod tests {
         })
     }
 
-    fn paper_blob() -> Vec<u8> {
+    fn paper_image() -> Vec<u8> {
         estimator_core::image::of_params(&ModelParams::PAPER, &Rig::PAPER).unwrap()
     }
 
     #[test]
     fn a_blob_uploads_to_the_drive_endpoint_and_reads_back() {
-        let blob = paper_blob();
+        let blob = paper_image();
         let mut link = endpoint_drive(|_| false);
         upload(&mut link, &blob).unwrap();
         assert_eq!(read_back(&mut link, blob.len()).unwrap(), blob);
@@ -682,7 +682,7 @@ mod tests {
 
     #[test]
     fn a_lost_chunk_ack_restarts_the_transfer() {
-        let blob = paper_blob();
+        let blob = paper_image();
         let mut lost = false;
         // The drive takes chunk 2 but its ack is lost: the retry is refused as out of order.
         let mut link = endpoint_drive(move |req| {
@@ -697,7 +697,7 @@ mod tests {
 
     #[test]
     fn a_rejected_blob_is_not_retried() {
-        let mut blob = paper_blob();
+        let mut blob = paper_image();
         blob[0] ^= 0xff; // bad magic
         let mut link = endpoint_drive(|_| false);
         let e = upload(&mut link, &blob).unwrap_err().to_string();

@@ -631,18 +631,6 @@ impl Drive {
         Ok(())
     }
 
-    /// Installs coefficients decoded elsewhere (the firmware decodes outside the control task's
-    /// lock, then swaps them in here). Refused while a move is in progress.
-    pub fn set_models(&mut self, models: ModelCoeffs) -> Result<(), BlobError> {
-        if !self.trajectory.is_done() {
-            return Err(BlobError::Busy);
-        }
-        self.models = models;
-        self.models_valid = true;
-        self.model_state.settle(self.motor_state.position_counts());
-        Ok(())
-    }
-
     /// The drive-train geometry this drive was built for.
     pub fn rig(&self) -> &Rig {
         &self.rig

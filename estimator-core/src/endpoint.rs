@@ -737,7 +737,7 @@ mod tests {
         assert_eq!(st.tick, d.telemetry().tick);
     }
 
-    fn paper_blob() -> Vec<u8> {
+    fn paper_image() -> Vec<u8> {
         crate::image::of_params(
             &crate::model::ModelParams::PAPER,
             &DriveConfig::paper_rig().rig,
@@ -757,7 +757,7 @@ mod tests {
 
     #[test]
     fn calibration_transfer_checks_every_step() {
-        let blob = paper_blob();
+        let blob = paper_image();
         let mut d = drive();
         let mut ep = Endpoint::new();
         let cal = |d: u8| Some((LinkError::Calibration, d));

@@ -3,6 +3,7 @@
 
 use estimator_core::blob::{self, crc32, BlobError};
 use estimator_core::image::{self, MAX_BYTES};
+use estimator_core::model::operator::{N_KNOTS, N_OPS};
 use estimator_core::model::Direction::{Forward, Reverse};
 use estimator_core::model::{estimate_with_current, ModelKind, ModelParams, ModelState};
 use estimator_core::rig::Rig;
@@ -38,6 +39,8 @@ fn reseal(b: &mut [u8]) {
 const MODEL1: usize = 16 + 24 + 4;
 const MODEL2: usize = MODEL1 + 24;
 const MODEL3: usize = MODEL2 + 40;
+/// Model 4's section: widths and two weight sets, five words, the knots, eight words.
+const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8);
 
 #[test]
 fn coefficients_arrive_exactly_and_re_encode_to_the_same_bytes() {
@@ -139,34 +142,40 @@ fn refused_field(at: usize, bytes: &[u8]) -> &'static str {
     }
 }
 
+/// Each `(offset, bytes, field)`: written at the offset and re-signed, refused naming the field.
+fn assert_refusals(cases: &[(usize, &[u8], &str)]) {
+    for &(at, bytes, field) in cases {
+        assert_eq!(refused_field(at, bytes), field, "bytes {bytes:?} at {at}");
+    }
+}
+
 #[test]
 fn well_signed_nonsense_is_refused_naming_the_field() {
     let neg = (-5i32 << 16).to_le_bytes();
-    assert_eq!(refused_field(MODEL1 + 8, &neg), "model1.h_mm");
-    assert_eq!(refused_field(MODEL1 + 12, &neg), "model1.h_g_mm");
-    assert_eq!(
-        refused_field(MODEL1 + 16, &(-1i32).to_le_bytes()),
-        "model1.slope_a_mm_per_mm"
-    );
-    assert_eq!(
-        refused_field(MODEL1 + 4, &(20_000i32 << 16).to_le_bytes()),
-        "model1.offset_mm"
-    );
-    assert_eq!(refused_field(MODEL2 + 16, &neg), "model2.amplitude_a_mm");
-    // A rate's shift beyond 63.
-    assert_eq!(
-        refused_field(MODEL2 + 28, &64u16.to_le_bytes()),
-        "model2.rate_a_per_mm"
-    );
-    // Band: too many points, or an axis that does not increase.
-    assert_eq!(
-        refused_field(MODEL3, &65u16.to_le_bytes()),
-        "model3.forward_band.len"
-    );
-    assert_eq!(
-        refused_field(MODEL3 + 4 + 8, &i32::MIN.to_le_bytes()),
-        "model3.forward_band.x_mm"
-    );
+    assert_refusals(&[
+        (MODEL1 + 8, &neg, "model1.h_mm"),
+        (MODEL1 + 12, &neg, "model1.h_g_mm"),
+        (
+            MODEL1 + 16,
+            &(-1i32).to_le_bytes(),
+            "model1.slope_a_mm_per_mm",
+        ),
+        (
+            MODEL1 + 4,
+            &(20_000i32 << 16).to_le_bytes(),
+            "model1.offset_mm",
+        ),
+        (MODEL2 + 16, &neg, "model2.amplitude_a_mm"),
+        // A rate's shift beyond 63.
+        (MODEL2 + 28, &64u16.to_le_bytes(), "model2.rate_a_per_mm"),
+        // Band: too many points, or an axis that does not increase.
+        (MODEL3, &65u16.to_le_bytes(), "model3.forward_band.len"),
+        (
+            MODEL3 + 4 + 8,
+            &i32::MIN.to_le_bytes(),
+            "model3.forward_band.x_mm",
+        ),
+    ]);
 }
 
 #[test]
@@ -184,44 +193,35 @@ fn every_section_is_checked() {
     let bidir = backlash + 8;
     let model4 = bidir + 12 + 8 * c.bidir().rows();
     assert_eq!(
-        model4 + 204 + 24,
+        model4 + MODEL4_BYTES + 24,
         good.len(),
         "the layout this test assumes"
     );
-    assert_eq!(
-        refused_field(transition, &17u16.to_le_bytes()),
-        "model3.forward_transition.n_d"
-    );
-    assert_eq!(
-        refused_field(transition + 4, &0u32.to_le_bytes()),
-        "model3.forward_transition.d_step_mm"
-    );
-    assert_eq!(
-        refused_field(bidir, &1u16.to_le_bytes()),
-        "bidir_table.rows"
-    );
-    assert_eq!(
-        refused_field(bidir + 8, &0u32.to_le_bytes()),
-        "bidir_table.step_mm"
-    );
-    // Model 4: widths out of order, a zero width, a period under 16 counts, Model 1's weight.
-    assert_eq!(
-        refused_field(model4 + 4, &1i32.to_le_bytes()),
-        "model4.widths_mm"
-    );
-    assert_eq!(
-        refused_field(model4, &0i32.to_le_bytes()),
-        "model4.widths_mm"
-    );
-    let pitch_rate = model4 + 4 * (3 * 10 + 5 + 8);
-    assert_eq!(
-        refused_field(pitch_rate, &(1u32 << 29).to_le_bytes()),
-        "model4.pitch_mm"
-    );
-    assert_eq!(
-        refused_field(model4 + 204 - 4, &((8i32 << 16) + 1).to_le_bytes()),
-        "model4.model1_weight"
-    );
+    let pitch_rate = model4 + 4 * (3 * N_OPS + 5 + N_KNOTS);
+    assert_refusals(&[
+        (
+            transition,
+            &17u16.to_le_bytes(),
+            "model3.forward_transition.n_d",
+        ),
+        (
+            transition + 4,
+            &0u32.to_le_bytes(),
+            "model3.forward_transition.d_step_mm",
+        ),
+        (bidir, &1u16.to_le_bytes(), "bidir_table.rows"),
+        (bidir + 8, &0u32.to_le_bytes(), "bidir_table.step_mm"),
+        // Model 4: widths out of order, a zero width, a period under 16 counts, Model 1's
+        // weight.
+        (model4 + 4, &1i32.to_le_bytes(), "model4.widths_mm"),
+        (model4, &0i32.to_le_bytes(), "model4.widths_mm"),
+        (pitch_rate, &(1u32 << 29).to_le_bytes(), "model4.pitch_mm"),
+        (
+            model4 + MODEL4_BYTES - 4,
+            &((8i32 << 16) + 1).to_le_bytes(),
+            "model4.model1_weight",
+        ),
+    ]);
 }
 
 /// Positions anywhere in `i32`, with walks around them.

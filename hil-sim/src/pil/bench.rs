@@ -45,7 +45,7 @@ pub struct RunReport {
 
 /// The calibration image both sides load before a Model 3 run: the paper's parameters (Model 3
 /// sampled from Model 1), built exactly as for a calibration `hil-sim calibrate` writes.
-pub fn paper_blob() -> Result<Vec<u8>, PilError> {
+pub fn paper_image() -> Result<Vec<u8>, PilError> {
     let cfg = DriveConfig::paper_rig();
     estimator_core::image::of_params(&ModelParams::PAPER, &cfg.rig)
         .map_err(|e| PilError::Link(format!("building the calibration image: {e}")))
@@ -95,10 +95,10 @@ impl Lockstep {
 /// Runs the bench moves with `model`, in lockstep: in-process core and firmware side by side on
 /// one plant (driven by the firmware's current). Stops at the first mismatch.
 pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilError> {
-    // The firmware boots from the Table 2 blob; so does its host twin.
-    let boot_blob = paper_blob()?;
+    // The firmware boots from the Table 2 image; so does its host twin.
+    let boot_image = paper_image()?;
     let cfg = DriveConfig {
-        model: estimator_core::drive::Models::Image(&boot_blob),
+        model: estimator_core::drive::Models::Image(&boot_image),
         ..DriveConfig::paper_rig()
     };
     let host = Drive::new(&cfg).map_err(|e| PilError::Link(format!("drive config: {e}")))?;
@@ -121,11 +121,11 @@ pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilEr
         scale_um,
     })?;
     if model == ModelKind::Table {
-        let blob = paper_blob()?;
+        let image = paper_image()?;
         ls.host
-            .load_calibration(&blob)
-            .map_err(|e| PilError::Link(format!("core refused the blob: {e}")))?;
-        ls.fw.load_calibration(&blob)?;
+            .load_calibration(&image)
+            .map_err(|e| PilError::Link(format!("core refused the image: {e}")))?;
+        ls.fw.load_calibration(&image)?;
     }
     ls.command(Command::SelectModel(model))?;
     ls.command(Command::Enable)?;

@@ -30,10 +30,10 @@ pub struct FuzzReport {
 
 /// Sends `n` bad frames to the firmware.
 pub fn run(opts: &PilOptions, n: u32) -> Result<FuzzReport, PilError> {
-    // The firmware boots from the Table 2 blob; so does its host twin.
-    let boot_blob = super::bench::paper_blob()?;
+    // The firmware boots from the Table 2 image; so does its host twin.
+    let boot_image = super::bench::paper_image()?;
     let cfg = DriveConfig {
-        model: estimator_core::drive::Models::Image(&boot_blob),
+        model: estimator_core::drive::Models::Image(&boot_image),
         ..DriveConfig::paper_rig()
     };
     let mut host = Drive::new(&cfg).map_err(|e| PilError::Link(e.to_string()))?;
