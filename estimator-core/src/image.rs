@@ -5,10 +5,11 @@
 //! (`calibration.bin`, parameters for people and tools); [`from_blob`] turns it into the image a
 //! drive loads over the link, stores, and boots from.
 //!
-//! Layout (little-endian), version 1:
+//! Layout (little-endian), version 2 (version 1 weighted Model 1 in Model 4, not Model 2, and
+//! had no low-passed current):
 //! ```text
 //! 0   magic "BDCI"
-//! 4   version u16 (= 1)          6  reserved u16 (= 0)
+//! 4   version u16 (= 2)          6  reserved u16 (= 0)
 //! 8   payload length u32        12  CRC-32 (IEEE) of bytes 0..12 followed by the payload
 //! 16  payload:
 //!     geometry        as in the blob (must match the drive's exactly)
@@ -25,7 +26,8 @@
 //!     model4          widths counts, weights reverse, weights forward Q24 um/count
 //!                     3 x N_OPS x i32; x_ref counts, offset I16F16, slope Q31 um/count, hat
 //!                     start counts, hat reciprocal u32, knots N_KNOTS x I16F16, pitch rate u32,
-//!                     sin, cos I16F16, turn rate u32, sin, cos, um/A I16F16, Model 1's weight Q16
+//!                     sin, cos I16F16, turn rate u32, sin, cos, um/A, low-passed um/A I16F16,
+//!                     Model 2's weight Q16
 //!     closing         Models 1, 2, 3: forward, reverse I16F16 mm, -1 = never   6 x i32
 //!                     (host diagnostics: the drive skips them)
 //! ```
@@ -54,13 +56,13 @@ use belt_link::bytes::Reader;
 /// First four bytes of every image.
 pub const MAGIC: [u8; 4] = *b"BDCI";
 /// The version this code writes and reads.
-pub const VERSION: u16 = 1;
+pub const VERSION: u16 = 2;
 const HEADER: usize = 16;
 const RIG_BYTES: usize = 24;
 const BAND_BYTES: usize = 4 + 8 * MAX_BAND_POINTS;
 const TRANSITION_BYTES: usize = 12 + 2 * MAX_TRANSITION_D * MAX_TRANSITION_G0;
 const BIDIR_BYTES: usize = 12 + 8 * MAX_BIDIR_ROWS;
-const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8);
+const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 9);
 /// Largest image: every table full.
 pub const MAX_BYTES: usize = HEADER
     + RIG_BYTES
@@ -366,9 +368,10 @@ fn read_model4(r: &mut Reader) -> Result<Model4Coeffs, BlobError> {
     let turn_rate = rate(r, "model4.turn_mm")?;
     let turn_um = [um(r, ANY, "model4.turn_um")?, um(r, ANY, "model4.turn_um")?];
     let current_um_per_a = um(r, ANY, "model4.current_um_per_a")?;
-    let model1_q16 = r.i32()?;
-    if model1_q16.unsigned_abs() > 8 << 16 {
-        return Err(out_of_range("model4.model1_weight"));
+    let current_lp_um_per_a = um(r, ANY, "model4.current_lp_um_per_a")?;
+    let model2_q16 = r.i32()?;
+    if model2_q16.unsigned_abs() > 8 << 16 {
+        return Err(out_of_range("model4.model2_weight"));
     }
     Ok(Model4Coeffs {
         weight_total: weight_total(&weight_q24),
@@ -385,7 +388,8 @@ fn read_model4(r: &mut Reader) -> Result<Model4Coeffs, BlobError> {
         turn_rate,
         turn_um,
         current_um_per_a,
-        model1_q16,
+        current_lp_um_per_a,
+        model2_q16,
     })
 }
 
@@ -541,7 +545,8 @@ mod write {
         w.i32(m.turn_um[0].to_bits());
         w.i32(m.turn_um[1].to_bits());
         w.i32(m.current_um_per_a.to_bits());
-        w.i32(m.model1_q16);
+        w.i32(m.current_lp_um_per_a.to_bits());
+        w.i32(m.model2_q16);
     }
 
     /// Writes coefficients built for `rig` into `buf`; returns the image's length.

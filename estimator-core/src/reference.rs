@@ -12,6 +12,7 @@ use crate::model::{BandCoeffs, Direction, ModelKind, ModelParams, TransitionCoef
 use crate::model::{Model1Params, Model2Params};
 use crate::rig::Rig;
 use crate::ConfigError;
+use fixed::types::I16F16;
 
 /// A Model 3 band table as `f64`: `(x_counts, y_mm)`.
 #[derive(Clone, Debug)]
@@ -115,6 +116,8 @@ pub struct Reference {
     m4: RefModel4,
     plays: [f64; N_OPS],
     plays_valid: bool,
+    /// Model 4's low-passed current, I16F16 bits (restarted with the plays).
+    current_lp_bits: i32,
     base: RefBase,
 }
 
@@ -133,14 +136,15 @@ struct RefModel4 {
     rates: [u32; 2],
     harmonic_um: [[f64; 2]; 2],
     current_um_per_a: f64,
-    model1_weight: f64,
+    current_lp_um_per_a: f64,
+    model2_weight: f64,
 }
 
 /// Model 4's terms at one tick before their weights (see [`crate::model::operator`]).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Model4Terms {
-    /// Model 1's estimate on Model 4's own turning points, um.
-    pub model1_um: f64,
+    /// Model 2's estimate on Model 4's own turning points, um.
+    pub model2_um: f64,
     /// Each play's output `x - p`, counts.
     pub plays_counts: [f64; N_OPS],
     /// The forward play weights apply (the registered direction is forward).
@@ -153,9 +157,11 @@ pub struct Model4Terms {
     pub harmonics: [[f64; 2]; 2],
     /// The motor current, A.
     pub current_a: f64,
+    /// The motor current through the drive's low pass (the same integer filter), A.
+    pub current_lp_a: f64,
 }
 
-/// Model 4's Model 1 term: its own turning-point state (see `ModelState`'s `base_*`).
+/// Model 4's Model 2 term: its own turning-point state (see `ModelState`'s `base_*`).
 #[derive(Clone, Debug, Default)]
 struct RefBase {
     y_ext_mm: f64,
@@ -168,7 +174,7 @@ impl RefModel4 {
     /// The weighted sum of `t`, um, saturated like every output of the fixed-point models.
     fn combine(&self, t: &Model4Terms) -> f64 {
         let weights = &self.weight_um_per_count[t.forward as usize];
-        let y = self.model1_weight * t.model1_um
+        let y = self.model2_weight * t.model2_um
             + self.offset_um
             + self.slope_um_per_count * t.from_ref_counts
             + weights
@@ -188,7 +194,8 @@ impl RefModel4 {
                 .zip(&t.harmonics)
                 .map(|(w, h)| w[0] * h[0] + w[1] * h[1])
                 .sum::<f64>()
-            + self.current_um_per_a * t.current_a;
+            + self.current_um_per_a * t.current_a
+            + self.current_lp_um_per_a * t.current_lp_a;
         let max = crate::model::MAX_ABS_UM;
         y.clamp(-max, max)
     }
@@ -210,7 +217,8 @@ impl RefModel4 {
                 [c.turn_um[0].to_num(), c.turn_um[1].to_num()],
             ],
             current_um_per_a: c.current_um_per_a.to_num(),
-            model1_weight: c.model1_q16 as f64 / 65536.0,
+            current_lp_um_per_a: c.current_lp_um_per_a.to_num(),
+            model2_weight: c.model2_q16 as f64 / 65536.0,
         }
     }
 }
@@ -253,6 +261,7 @@ impl Reference {
             m4: RefModel4::from_coeffs(c.model4()),
             plays: [0.0; N_OPS],
             plays_valid: false,
+            current_lp_bits: 0,
             base: RefBase::default(),
         })
     }
@@ -292,7 +301,7 @@ impl Reference {
             return self.model4_step(x_counts, current_a).0;
         }
         self.track(x_counts);
-        // Model 4's plays and Model 1 term only follow x while Model 4 runs.
+        // Model 4's plays and Model 2 term only follow x while Model 4 runs.
         self.plays_valid = false;
         self.base.y_ext_valid = false;
         let y_mm = match kind {
@@ -355,10 +364,21 @@ impl Reference {
         (y_um, t)
     }
 
-    /// Moves Model 4's plays and Model 1 term with `x` (see [`crate::model::operator`]).
+    /// Moves Model 4's plays and Model 2 term with `x` (see [`crate::model::operator`]).
     fn model4_terms(&mut self, x: i32, current_a: f64) -> Model4Terms {
         let m = &self.m4;
         let xf = x as f64;
+        // The filter is integer on the drive and part of the feature's definition: run it as is.
+        let current_bits = if current_a.is_finite() {
+            I16F16::saturating_from_num(current_a).to_bits()
+        } else {
+            0
+        };
+        self.current_lp_bits = if self.plays_valid {
+            crate::model::operator::current_lowpass(self.current_lp_bits, current_bits)
+        } else {
+            current_bits
+        };
         if !self.plays_valid {
             for (p, w) in self.plays.iter_mut().zip(&m.widths) {
                 *p = match self.dir {
@@ -373,6 +393,7 @@ impl Reference {
             forward: self.dir == Direction::Forward,
             from_ref_counts: xf - m.x_ref as f64,
             current_a,
+            current_lp_a: I16F16::from_bits(self.current_lp_bits).to_num(),
             ..Model4Terms::default()
         };
         for ((p, w), f) in self
@@ -395,9 +416,9 @@ impl Reference {
             let a = turns as f64 / (1u64 << 32) as f64 * core::f64::consts::TAU;
             *h = [a.sin(), a.cos()];
         }
-        t.model1_um = self.model1_at(self.base.transition, self.base.y_d_mm, x) * 1000.0;
+        t.model2_um = self.model2_at(self.base.transition, self.base.y_d_mm, x) * 1000.0;
         if x == self.x_ext {
-            self.base.y_ext_mm = t.model1_um / 1000.0;
+            self.base.y_ext_mm = t.model2_um / 1000.0;
             self.base.y_ext_valid = true;
         }
         t
@@ -427,11 +448,7 @@ impl Reference {
 
     /// Eq. 14, bounded by the band on both sides.
     fn model1(&self, x: i32) -> f64 {
-        self.model1_at(self.transition, self.y_d_mm, x)
-    }
-
-    /// Model 1 from an explicit transition state (Model 4's own, or the drive's).
-    fn model1_at(&self, transition: bool, y_d_mm: f64, x: i32) -> f64 {
+        let (transition, y_d_mm) = (self.transition, self.y_d_mm);
         let p = &self.m1;
         let xm = self.mm(x as f64);
         let (lower, upper) = (
@@ -453,13 +470,18 @@ impl Reference {
 
     /// Eq. 17, bounded by the band on both sides.
     fn model2(&self, x: i32) -> f64 {
+        self.model2_at(self.transition, self.y_d_mm, x)
+    }
+
+    /// Model 2 from an explicit transition state (Model 4's own, or the drive's).
+    fn model2_at(&self, transition: bool, y_d_mm: f64, x: i32) -> f64 {
         let p = &self.m2;
         let xm = self.mm(x as f64);
         let (lower, upper) = (
             p.m_mm_per_mm * xm + p.offset_mm - p.h_mm,
             p.m_mm_per_mm * xm + p.offset_mm,
         );
-        if !self.transition {
+        if !transition {
             return match self.dir {
                 Direction::Forward => lower,
                 Direction::Reverse => upper,
@@ -469,11 +491,11 @@ impl Reference {
         let u = match self.dir {
             Direction::Forward => {
                 let e = (p.rate_a_per_mm * dx.max(0.0)).exp();
-                (self.y_d_mm - p.h_g_mm) - p.amplitude_a_mm * (1.0 - e)
+                (y_d_mm - p.h_g_mm) - p.amplitude_a_mm * (1.0 - e)
             }
             Direction::Reverse => {
                 let e = (-p.rate_b_per_mm * dx.min(0.0)).exp();
-                (self.y_d_mm + p.h_g_mm) + p.amplitude_b_mm * (1.0 - e)
+                (y_d_mm + p.h_g_mm) + p.amplitude_b_mm * (1.0 - e)
             }
         };
         u.max(lower).min(upper)

@@ -67,6 +67,10 @@ fn each_defect_has_its_reason() {
     let mut b = good.clone();
     b[4] = 1;
     assert_eq!(decode(&b, &rig), Err(BlobError::UnsupportedVersion(1)));
+    // Nor is version 3, where Model 4 weighted Model 1 and had no low-passed current.
+    let mut b = good.clone();
+    b[4] = 3;
+    assert_eq!(decode(&b, &rig), Err(BlobError::UnsupportedVersion(3)));
     let mut b = good.clone();
     b[40] ^= 0x10;
     assert_eq!(decode(&b, &rig), Err(BlobError::BadChecksum));
@@ -157,7 +161,7 @@ fn drive_loads_good_images_and_refuses_bad_ones_unchanged() {
     bad[at..at + 4].copy_from_slice(&(9i32 << 16).to_le_bytes());
     resign(&mut bad);
     assert!(
-        matches!(d.load_calibration(&bad), Err(BlobError::Invalid(e)) if e.field() == "model4.model1_weight")
+        matches!(d.load_calibration(&bad), Err(BlobError::Invalid(e)) if e.field() == "model4.model2_weight")
     );
     assert_eq!(d.models(), &before);
     d.load_calibration(&good).unwrap();

@@ -19,7 +19,7 @@ fn params() -> ModelParams {
     p.model4.play_um_per_mm[0] = 900.0;
     p.model4.play_forward_um_per_mm[3] = -40.0;
     p.model4.knot_um[2] = 7.25;
-    p.model4.model1_weight = 0.75;
+    p.model4.model2_weight = 0.75;
     p.backlash.backlash_um = 120.0;
     p
 }
@@ -40,7 +40,7 @@ const MODEL1: usize = 16 + 24 + 4;
 const MODEL2: usize = MODEL1 + 24;
 const MODEL3: usize = MODEL2 + 40;
 /// Model 4's section: widths and two weight sets, five words, the knots, eight words.
-const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8);
+const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 9);
 
 #[test]
 fn coefficients_arrive_exactly_and_re_encode_to_the_same_bytes() {
@@ -118,6 +118,15 @@ fn damaged_images_are_refused_with_the_reason() {
     assert_eq!(
         image::decode(&b, &rig),
         Err(BlobError::UnsupportedVersion(9))
+    );
+    // A version 1 image (Model 4 weighted Model 1, no low-passed current) is refused by its
+    // version, not misread.
+    let mut b = good.clone();
+    b[4] = 1;
+    reseal(&mut b);
+    assert_eq!(
+        image::decode(&b, &rig),
+        Err(BlobError::UnsupportedVersion(1))
     );
     // A calibration blob is not an image (host tools convert it with `image::from_blob`).
     let mut buf = vec![0u8; blob::MAX_BYTES];
@@ -211,15 +220,20 @@ fn every_section_is_checked() {
         ),
         (bidir, &1u16.to_le_bytes(), "bidir_table.rows"),
         (bidir + 8, &0u32.to_le_bytes(), "bidir_table.step_mm"),
-        // Model 4: widths out of order, a zero width, a period under 16 counts, Model 1's
-        // weight.
+        // Model 4: widths out of order, a zero width, a period under 16 counts, the
+        // low-passed current's weight, Model 2's weight.
         (model4 + 4, &1i32.to_le_bytes(), "model4.widths_mm"),
         (model4, &0i32.to_le_bytes(), "model4.widths_mm"),
         (pitch_rate, &(1u32 << 29).to_le_bytes(), "model4.pitch_mm"),
         (
+            model4 + MODEL4_BYTES - 8,
+            &i32::MAX.to_le_bytes(),
+            "model4.current_lp_um_per_a",
+        ),
+        (
             model4 + MODEL4_BYTES - 4,
             &((8i32 << 16) + 1).to_le_bytes(),
-            "model4.model1_weight",
+            "model4.model2_weight",
         ),
     ]);
 }

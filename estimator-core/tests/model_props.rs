@@ -232,10 +232,10 @@ fn model4(cpm: f64) -> impl Strategy<Value = Model4Params> {
             -30.0f64..30.0,
             -30.0f64..30.0,
         ),
-        (-40.0f64..40.0, -1.5f64..1.5),
+        (-40.0f64..40.0, -40.0f64..40.0, -1.5f64..1.5),
     )
         .prop_map(
-            move |(plays, (xr, off, slope), (ks, step, knots), h, (cur, w1))| {
+            move |(plays, (xr, off, slope), (ks, step, knots), h, (cur, cur_lp, w2))| {
                 let range_mm = ACCURATE_RANGE_COUNTS as f64 / cpm;
                 let mut m = Model4Params::zero(h.0, h.0 * h.3 as f64);
                 for (j, (scale, w, f)) in plays.into_iter().enumerate() {
@@ -257,7 +257,8 @@ fn model4(cpm: f64) -> impl Strategy<Value = Model4Params> {
                 m.pitch_um = [h.1, h.2];
                 m.turn_um = [h.4, h.5];
                 m.current_um_per_a = cur;
-                m.model1_weight = w1;
+                m.current_lp_um_per_a = cur_lp;
+                m.model2_weight = w2;
                 m
             },
         )

@@ -82,8 +82,8 @@ fn coeffs_size_and_layout() {
     let m4 = core::mem::size_of::<estimator_core::model::Model4Coeffs>();
     assert!(m4 <= 224, "Model 4 storage {m4} B");
     assert!(size <= 5016, "ModelCoeffs {size} B");
-    // Model 4 adds its ten plays (40 B), their running sums and group (56 B), its Model 1 term
-    // and their validity to the state.
+    // Model 4 adds its ten plays (40 B), their running sums and group (56 B), its Model 2 term,
+    // its low-passed current and their validity to the state (in the alignment's slack).
     assert!(core::mem::size_of::<ModelState>() <= 184);
 }
 

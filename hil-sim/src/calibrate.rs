@@ -481,8 +481,8 @@ fn travel_span_mm(runs: &[Prepared], rig: &Rig) -> Result<(f64, f64), String> {
 }
 
 /// Model 4 by one linear least-squares fit of all its weights (plays with and without the
-/// forward share, band line and hats, both harmonics, current, and the weight of `base`'s
-/// calibrated Model 1) to Delta x on every calibration sample, lightly regularised (ridge 1e-6
+/// forward share, band line and hats, both harmonics, current and its low pass, and the weight of `base`'s
+/// calibrated Model 2) to Delta x on every calibration sample, lightly regularised (ridge 1e-6
 /// of each column's energy) so that plays the data never move get no weight. The terms are
 /// [`Reference::model4_step`]'s, the definitions the drive's Model 4 evaluates.
 fn model4(runs: &[Prepared], rig: &Rig, base: &ModelParams) -> Result<Model4Params, String> {
@@ -492,14 +492,14 @@ fn model4(runs: &[Prepared], rig: &Rig, base: &ModelParams) -> Result<Model4Para
     m.knot_step_mm = (hi - lo) / (N_KNOTS + 1) as f64;
     m.knot_start_mm = lo + m.knot_step_mm;
     // Geometry as the coefficients hold it (the features must match the fixed-point model).
-    // The geometry as the blob holds it and Model 1 as the drive will hold it: the terms are
+    // The geometry as the blob holds it and Model 2 as the drive will hold it: the terms are
     // those the drive's Model 4 computes (its reference evaluates the same definitions).
     let probe = ModelParams {
         model4: blob::quantise_model4(&m).map_err(|e| e.to_string())?,
         ..quantised(base, rig)?
     };
     let cpm = rig.counts_per_mm();
-    const N: usize = 2 * N_OPS + 2 + N_KNOTS + 4 + 2;
+    const N: usize = 2 * N_OPS + 2 + N_KNOTS + 4 + 3;
     let mut ata = vec![0.0f64; N * N];
     let mut atb = vec![0.0f64; N];
     let mut row = [0.0f64; N];
@@ -520,8 +520,9 @@ fn model4(runs: &[Prepared], rig: &Rig, base: &ModelParams) -> Result<Model4Para
             row[k + 2..k + 2 + N_KNOTS].copy_from_slice(&t.hats);
             let h = k + 2 + N_KNOTS;
             row[h..h + 4].copy_from_slice(t.harmonics.as_flattened());
-            row[N - 2] = t.current_a;
-            row[N - 1] = t.model1_um;
+            row[N - 3] = t.current_a;
+            row[N - 2] = t.current_lp_a;
+            row[N - 1] = t.model2_um;
             let y = r.dx_um[i];
             for a in 0..N {
                 if row[a] == 0.0 {
@@ -550,8 +551,9 @@ fn model4(runs: &[Prepared], rig: &Rig, base: &ModelParams) -> Result<Model4Para
     let h = k + 2 + N_KNOTS;
     m.pitch_um = [v[h], v[h + 1]];
     m.turn_um = [v[h + 2], v[h + 3]];
-    m.current_um_per_a = v[N - 2];
-    m.model1_weight = v[N - 1];
+    m.current_um_per_a = v[N - 3];
+    m.current_lp_um_per_a = v[N - 2];
+    m.model2_weight = v[N - 1];
     Ok(m)
 }
 

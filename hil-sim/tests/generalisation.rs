@@ -16,18 +16,18 @@ fn mean_square(t: &PlantTable, estimator: &str) -> f64 {
     v.iter().sum::<f64>() / v.len() as f64
 }
 
-/// The paper rig, calibrated by its default plan, runs one generated workload of every class
-/// (printer raster, pick-and-place, slow feed, travel ends, mixed limits, high-acceleration
-/// reversals) at a held-out seed. Over that set, Model 4 has the lowest RMS error of every
-/// estimator (the paper's models and the baselines). Measured at this seed: Model 4 45.0,
-/// Model 3 47.1, Model 1 49.9, bidirectional table 65.5 um. On the variants (`hil-sim
-/// generalise --seed 101`) Model 4 is also lowest on the tight belt, heavy carriage and other
-/// geometry, and 0.5 um behind Model 3 on the worn belt (68.2 against 67.7).
+/// Every plant (the paper rig and the four variants), each calibrated by its default plan, runs
+/// one generated workload of every class (printer raster, pick-and-place, slow feed, travel ends,
+/// mixed limits, high-acceleration reversals) at a held-out seed. Over that set, on every plant,
+/// Model 4 has the lowest RMS error of every estimator (the paper's models and the baselines).
+/// Measured at this seed (`hil-sim generalise --seed 101`), Model 4 against the next best:
+/// paper rig 44.9 / 47.1 (Model 3), tight belt 29.8 / 34.0 (Model 2), worn belt 67.0 / 67.7
+/// (Model 3), heavy carriage 84.4 / 112.9 (Model 3), other geometry 43.4 / 46.1 (Model 1) um.
 #[test]
 fn model4_is_best_over_held_out_workloads() {
     let mut report = String::new();
     let mut failed = Vec::new();
-    for plant in [hil_sim::PlantParams::paper_rig()] {
+    for plant in generalise::plants().unwrap() {
         let all = generalise::workloads(&plant, HELD_OUT_SEED).unwrap();
         let generated: Vec<_> = all
             .into_iter()

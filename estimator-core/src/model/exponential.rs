@@ -171,16 +171,30 @@ fn rise(amp_um: I16F16, rate: &Scale, d_counts: u32) -> i32 {
 /// One step of eq. 17, bounded on both sides by the band.
 #[inline]
 pub(crate) fn eval(c: &Model2Coeffs, s: &ModelState, x_counts: i32) -> I16F16 {
+    eval_at(c, s.dir, s.transition, s.x_d_counts, s.y_d_um, x_counts)
+}
+
+/// [`eval`] from an explicit transition state (Model 4 runs Model 2 on its own turning-point
+/// output, not on the active model's).
+#[inline(always)]
+pub(crate) fn eval_at(
+    c: &Model2Coeffs,
+    dir: Direction,
+    transition: bool,
+    x_d_counts: i32,
+    y_d_um: I16F16,
+    x_counts: i32,
+) -> I16F16 {
     let (lower, upper) = c.band.edges(x_counts);
-    let y = if !s.transition {
-        match s.dir {
+    let y = if !transition {
+        match dir {
             Direction::Forward => lower,
             Direction::Reverse => upper,
         }
     } else {
-        let dx = travel_since_turn(x_counts, s.x_d_counts);
-        let y_d = s.y_d_um.to_bits();
-        let u = match s.dir {
+        let dx = travel_since_turn(x_counts, x_d_counts);
+        let y_d = y_d_um.to_bits();
+        let u = match dir {
             // Distance travelled forward since the turn; 0 if the dead band let x fall behind.
             Direction::Forward => {
                 let d = dx.max(0) as u32;

@@ -162,8 +162,7 @@ pub(crate) fn eval(c: &Model1Coeffs, s: &ModelState, x_counts: i32) -> I16F16 {
     eval_at(c, s.dir, s.transition, s.x_d_counts, s.y_d_um, x_counts)
 }
 
-/// [`eval`] from an explicit transition state (Model 4 runs Model 1 on its own turning-point
-/// output, not on the active model's).
+/// [`eval`] from an explicit transition state.
 #[inline(always)]
 pub(crate) fn eval_at(
     c: &Model1Coeffs,

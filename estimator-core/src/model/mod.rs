@@ -258,7 +258,7 @@ pub struct ModelCoeffs {
 // The firmware keeps one `ModelCoeffs` in static RAM (budget 8 KiB) and moves it when a
 // calibration loads: any growth must be deliberate (5016 B with the host's closing distances,
 // the 256-row bidirectional table 2 KiB and Model 4 224 B of it; ModelState 184 B, Model 4's
-// plays with their running sums and its Model 1 term 112 B of it).
+// plays with their running sums and its Model 2 term 112 B of it).
 const _: () = assert!(core::mem::size_of::<ModelCoeffs>() <= 5016);
 // On the drive (no closing distances): what the static RAM figures count.
 #[cfg(not(feature = "std"))]
@@ -333,7 +333,8 @@ impl ModelCoeffs {
                 turn_rate: 0,
                 turn_um: [I16F16::ZERO; 2],
                 current_um_per_a: I16F16::ZERO,
-                model1_q16: 0,
+                current_lp_um_per_a: I16F16::ZERO,
+                model2_q16: 0,
                 weight_total: [0; 2],
             },
             backlash: BacklashCoeffs {
@@ -429,12 +430,14 @@ pub struct ModelState {
     pub(crate) rows: table::RowCache,
     /// Model 4: the plays, valid while Model 4 has run every tick.
     pub(crate) plays: operator::Plays,
-    /// Model 4's Model 1 term: its output at `x_ext` (valid if Model 4 ran there) and at the
+    /// Model 4's Model 2 term: its output at `x_ext` (valid if Model 4 ran there) and at the
     /// last turning point, and whether its transition runs.
     pub(crate) base_y_ext_um: I16F16,
     pub(crate) base_y_ext_valid: bool,
     pub(crate) base_y_d_um: I16F16,
     pub(crate) base_transition: bool,
+    /// Model 4's low-passed current, I16F16 amperes (restarted with the plays).
+    pub(crate) current_lp_bits: i32,
 }
 
 impl ModelState {
@@ -457,6 +460,7 @@ impl ModelState {
             base_y_ext_valid: false,
             base_y_d_um: I16F16::ZERO,
             base_transition: false,
+            current_lp_bits: 0,
         }
     }
 
@@ -559,7 +563,7 @@ pub fn estimate_with_current(
 ) -> I16F16 {
     state.track(coeffs.deadband_counts, x_counts);
     if kind != ModelKind::Operator {
-        // The plays and Model 4's Model 1 term only follow x while Model 4 runs; they restart
+        // The plays and Model 4's Model 2 term only follow x while Model 4 runs; they restart
         // on the band edge after.
         state.plays.valid = false;
         state.base_y_ext_valid = false;
@@ -572,7 +576,7 @@ pub fn estimate_with_current(
         ModelKind::Backlash => baseline::eval_backlash(&coeffs.backlash, state),
         ModelKind::BidirTable => baseline::eval_bidir(&coeffs.bidir, state, x_counts),
         ModelKind::Operator => {
-            operator::eval(&coeffs.model4, &coeffs.model1, state, x_counts, current_a)
+            operator::eval(&coeffs.model4, &coeffs.model2, state, x_counts, current_a)
         }
     };
     if x_counts == state.x_ext_counts {
