@@ -60,7 +60,7 @@ pub enum Cmd {
     Stop,
     /// Clear latched faults (the drive stays disabled until `enable`).
     ClearFaults,
-    /// Select the compensator: none, model1, model2, model3, backlash, bidir_table.
+    /// Select the compensator: none, model1, model2, model3, backlash, bidir_table, model4.
     Model {
         /// The compensator's name.
         name: String,

@@ -160,7 +160,7 @@ enum Cmd {
         #[command(flatten)]
         common: Common,
         /// Compensator the drive uses for its estimate: none, model1, model2, model3, backlash,
-        /// bidir_table.
+        /// bidir_table, model4.
         #[arg(long, default_value = "model3")]
         model: String,
         /// CSV output file ("-" for standard output).

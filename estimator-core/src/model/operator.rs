@@ -345,6 +345,14 @@ fn sine_q15(phase: u32) -> i32 {
     a + (((b - a) * frac) >> 16)
 }
 
+/// `w[0] sin + w[1] cos` at phase `ph`, Q24 um.
+#[inline(always)]
+fn harmonic(ph: u32, w: &[I16F16; 2]) -> i64 {
+    let s = sine_q15(ph) as i64;
+    let co = sine_q15(ph.wrapping_add(1 << 30)) as i64;
+    (w[0].to_bits() as i64 * s + w[1].to_bits() as i64 * co) >> 7
+}
+
 /// Phase in turns (Q32) of `x` along a period with `rate` turns per count.
 #[inline(always)]
 fn phase(x: i32, x_ref: i32, rate: u32) -> u32 {
@@ -592,12 +600,8 @@ pub(crate) fn eval(
             acc += ((c.knot_um[seg].to_bits() as i64) * t as i64) >> 8;
         }
     }
-    for (rate, w) in [(c.pitch_rate, &c.pitch_um), (c.turn_rate, &c.turn_um)] {
-        let ph = phase(x, c.x_ref_counts, rate);
-        let s = sine_q15(ph) as i64;
-        let co = sine_q15(ph.wrapping_add(1 << 30)) as i64;
-        acc += (w[0].to_bits() as i64 * s + w[1].to_bits() as i64 * co) >> 7;
-    }
+    acc += harmonic(phase(x, c.x_ref_counts, c.pitch_rate), &c.pitch_um);
+    acc += harmonic(phase(x, c.x_ref_counts, c.turn_rate), &c.turn_um);
     acc += (c.current_um_per_a.to_bits() as i64 * current_a.to_bits() as i64) >> 8;
     acc += (c.current_lp_um_per_a.to_bits() as i64 * state.current_lp_bits as i64) >> 8;
     let out = (acc >> 8).clamp(-(MAX_ABS_UM as i64) << 16, (MAX_ABS_UM as i64) << 16);
