@@ -426,10 +426,9 @@ pub fn run(link: &mut Link, opts: &Options, progress: &mut Progress) -> Result<O
         traces.push(t);
     }
 
-    let cal = hil_sim::calibrate::calibrate(&traces, &rig, &mut |s, f| progress.stage(s, f))
-        .map_err(|e| ToolError::Drive(format!("calibration fit: {e}")))?;
+    let cal = hil_sim::calibrate::calibrate(&traces, &rig, &mut |s, f| progress.stage(s, f))?;
 
-    hil_sim::calfile::save(&opts.out, &cal, &rig).map_err(ToolError::Drive)?;
+    hil_sim::calfile::save(&opts.out, &cal, &rig)?;
     let mut files = vec![
         opts.out.join("calibration.bin"),
         opts.out.join("calibration.toml"),

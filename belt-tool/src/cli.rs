@@ -188,14 +188,14 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
     let set_values = match &cli.cmd {
         Cmd::Config(ConfigCmd::Set { values }) => values
             .iter()
-            .map(|a| config::parse_assignment(a).map_err(ToolError::Usage))
+            .map(|a| config::parse_assignment(a).map_err(|e| ToolError::Usage(e.to_string())))
             .collect::<Result<Vec<_>, _>>()?,
         _ => Vec::new(),
     };
     let get_fields = match &cli.cmd {
         Cmd::Config(ConfigCmd::Get { names }) => names
             .iter()
-            .map(|n| config::lookup(n).map_err(ToolError::Usage))
+            .map(|n| config::lookup(n).map_err(|e| ToolError::Usage(e.to_string())))
             .collect::<Result<Vec<_>, _>>()?,
         _ => Vec::new(),
     };

@@ -28,8 +28,48 @@ impl FieldValue {
     }
 }
 
+/// Why a configuration argument (`NAME=VALUE`, a name, a value) was refused; names the field.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum ArgError {
+    /// No field has this name.
+    #[error("{name}: no such configuration field (`beltctl config get` lists them)")]
+    Unknown {
+        /// The name given.
+        name: String,
+    },
+    /// No field has this name; these look like it.
+    #[error("{name}: no such configuration field; did you mean {}?", near.join(", "))]
+    UnknownNear {
+        /// The name given.
+        name: String,
+        /// Up to 12 field names in the same section or with the same last part.
+        near: Vec<&'static str>,
+    },
+    /// The value is not a number (nor `true`/`false` for a 0-or-1 field).
+    #[error("{field}: {text:?} is not a number")]
+    NotANumber {
+        /// The field.
+        field: &'static str,
+        /// What was written.
+        text: String,
+    },
+    /// The field cannot hold the value (the drive's own field check).
+    #[error("{source} (unit {unit}{})", if *whole { ", a whole number" } else { "" })]
+    Refused {
+        /// The drive's reason, naming the field.
+        source: settings::SettingsError,
+        /// The field's unit.
+        unit: &'static str,
+        /// The field holds whole numbers only.
+        whole: bool,
+    },
+    /// Not of the form `NAME=VALUE`.
+    #[error("{0}: write NAME=VALUE, e.g. rig.gear_ratio=19.2")]
+    NotAnAssignment(String),
+}
+
 /// The field named `name`; an unknown name is refused with the names it resembles.
-pub fn lookup(name: &str) -> Result<&'static Field, String> {
+pub fn lookup(name: &str) -> Result<&'static Field, ArgError> {
     if let Some(f) = settings::field_named(name) {
         return Ok(f);
     }
@@ -44,49 +84,48 @@ pub fn lookup(name: &str) -> Result<&'static Field, String> {
         .map(|f| f.name)
         .take(12)
         .collect();
+    let name = name.to_string();
     Err(if near.is_empty() {
-        format!("{name}: no such configuration field (`beltctl config get` lists them)")
+        ArgError::Unknown { name }
     } else {
-        format!(
-            "{name}: no such configuration field; did you mean {}?",
-            near.join(", ")
-        )
+        ArgError::UnknownNear { name, near }
     })
 }
 
 /// Checks `value` for `field` with the drive's own field check (`Settings::set`): finite, in
 /// the field type's range, whole where it must be. Whether the configuration as a whole makes
 /// sense is the drive's check at apply.
-pub fn check(field: &Field, value: f64) -> Result<(), String> {
+pub fn check(field: &Field, value: f64) -> Result<(), ArgError> {
     let mut scratch = Settings::PAPER;
-    scratch.set(field.key, value).map_err(|e| {
-        format!(
-            "{e} (unit {}{})",
-            field.unit,
-            if field.whole { ", a whole number" } else { "" }
-        )
-    })
+    scratch
+        .set(field.key, value)
+        .map_err(|source| ArgError::Refused {
+            source,
+            unit: field.unit,
+            whole: field.whole,
+        })
 }
 
 /// Parses a value written on the command line: a number, or `true`/`false` for the 0-or-1 fields.
-pub fn parse_value(field: &Field, text: &str) -> Result<f64, String> {
+pub fn parse_value(field: &Field, text: &str) -> Result<f64, ArgError> {
     let t = text.trim();
     let v = match t {
         "true" if field.whole => 1.0,
         "false" if field.whole => 0.0,
-        _ => t
-            .parse::<f64>()
-            .map_err(|_| format!("{}: {t:?} is not a number", field.name))?,
+        _ => t.parse::<f64>().map_err(|_| ArgError::NotANumber {
+            field: field.name,
+            text: t.to_string(),
+        })?,
     };
     check(field, v)?;
     Ok(v)
 }
 
 /// Parses `NAME=VALUE`.
-pub fn parse_assignment(arg: &str) -> Result<(&'static Field, f64), String> {
+pub fn parse_assignment(arg: &str) -> Result<(&'static Field, f64), ArgError> {
     let (name, value) = arg
         .split_once('=')
-        .ok_or_else(|| format!("{arg}: write NAME=VALUE, e.g. rig.gear_ratio=19.2"))?;
+        .ok_or_else(|| ArgError::NotAnAssignment(arg.to_string()))?;
     let field = lookup(name.trim())?;
     Ok((field, parse_value(field, value)?))
 }
@@ -194,7 +233,7 @@ pub fn parse_file(path: &Path, text: &str) -> Result<Vec<(&'static Field, f64)>,
     flatten("", &table, &mut flat);
     let mut out: Vec<(&'static Field, f64)> = Vec::new();
     for (name, value) in flat {
-        let field = lookup(&name).map_err(file)?;
+        let field = lookup(&name).map_err(|e| file(e.to_string()))?;
         let v = match value {
             toml::Value::Float(x) => x,
             toml::Value::Integer(i) => i as f64,
@@ -206,7 +245,7 @@ pub fn parse_file(path: &Path, text: &str) -> Result<Vec<(&'static Field, f64)>,
                 )))
             }
         };
-        check(field, v).map_err(file)?;
+        check(field, v).map_err(|e| file(e.to_string()))?;
         if out.iter().any(|(f, _)| f.key == field.key) {
             return Err(file(format!("{name}: given twice")));
         }
@@ -342,5 +381,25 @@ mod tests {
         assert!(err(parse_assignment("rig.gear_ratio")).contains("NAME=VALUE"));
         assert!(err(parse_assignment("drive.initial_model=9"))
             .contains("drive.initial_model: out of range"));
+        assert!(matches!(
+            parse_assignment("drive.initial_model=9"),
+            Err(ArgError::Refused { unit, whole: true, .. }) if !unit.is_empty()
+        ));
+        assert!(matches!(
+            parse_assignment("rig.gear_ratio=x"),
+            Err(ArgError::NotANumber {
+                field: "rig.gear_ratio",
+                ..
+            })
+        ));
+        match lookup("rig.gear") {
+            Err(ArgError::UnknownNear { near, .. }) => assert!(near.contains(&"rig.gear_ratio")),
+            Err(other) => panic!("{other:?}"),
+            Ok(f) => panic!("rig.gear found {}", f.name),
+        }
+        assert!(matches!(
+            lookup("zzz"),
+            Err(ArgError::Unknown { name }) if name == "zzz"
+        ));
     }
 }

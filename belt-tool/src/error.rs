@@ -140,6 +140,12 @@ pub enum ToolError {
     /// The drive is not in the state the command needs, or did not do what it was asked.
     #[error("{0}")]
     Drive(String),
+    /// The recordings could not be fitted; says what they lack.
+    #[error("calibration fit: {0}")]
+    Fit(#[from] hil_sim::calibrate::CalibrationError),
+    /// The calibration files could not be written (names the file).
+    #[error("{0}")]
+    CalFile(#[from] hil_sim::calfile::CalFileError),
 }
 
 impl ToolError {

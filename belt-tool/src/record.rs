@@ -58,7 +58,7 @@ pub fn record(
     link.start_recording(every)?;
     let start = Instant::now();
     let mut written = 0u64;
-    let result = (|| {
+    let result: Result<(), ToolError> = (|| {
         while start.elapsed().as_secs_f64() < seconds {
             let left = Duration::from_secs_f64(seconds).saturating_sub(start.elapsed());
             link.pump(KEEPALIVE.min(left))?;

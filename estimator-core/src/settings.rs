@@ -215,6 +215,9 @@ impl core::fmt::Display for SettingsError {
     }
 }
 
+#[cfg(feature = "std")]
+impl std::error::Error for SettingsError {}
+
 /// One configuration field.
 pub struct Field {
     /// Its key on the link and in the record.

@@ -2,9 +2,9 @@
 //! and `calibration.toml` (the same parameters for people, plus the baselines and the fit
 //! quality).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
-use estimator_core::blob;
+use estimator_core::blob::{self, BlobError};
 use estimator_core::model::ModelParams;
 use estimator_core::rig::Rig;
 use serde::Serialize;
@@ -46,14 +46,93 @@ fn floats(v: &[f64]) -> toml::Value {
     )
 }
 
+/// Why a calibration directory could not be written or read; every case names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum CalFileError {
+    /// The file system refused (missing directory, permissions, a full disk).
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The file or directory.
+        path: PathBuf,
+        /// What the system said.
+        source: std::io::Error,
+    },
+    /// `calibration.bin` was made for another drive-train geometry.
+    #[error("{}: calibrated for {made_for}; this plant has {plant}: calibrate again on it", path.display())]
+    OtherGeometry {
+        /// The blob.
+        path: PathBuf,
+        /// The geometry the blob records.
+        made_for: Rig,
+        /// The geometry it was loaded for.
+        plant: Rig,
+    },
+    /// The blob is damaged, of another version, or holds a parameter out of range.
+    #[error("{}: {source}", path.display())]
+    Blob {
+        /// The blob.
+        path: PathBuf,
+        /// The reason, naming the field where there is one.
+        source: BlobError,
+    },
+    /// `calibration.toml` does not parse or could not be written as TOML.
+    #[error("{}: {message}", path.display())]
+    Toml {
+        /// The TOML file.
+        path: PathBuf,
+        /// The parser's message with the line.
+        message: String,
+    },
+    /// `calibration.toml` lacks its `[fit_rms_um]` table.
+    #[error("{}: [fit_rms_um] is missing", path.display())]
+    MissingFitRms {
+        /// The TOML file.
+        path: PathBuf,
+    },
+    /// One model's fit quality is absent, negative or not a number.
+    #[error("{}: fit_rms_um.{model} is missing or not a finite number >= 0", path.display())]
+    BadFitRms {
+        /// The TOML file.
+        path: PathBuf,
+        /// The model's key.
+        model: &'static str,
+    },
+    /// The model sections were edited: the drive loads the blob, so the edit would be ignored.
+    #[error(
+        "{}: {field} differs from {}: the drive loads the blob, so edits to the model sections \
+         are not used; run `hil-sim calibrate` again (or restore the file)",
+        path.display(),
+        blob.display()
+    )]
+    Edited {
+        /// The TOML file.
+        path: PathBuf,
+        /// The first differing field, with both values.
+        field: String,
+        /// The blob it must match.
+        blob: PathBuf,
+    },
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CalFileError + '_ {
+    move |source| CalFileError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
 /// Writes both files into `dir`; the parameters are those of the blob (quantised).
-pub fn save(dir: &Path, cal: &Calibration, rig: &Rig) -> Result<(), String> {
-    std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
-    let mut buf = vec![0u8; blob::MAX_BYTES];
-    let n = blob::encode(&cal.params, rig, &mut buf).map_err(|e| e.to_string())?;
+pub fn save(dir: &Path, cal: &Calibration, rig: &Rig) -> Result<(), CalFileError> {
+    std::fs::create_dir_all(dir).map_err(io(dir))?;
     let bin = dir.join("calibration.bin");
-    std::fs::write(&bin, &buf[..n]).map_err(|e| format!("{}: {e}", bin.display()))?;
-    let p = blob::decode(&buf[..n], rig).map_err(|e| e.to_string())?;
+    let blob_err = |source| CalFileError::Blob {
+        path: bin.clone(),
+        source,
+    };
+    let mut buf = vec![0u8; blob::MAX_BYTES];
+    let n = blob::encode(&cal.params, rig, &mut buf).map_err(blob_err)?;
+    std::fs::write(&bin, &buf[..n]).map_err(io(&bin))?;
+    let p = blob::decode(&buf[..n], rig).map_err(blob_err)?;
     let file = CalFile {
         note: format!(
             "belt-drive calibration from {} samples; units in the names; the drive loads the \
@@ -69,9 +148,12 @@ pub fn save(dir: &Path, cal: &Calibration, rig: &Rig) -> Result<(), String> {
             .collect(),
         models: models_of(&p),
     };
-    let text = toml::to_string(&file).map_err(|e| e.to_string())?;
     let path = dir.join("calibration.toml");
-    std::fs::write(&path, text).map_err(|e| format!("{}: {e}", path.display()))
+    let text = toml::to_string(&file).map_err(|e| CalFileError::Toml {
+        path: path.clone(),
+        message: e.to_string(),
+    })?;
+    std::fs::write(&path, text).map_err(io(&path))
 }
 
 /// The model sections of `calibration.toml` for parameters `p` (as the blob holds them).
@@ -171,48 +253,52 @@ fn first_difference(path: &str, want: &toml::Value, found: &toml::Value) -> Opti
 
 /// Reads a calibration directory: the blob (checked as the firmware checks it; it holds every
 /// compensator, the baselines included) and the fit quality from the TOML file.
-pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, String> {
+pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, CalFileError> {
     let bin = dir.join("calibration.bin");
-    let bytes = std::fs::read(&bin).map_err(|e| format!("{}: {e}", bin.display()))?;
-    let params: ModelParams = blob::decode(&bytes, rig).map_err(|e| match e {
+    let bytes = std::fs::read(&bin).map_err(io(&bin))?;
+    let params: ModelParams = blob::decode(&bytes, rig).map_err(|source| {
         // Say which geometries differ: the blob records the geometry it was made for.
-        blob::BlobError::RigMismatch => match blob::calibrated_rig(&bytes) {
-            Ok(made_for) => format!(
-                "{}: calibrated for {made_for}; this plant has {rig}: calibrate again on it",
-                bin.display()
-            ),
-            Err(e) => format!("{}: {e}", bin.display()),
-        },
-        e => format!("{}: {e}", bin.display()),
+        match (source, blob::calibrated_rig(&bytes)) {
+            (BlobError::RigMismatch, Ok(made_for)) => CalFileError::OtherGeometry {
+                path: bin.clone(),
+                made_for,
+                plant: *rig,
+            },
+            (source, _) => CalFileError::Blob {
+                path: bin.clone(),
+                source,
+            },
+        }
     })?;
     let path = dir.join("calibration.toml");
-    let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let mut found: toml::Table =
-        crate::input::from_toml(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+    let toml_err = |message| CalFileError::Toml {
+        path: path.clone(),
+        message,
+    };
+    let text = std::fs::read_to_string(&path).map_err(io(&path))?;
+    let mut found: toml::Table = crate::input::from_toml(&text).map_err(toml_err)?;
     found.remove("note");
     let fit_rms_um = match found.remove("fit_rms_um") {
         Some(toml::Value::Table(t)) => t,
-        _ => return Err(format!("{}: [fit_rms_um] is missing", path.display())),
+        _ => return Err(CalFileError::MissingFitRms { path }),
     };
     // The model sections mirror the blob: an edit there would be silently ignored, so it is
     // refused instead, naming the field.
-    let want = toml::Value::try_from(models_of(&params)).map_err(|e| e.to_string())?;
+    let want = toml::Value::try_from(models_of(&params)).map_err(|e| toml_err(e.to_string()))?;
     let found = toml::Value::Table(found);
     if let Some(at) = first_difference("", &want, &found) {
-        return Err(format!(
-            "{}: {} differs from {}: the drive loads the blob, so edits to the model sections \
-             are not used; run `hil-sim calibrate` again (or restore the file)",
-            path.display(),
-            at.trim_start_matches('.'),
-            bin.display()
-        ));
+        return Err(CalFileError::Edited {
+            path,
+            field: at.trim_start_matches('.').to_string(),
+            blob: bin,
+        });
     }
-    let rms = |k: &str| match fit_rms_um.get(k).and_then(|v| v.as_float()) {
+    let rms = |k: &'static str| match fit_rms_um.get(k).and_then(|v| v.as_float()) {
         Some(v) if v.is_finite() && v >= 0.0 => Ok(v),
-        _ => Err(format!(
-            "{}: fit_rms_um.{k} is missing or not a finite number >= 0",
-            path.display()
-        )),
+        _ => Err(CalFileError::BadFitRms {
+            path: path.clone(),
+            model: k,
+        }),
     };
     use estimator_core::model::ModelKind as K;
     Ok(Calibration {

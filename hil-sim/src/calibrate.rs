@@ -13,7 +13,7 @@
 //!    from those of the linear model");
 //! 5. the two baselines of today's controllers from the same data.
 
-use estimator_core::blob;
+use estimator_core::blob::{self, BlobError};
 use estimator_core::model::operator::{N_KNOTS, N_OPS};
 use estimator_core::model::{
     BandParams, Model1Params, Model2Params, Model3Params, Model4Params, ModelKind, ModelParams,
@@ -21,6 +21,7 @@ use estimator_core::model::{
 };
 use estimator_core::reference::Reference;
 use estimator_core::rig::Rig;
+use estimator_core::ConfigError;
 
 use crate::baseline::{Backlash, BidirTable};
 use crate::fit::nelder_mead;
@@ -35,6 +36,61 @@ pub const SMOOTHING_CANDIDATES: [f64; 6] = [0.1, 1.0, 10.0, 100.0, 1e3, 1e4];
 
 /// Half-width of the centred moving average applied to Delta x, in ticks (5 ms at 2 kHz).
 pub const FILTER_HALF_WIDTH: usize = 5;
+
+/// Why the recordings could not be turned into a parameter set. Each names what the data lacks
+/// or which fit failed, so that a machine builder knows which motions to add.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum CalibrationError {
+    /// No recording holds a sample.
+    #[error("no calibration samples")]
+    NoSamples,
+    /// The recordings cover too little travel for the band tables and harmonics.
+    #[error(
+        "calibration data covers less than two belt pitches of travel ({span_mm:.2} mm, \
+         {pitches_mm:.2} mm needed)"
+    )]
+    TooLittleTravel {
+        /// Travel covered, mm (NaN: no finite position).
+        span_mm: f64,
+        /// Two belt pitches, mm.
+        pitches_mm: f64,
+    },
+    /// A band table came out unusable (fewer than two points, or not increasing).
+    #[error("{direction} band table rejected")]
+    BandRejected {
+        /// `"forward"` or `"reverse"`.
+        direction: &'static str,
+    },
+    /// Too few reversals in one direction for Model 3's transition table.
+    #[error(
+        "calibration data has too few reversals for Model 3's transition tables \
+         ({samples} samples after {direction} reversals, 100 needed)"
+    )]
+    TooFewReversals {
+        /// `"forward"` or `"reverse"`.
+        direction: &'static str,
+        /// Samples recorded after such reversals.
+        samples: usize,
+    },
+    /// A linear least-squares fit had no unique solution.
+    #[error("{fit}: the least-squares fit is singular")]
+    Singular {
+        /// `"Model 3's transition table"` or `"Model 4"`.
+        fit: &'static str,
+    },
+    /// No samples approached in both directions (the constant-backlash baseline).
+    #[error("no approached samples in both directions")]
+    NoApproachedSamples,
+    /// No approached samples for the bidirectional table.
+    #[error("no approached samples for the table")]
+    NoTableSamples,
+    /// A fitted parameter set the blob's formats or the builders refuse, naming the field.
+    #[error("calibrated parameters rejected: {0}")]
+    Rejected(BlobError),
+    /// Model 4's features could not be built from the fitted Models 1-3.
+    #[error("Model 4's features: {0}")]
+    Features(ConfigError),
+}
 
 /// What calibration produced, with the fit quality on its own data.
 #[derive(Clone, Debug)]
@@ -169,7 +225,7 @@ fn model3(
     rig: &Rig,
     deadband: u32,
     smooth: f64,
-) -> Result<Model3Params, String> {
+) -> Result<Model3Params, CalibrationError> {
     let edge = |x_mm: f64, dir: i8| {
         1000.0 * (m1.m_mm_per_mm * x_mm + m1.offset_mm - if dir > 0 { m1.h_mm } else { 0.0 })
     };
@@ -227,10 +283,12 @@ fn model3(
             (f.1, r.1) = (mid, mid);
         }
     }
-    let forward_band =
-        BandParams::from_points(&fwd).ok_or_else(|| "forward band table rejected".to_string())?;
-    let reverse_band =
-        BandParams::from_points(&rev).ok_or_else(|| "reverse band table rejected".to_string())?;
+    let forward_band = BandParams::from_points(&fwd).ok_or(CalibrationError::BandRejected {
+        direction: "forward",
+    })?;
+    let reverse_band = BandParams::from_points(&rev).ok_or(CalibrationError::BandRejected {
+        direction: "reverse",
+    })?;
 
     // Transition tables: gap to the new band edge after each reversal.
     let band_at =
@@ -264,12 +322,13 @@ fn model3(
             }
         }
     }
-    let transition = |k: usize, hg_um: f64| -> Result<TransitionParams, String> {
+    let transition = |k: usize, hg_um: f64| -> Result<TransitionParams, CalibrationError> {
         let s = &samples[k];
         if s.len() < 100 {
-            return Err(
-                "calibration data has too few reversals for Model 3's transition tables".into(),
-            );
+            return Err(CalibrationError::TooFewReversals {
+                direction: if k == 0 { "forward" } else { "reverse" },
+                samples: s.len(),
+            });
         }
         let g_max = s.iter().map(|g| g.g0_um).fold(0.0, f64::max).max(1.0);
         let d_len = settle_mm(if k == 0 { 1 } else { -1 })
@@ -284,8 +343,11 @@ fn model3(
             .collect();
         let used: Vec<GapSample> = s.iter().copied().filter(|g| g.d_mm <= d_len).collect();
         let anchor: Vec<f64> = g_axis.iter().map(|g| (g - hg_um).max(0.0)).collect();
-        let vals = fit_gap_table(&used, &d_axis, &g_axis, smooth, &anchor)
-            .ok_or("transition table fit is singular")?;
+        let vals = fit_gap_table(&used, &d_axis, &g_axis, smooth, &anchor).ok_or(
+            CalibrationError::Singular {
+                fit: "Model 3's transition table",
+            },
+        )?;
         let mut t = TransitionParams::EMPTY;
         t.n_d = nd;
         t.n_g0 = ng;
@@ -343,14 +405,14 @@ pub fn calibrate(
     traces: &[Trace],
     rig: &Rig,
     progress: &mut dyn FnMut(&str, f64),
-) -> Result<Calibration, String> {
+) -> Result<Calibration, CalibrationError> {
     let runs: Vec<Prepared> = traces
         .iter()
         .filter(|t| !t.records.is_empty())
         .map(prepare)
         .collect();
     if runs.is_empty() {
-        return Err("no calibration samples".into());
+        return Err(CalibrationError::NoSamples);
     }
     let mut params = ModelParams::PAPER;
 
@@ -439,14 +501,13 @@ pub fn calibrate(
     progress("Model 4", 0.0);
     params.model4 = model4(&runs, rig, &params)?;
     params.backlash = Backlash::calibrate(traces)
-        .ok_or("no approached samples in both directions")?
+        .ok_or(CalibrationError::NoApproachedSamples)?
         .to_params();
     params.bidir_table = BidirTable::calibrate(traces, crate::baseline::MAX_ROWS)
-        .ok_or("no approached samples for the table")?
+        .ok_or(CalibrationError::NoTableSamples)?
         .to_params();
     // From here on, exactly what the firmware will hold: the blob's fixed-point formats.
-    let params =
-        quantised(&params, rig).map_err(|e| format!("calibrated parameters rejected: {e}"))?;
+    let params = quantised(&params, rig).map_err(CalibrationError::Rejected)?;
     progress("Model 3 tables", 1.0);
 
     let rms = |kind| {
@@ -467,7 +528,7 @@ pub fn calibrate(
 }
 
 /// The travel the calibration data covers, mm; at least two belt pitches.
-fn travel_span_mm(runs: &[Prepared], rig: &Rig) -> Result<(f64, f64), String> {
+fn travel_span_mm(runs: &[Prepared], rig: &Rig) -> Result<(f64, f64), CalibrationError> {
     let (lo, hi) = runs
         .iter()
         .flat_map(|r| r.x_mm.iter())
@@ -475,7 +536,10 @@ fn travel_span_mm(runs: &[Prepared], rig: &Rig) -> Result<(f64, f64), String> {
             (l.min(x), h.max(x))
         });
     if (hi - lo).is_nan() || hi - lo <= 2.0 * rig.belt_pitch_mm {
-        return Err("calibration data covers less than two belt pitches of travel".into());
+        return Err(CalibrationError::TooLittleTravel {
+            span_mm: hi - lo,
+            pitches_mm: 2.0 * rig.belt_pitch_mm,
+        });
     }
     Ok((lo, hi))
 }
@@ -485,7 +549,11 @@ fn travel_span_mm(runs: &[Prepared], rig: &Rig) -> Result<(f64, f64), String> {
 /// calibrated Model 2) to Delta x on every calibration sample, lightly regularised (ridge 1e-6
 /// of each column's energy) so that plays the data never move get no weight. The terms are
 /// [`Reference::model4_step`]'s, the definitions the drive's Model 4 evaluates.
-fn model4(runs: &[Prepared], rig: &Rig, base: &ModelParams) -> Result<Model4Params, String> {
+fn model4(
+    runs: &[Prepared],
+    rig: &Rig,
+    base: &ModelParams,
+) -> Result<Model4Params, CalibrationError> {
     let (lo, hi) = travel_span_mm(runs, rig)?;
     let mut m = Model4Params::zero(rig.belt_pitch_mm, rig.mm_per_pulley_rev());
     m.x_ref_mm = ((lo + hi) / 2.0).round();
@@ -495,8 +563,8 @@ fn model4(runs: &[Prepared], rig: &Rig, base: &ModelParams) -> Result<Model4Para
     // The geometry as the blob holds it and Model 2 as the drive will hold it: the terms are
     // those the drive's Model 4 computes (its reference evaluates the same definitions).
     let probe = ModelParams {
-        model4: blob::quantise_model4(&m).map_err(|e| e.to_string())?,
-        ..quantised(base, rig)?
+        model4: blob::quantise_model4(&m).map_err(CalibrationError::Rejected)?,
+        ..quantised(base, rig).map_err(CalibrationError::Rejected)?
     };
     let cpm = rig.counts_per_mm();
     const N: usize = 2 * N_OPS + 2 + N_KNOTS + 4 + 3;
@@ -507,7 +575,7 @@ fn model4(runs: &[Prepared], rig: &Rig, base: &ModelParams) -> Result<Model4Para
         let Some(&x0) = r.x_counts.first() else {
             continue;
         };
-        let mut model4 = Reference::new(&probe, rig, x0).map_err(|e| e.to_string())?;
+        let mut model4 = Reference::new(&probe, rig, x0).map_err(CalibrationError::Features)?;
         for (i, &x) in r.x_counts.iter().enumerate() {
             let (_, t) = model4.model4_step(x, r.current_a[i]);
             for (j, f) in t.plays_counts.iter().enumerate() {
@@ -539,7 +607,7 @@ fn model4(runs: &[Prepared], rig: &Rig, base: &ModelParams) -> Result<Model4Para
         ata[a * N + a] += 1e-6 * ata[a * N + a] + 1e-9;
     }
     let v =
-        crate::tables::solve_spd(ata, atb).ok_or("Model 4: the least-squares fit is singular")?;
+        crate::tables::solve_spd(ata, atb).ok_or(CalibrationError::Singular { fit: "Model 4" })?;
     for j in 0..N_OPS {
         m.play_um_per_mm[j] = v[2 * j];
         m.play_forward_um_per_mm[j] = v[2 * j + 1];
@@ -558,8 +626,66 @@ fn model4(runs: &[Prepared], rig: &Rig, base: &ModelParams) -> Result<Model4Para
 }
 
 /// The parameters exactly as the firmware will hold them (through the blob's formats).
-pub fn quantised(params: &ModelParams, rig: &Rig) -> Result<ModelParams, String> {
+pub fn quantised(params: &ModelParams, rig: &Rig) -> Result<ModelParams, BlobError> {
     let mut buf = vec![0u8; blob::MAX_BYTES];
-    let n = blob::encode(params, rig, &mut buf).map_err(|e| e.to_string())?;
-    blob::decode(&buf[..n], rig).map_err(|e| e.to_string())
+    let n = blob::encode(params, rig, &mut buf)?;
+    blob::decode(&buf[..n], rig)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::run::Record;
+
+    /// A recording of the motor at `xs` (counts) with the carriage exactly on it.
+    fn trace(xs: impl Iterator<Item = i32>, rig: &Rig) -> Trace {
+        let cpm = rig.counts_per_mm();
+        let records = xs
+            .enumerate()
+            .map(|(i, x)| Record {
+                t_s: i as f64 / 2000.0,
+                motor_counts: x,
+                x_ls_mm: x as f64 / cpm,
+                setpoint_counts: x,
+                cmd_dir: 1,
+                out: Default::default(),
+            })
+            .collect();
+        Trace {
+            scenario: "test".into(),
+            seed: 0,
+            counts_per_mm: cpm,
+            records,
+            move_starts: vec![0],
+        }
+    }
+
+    #[test]
+    fn refusals_name_what_the_data_lacks() {
+        let rig = Rig::PAPER;
+        let none = |t: &[Trace]| calibrate(t, &rig, &mut |_, _| {}).unwrap_err();
+        assert_eq!(none(&[]), CalibrationError::NoSamples);
+        assert_eq!(
+            none(&[trace(std::iter::empty(), &rig)]),
+            CalibrationError::NoSamples
+        );
+        // Strokes of 1 mm back and forth: less than two belt pitches of travel.
+        let mm = rig.counts_per_mm();
+        let zigzag = (0..8000).map(|i: i32| {
+            let p = i % 4000;
+            (if p < 2000 { p } else { 4000 - p } as f64 * mm / 2000.0) as i32
+        });
+        let e = none(&[trace(zigzag, &rig)]);
+        match e {
+            CalibrationError::TooLittleTravel {
+                span_mm,
+                pitches_mm,
+            } => {
+                assert!((span_mm - 1.0).abs() < 0.01, "{span_mm}");
+                assert!((pitches_mm - 2.0 * rig.belt_pitch_mm).abs() < 1e-12);
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(e.to_string().contains("(1.00 mm, 10.16 mm needed)"), "{e}");
+    }
 }

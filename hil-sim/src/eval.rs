@@ -150,7 +150,7 @@ pub fn calibrate_plant(
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Calibration, String> {
     let traces = record_calibration(plant, progress)?;
-    calibrate(&traces, &plant.rig(), progress)
+    calibrate(&traces, &plant.rig(), progress).map_err(|e| e.to_string())
 }
 
 /// Every estimator's y along `trace`, um, in `ESTIMATORS` order: every compensator of the drive

@@ -260,7 +260,7 @@ fn calibration(
     match &common.calibration {
         Some(dir) => {
             eprintln!("model parameters: {}", dir.display());
-            calfile::load(dir, &plant.rig())
+            calfile::load(dir, &plant.rig()).map_err(|e| e.to_string())
         }
         None => {
             eprintln!(
@@ -491,7 +491,7 @@ fn main() -> ExitCode {
             let mut progress = Progress::new();
             let cal = eval::calibrate_plant(&plant, &mut |s, f| progress.stage(s, f))?;
             progress.finish();
-            calfile::save(&out, &cal, &plant.rig())?;
+            calfile::save(&out, &cal, &plant.rig()).map_err(|e| e.to_string())?;
             eprintln!(
                 "reversal dead band: {} counts",
                 cal.params.reversal_deadband_counts

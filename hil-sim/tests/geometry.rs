@@ -51,6 +51,12 @@ fn a_calibration_for_another_geometry_is_refused_naming_both() {
         Ok(_) => panic!("a paper-rig calibration loaded on another geometry"),
     };
     let _ = std::fs::remove_dir_all(&dir);
+    assert!(
+        matches!(&e, hil_sim::calfile::CalFileError::OtherGeometry { made_for, plant, .. }
+            if *made_for == paper.rig() && *plant == other_rig().rig()),
+        "{e:?}"
+    );
+    let e = e.to_string();
     assert!(e.contains("calibration.bin"), "{e}");
     assert!(e.contains("1867.9 counts/mm"), "{e}");
     assert!(
