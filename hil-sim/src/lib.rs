@@ -28,5 +28,5 @@ pub mod stats;
 pub mod tables;
 pub mod workloads;
 
-pub use params::PlantParams;
+pub use params::{ParamsError, PlantParams};
 pub use plant::{BeltForces, Plant};

@@ -248,7 +248,7 @@ enum Cmd {
 fn plant_params(path: &Option<PathBuf>) -> Result<PlantParams, String> {
     match path {
         None => Ok(PlantParams::paper_rig()),
-        Some(p) => PlantParams::load(p),
+        Some(p) => PlantParams::load(p).map_err(|e| e.to_string()),
     }
 }
 
@@ -607,7 +607,7 @@ fn main() -> ExitCode {
                 generalise::plants()?
             };
             for p in &plant {
-                plants.push(PlantParams::load(p)?);
+                plants.push(PlantParams::load(p).map_err(|e| e.to_string())?);
             }
             let mut progress = Progress::new();
             let mut tables = Vec::new();

@@ -244,6 +244,39 @@ pub struct Integration {
     pub max_substep_s: f64,
 }
 
+/// Why plant parameters were refused: the file (when read from one), the place in the TOML, or
+/// the first field out of its range or inconsistent with another.
+#[derive(Debug, thiserror::Error)]
+pub enum ParamsError {
+    /// The file could not be read.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The plant file.
+        path: std::path::PathBuf,
+        /// What the system said.
+        source: std::io::Error,
+    },
+    /// Not a plant in TOML (a syntax error, a missing or unknown key), with line and column.
+    #[error("{0}")]
+    Toml(String),
+    /// A field out of its range or inconsistent with another (the first found).
+    #[error("{field}: {reason}")]
+    Field {
+        /// The field, e.g. `carriage.mass_kg`.
+        field: &'static str,
+        /// Its value and the rule it breaks.
+        reason: String,
+    },
+    /// One of the above, in a file.
+    #[error("{}: {source}", path.display())]
+    InFile {
+        /// The plant file.
+        path: std::path::PathBuf,
+        /// What is wrong in it.
+        source: Box<ParamsError>,
+    },
+}
+
 impl PlantParams {
     /// The embedded `paper-rig` preset.
     pub fn paper_rig() -> Self {
@@ -251,16 +284,22 @@ impl PlantParams {
     }
 
     /// Parses and validates a TOML preset.
-    pub fn from_toml_str(s: &str) -> Result<Self, String> {
-        let p: PlantParams = crate::input::from_toml(s)?;
+    pub fn from_toml_str(s: &str) -> Result<Self, ParamsError> {
+        let p: PlantParams = crate::input::from_toml(s).map_err(ParamsError::Toml)?;
         p.validate()?;
         Ok(p)
     }
 
     /// Loads a plant file; errors name it.
-    pub fn load(path: &std::path::Path) -> Result<Self, String> {
-        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-        let mut p = Self::from_toml_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+    pub fn load(path: &std::path::Path) -> Result<Self, ParamsError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ParamsError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let mut p = Self::from_toml_str(&text).map_err(|e| ParamsError::InFile {
+            path: path.to_path_buf(),
+            source: Box::new(e),
+        })?;
         p.source = path.display().to_string();
         Ok(p)
     }
@@ -309,7 +348,7 @@ impl PlantParams {
     }
 
     /// Checks every field; the error names the first offending one.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), ParamsError> {
         let mut c = Check::default();
         let m = &self.motor;
         c.pos("motor.torque_constant_nm_per_a", m.torque_constant_nm_per_a);
@@ -510,27 +549,30 @@ impl PlantParams {
 /// Collects the first validation failure.
 #[derive(Default)]
 struct Check {
-    err: Option<String>,
+    err: Option<ParamsError>,
 }
 
 impl Check {
-    fn test(&mut self, field: &str, ok: bool, why: &str) {
+    fn test(&mut self, field: &'static str, ok: bool, why: &str) {
         if !ok && self.err.is_none() {
-            self.err = Some(format!("{field}: {why}"));
+            self.err = Some(ParamsError::Field {
+                field,
+                reason: why.to_string(),
+            });
         }
     }
-    fn finite(&mut self, field: &str, v: f64) {
+    fn finite(&mut self, field: &'static str, v: f64) {
         self.test(field, v.is_finite(), &format!("{v} is not a finite number"));
     }
-    fn pos(&mut self, field: &str, v: f64) {
+    fn pos(&mut self, field: &'static str, v: f64) {
         self.finite(field, v);
         self.test(field, v > 0.0, &format!("{v} must be > 0"));
     }
-    fn nonneg(&mut self, field: &str, v: f64) {
+    fn nonneg(&mut self, field: &'static str, v: f64) {
         self.finite(field, v);
         self.test(field, v >= 0.0, &format!("{v} must be >= 0"));
     }
-    fn range(&mut self, field: &str, v: f64, lo: f64, hi: f64) {
+    fn range(&mut self, field: &'static str, v: f64, lo: f64, hi: f64) {
         self.finite(field, v);
         self.test(
             field,
@@ -576,14 +618,19 @@ mod tests {
     fn errors_name_the_field() {
         let bad = PAPER_RIG_TOML.replace("mass_kg = 2.5", "mass_kg = -2.5");
         let e = PlantParams::from_toml_str(&bad).unwrap_err();
+        assert!(
+            matches!(&e, ParamsError::Field { field: "carriage.mass_kg", reason } if reason.contains("-2.5")),
+            "{e:?}"
+        );
+        let e = e.to_string();
         assert!(e.starts_with("carriage.mass_kg:"), "{e}");
 
         let bad = PAPER_RIG_TOML.replace("max_substep_s = 2.0e-5", "max_substep_s = 5.0e-4");
-        let e = PlantParams::from_toml_str(&bad).unwrap_err();
+        let e = PlantParams::from_toml_str(&bad).unwrap_err().to_string();
         assert!(e.starts_with("integration.max_substep_s:"), "{e}");
 
         let bad = PAPER_RIG_TOML.replace("sigma1_s_per_m = 5.0", "sigma1_s_per_m = 50.0");
-        let e = PlantParams::from_toml_str(&bad).unwrap_err();
+        let e = PlantParams::from_toml_str(&bad).unwrap_err().to_string();
         assert!(
             e.starts_with("integration.max_substep_s:") && e.contains("damping"),
             "{e}"
@@ -591,10 +638,24 @@ mod tests {
 
         let bad = PAPER_RIG_TOML.replace("[carriage]", "[carriage]\ncolour = 3");
         let e = PlantParams::from_toml_str(&bad).unwrap_err();
-        assert!(e.contains("colour"), "{e}");
+        assert!(
+            matches!(&e, ParamsError::Toml(m) if m.contains("colour")),
+            "{e:?}"
+        );
 
         let mut p = PlantParams::paper_rig();
         p.friction.mu_static = 0.5 * p.friction.mu_kinetic;
-        assert!(p.validate().unwrap_err().starts_with("friction.mu_static:"));
+        assert!(p
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .starts_with("friction.mu_static:"));
+        // A file's errors name it.
+        let e = PlantParams::load(std::path::Path::new("/nonexistent/plant.toml")).unwrap_err();
+        assert!(matches!(e, ParamsError::Io { .. }), "{e:?}");
+        assert!(
+            e.to_string().starts_with("/nonexistent/plant.toml: "),
+            "{e}"
+        );
     }
 }
