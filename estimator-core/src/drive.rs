@@ -591,15 +591,6 @@ impl Drive {
         Ok(())
     }
 
-    /// Replaces the error-model parameters; the estimate restarts on the band edge of the
-    /// current direction. Invalid parameters change nothing.
-    pub fn set_model_params(&mut self, params: &ModelParams) -> Result<(), ConfigError> {
-        self.models = params.build(&self.rig)?;
-        self.models_valid = true;
-        self.model_state.settle(self.motor_state.position_counts());
-        Ok(())
-    }
-
     /// Checks and loads a calibration image (see [`crate::image`]). Refused while a move is in
     /// progress; a refused image changes nothing.
     pub fn load_calibration(&mut self, image: &[u8]) -> Result<(), BlobError> {
