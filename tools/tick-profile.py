@@ -67,6 +67,12 @@ def main(elf, trace, top=40):
         own = [c for c in chains.get(pc, []) if "/estimator-core/" in c or "/belt-link/" in c]
         where = own[0] if own else (chains.get(pc) or ["?"])[0]
         by_line[re.sub(r".*/(estimator-core|belt-link)/", r"\1/", where).split(" ")[0]] += counts[pc]
+    by_file = collections.Counter()
+    for where, n in by_line.items():
+        by_file[where.split(":")[0]] += n
+    print("\nper source file (innermost file of this workspace):")
+    for where, n in by_file.most_common(top):
+        print(f"{n / ticks:8.1f}  {where}")
     print("\nper source line (innermost line of this workspace):")
     for where, n in by_line.most_common(top):
         print(f"{n / ticks:8.1f}  {where}")

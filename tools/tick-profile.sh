@@ -4,7 +4,8 @@
 # executed inside `Drive::step` by function and by source line (the innermost line of this
 # workspace in the inline chain, via addr2line). Mean per tick; the total matches the bench's
 # mean to within the call overhead.
-#   tools/tick-profile.sh [MODEL]      # MODEL: none, model1, ..., model4 (default model3)
+#   tools/tick-profile.sh [MODEL]      # MODEL: none, model1, ..., model4 (default model3); per
+#   function, per source file and per source line
 # Needs python3 and addr2line (binutils); the trace takes ~1 GB in $TMPDIR for ~10 s.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
