@@ -5,7 +5,8 @@
 //!
 //! It also writes the Table 2 parameters as a calibration blob (for the on-target blob test) and
 //! as the calibration image built from it (`paper_image.bin`), which the firmware embeds as its
-//! default calibration: coefficients built here, so the firmware needs no `f64` to boot.
+//! default calibration, and the paper rig's configuration image (`paper_parts.bin`): built
+//! here, so the firmware needs no `f64` to boot.
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -122,6 +123,12 @@ fn blob_vectors(out: &mut String) {
         image
     )
     .unwrap();
-    let path = PathBuf::from(std::env::var_os("OUT_DIR").unwrap()).join("paper_image.bin");
-    std::fs::write(path, &image).unwrap();
+    let out_dir = PathBuf::from(std::env::var_os("OUT_DIR").unwrap());
+    std::fs::write(out_dir.join("paper_image.bin"), &image).unwrap();
+    // The paper rig's configuration image: the drive the firmware assembles at boot before any
+    // stored configuration, with no unit conversion on the MCU.
+    let parts = estimator_core::settings::Settings::PAPER
+        .parts_image()
+        .unwrap();
+    std::fs::write(out_dir.join("paper_parts.bin"), parts).unwrap();
 }

@@ -32,9 +32,7 @@ mod app {
     use heapless::spsc;
 
     use belt_drive::doorbell::Doorbell;
-    use belt_drive::drive::{
-        Command, CommandError, Drive, DriveConfig, Faults, Models, Parts, Telemetry,
-    };
+    use belt_drive::drive::{Command, CommandError, Drive, Faults, Parts, Telemetry};
     use belt_drive::events::{self, Event};
     use belt_drive::hardware::{self, ControlIo, IdleIo, LinkRx};
     use belt_drive::outbox::Outbox;
@@ -46,9 +44,10 @@ mod app {
     };
     use estimator_core::blob::BlobError;
     use estimator_core::endpoint::{answer, BlobBuffer, Effect, Endpoint, Event as LinkEvent};
+    use estimator_core::fixed::types::I16F16;
     use estimator_core::image;
     use estimator_core::rig::Rig;
-    use estimator_core::settings::{self, Settings};
+    use estimator_core::settings::{self, SettingsError};
     use estimator_core::ConfigError;
 
     /// Received bytes waiting for `link` (one slot stays free): more than one largest frame
@@ -66,6 +65,9 @@ mod app {
     /// Table 2 as an embedded calibration image (built by build.rs): the paper rig's models when
     /// no calibration is stored.
     static PAPER_IMAGE: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/paper_image.bin"));
+    /// The paper rig's configuration image (built by build.rs): the drive before any stored
+    /// configuration.
+    static PAPER_PARTS: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/paper_parts.bin"));
     /// The board accepts the drive's current limit (set once in `init`); otherwise the drive is
     /// kept disabled and the amplifier off.
     static AMP_PERMITTED: AtomicBool = AtomicBool::new(false);
@@ -117,23 +119,36 @@ mod app {
         // The stored configuration and calibration, read before the clocks and timers start
         // (the control rate comes from it).
         let mut persist = Persist::open();
-        let mut settings_buf = [0u8; settings::ENCODED_LEN];
+        let mut settings_buf = [0u8; settings::STORED_LEN];
         let boot = persist.load(&mut settings_buf, endpoint.blob_buffer());
+        // The paper rig's configuration image, built on the host (build.rs) and checked by the
+        // host tests: refused only by a broken build.
+        let (paper, _) = match Parts::decode(PAPER_PARTS) {
+            Ok(p) => p,
+            Err(e) => defmt::panic!("built-in configuration refused: {=str}", e.field()),
+        };
         let (stored, stored_blob, record_crc) = match boot {
             Boot::Loaded {
                 settings_len,
                 blob_len,
                 crc32,
                 ..
-            } => match Settings::decode(&settings_buf[..settings_len.min(settings_buf.len())]) {
-                Ok(s) => (Some(s), blob_len, crc32),
-                Err(_) => (None, 0, 0),
-            },
+            } => {
+                match settings::decode_stored(&settings_buf[..settings_len.min(settings_buf.len())])
+                {
+                    Ok(s) => (Some(s), blob_len, crc32),
+                    Err(e) => {
+                        log_settings_error(&e);
+                        (None, 0, 0)
+                    }
+                }
+            }
             _ => (None, 0, 0),
         };
-        let active = stored.unwrap_or(Settings::PAPER);
-        // The configured rate is a whole number of hertz (the paper rig: 2 kHz).
-        let rate_hz = active.rate_hz as u32;
+        let rate_hz = match &stored {
+            Some((_, p)) => p.rate_hz(),
+            None => paper.rate_hz(),
+        };
         let mut board = hardware::init(cx.device, cx.core, rate_hz);
         defmt::info!(
             "belt-drive {=str} on {=str}: sysclk {=u32} Hz{=str}, control tick {=u32} Hz",
@@ -154,26 +169,34 @@ mod app {
         postmortem::log_reset_cause(cause);
         persist::log_boot(&boot);
 
-        // Built from the paper rig's configuration first (tested on the host: it cannot be
-        // refused), then the stored one installed over it with the link's own checks.
-        let paper = DriveConfig {
-            model: Models::Image(PAPER_IMAGE),
-            ..DriveConfig::paper_rig()
+        // Assembled from the paper rig's image first, then the stored one installed over it
+        // with the link's own checks.
+        let mut current_limit = paper.max_current_a();
+        let drive = match Drive::from_parts_in(cx.local.drive_storage, paper, PAPER_IMAGE) {
+            Ok(_) => {
+                // SAFETY: `from_parts_in` returned Ok, so it wrote the drive into the slot.
+                // Taken from the static itself, not from the returned reference: the control
+                // tick then addresses the static directly (9 instructions per tick fewer,
+                // measured).
+                unsafe { cx.local.drive_storage.assume_init_mut() }
+            }
+            Err(e) => defmt::panic!("built-in calibration refused: {=str}", blob_error_name(e)),
         };
-        if let Err(e) = Drive::new_in(cx.local.drive_storage, &paper) {
-            defmt::panic!("drive configuration refused: {=str}", e.field());
-        }
-        // SAFETY: `new_in` returned Ok, so it wrote the drive into the slot. Taken from the
-        // static itself, not from `new_in`'s reference: the control tick then addresses the
-        // static directly (9 instructions per tick fewer, measured).
-        let drive: &'static mut Drive = unsafe { cx.local.drive_storage.assume_init_mut() };
         let mut configured = false;
-        if let Some(s) = stored {
-            match build_parts(&s)
+        if let Some((active, parts)) = stored {
+            let limit = parts.max_current_a();
+            match board_limit(&parts)
                 .map_err(Ok)
-                .and_then(|p| drive.reconfigure(p).map_err(Err))
+                .and_then(|()| drive.reconfigure(parts).map_err(Err))
             {
-                Ok(()) => configured = true,
+                Ok(()) => {
+                    configured = true;
+                    current_limit = limit;
+                    // The image is the tail of the stored configuration (`decode_stored`).
+                    if let Ok(image) = settings_buf[settings::ENCODED_LEN..].try_into() {
+                        endpoint.boot_with(active, image, record_crc);
+                    }
+                }
                 Err(Ok(e)) => defmt::error!(
                     "stored configuration refused: {=str}: the drive boots unconfigured",
                     e.field()
@@ -182,7 +205,6 @@ mod app {
             }
         }
         if configured {
-            endpoint.boot_with(active, record_crc);
             if stored_blob > 0 {
                 let len = stored_blob.min(endpoint.blob_buffer().len());
                 match drive.load_calibration(&endpoint.blob_buffer()[..len]) {
@@ -190,7 +212,7 @@ mod app {
                         endpoint.boot_calibration(len);
                         // The geometry changed from the paper rig's: the configured model
                         // comes back with its calibration.
-                        let model = active.initial_model;
+                        let model = endpoint.active().initial_model;
                         let _ = drive.command(Command::SelectModel(model));
                         defmt::info!(
                             "stored calibration loaded ({=usize} bytes): model {=str}",
@@ -206,29 +228,27 @@ mod app {
             }
             install_default_models(drive);
             defmt::info!(
-                "configured from storage (record crc {=u32:#010x}): {=u32} encoder lines, gear {=f32}:1, {=u32}-tooth pulley, {=f32} mm pitch",
+                "configured from storage (record crc {=u32:#010x}): {=u32} encoder lines, gear {=f64}:1, {=u32}-tooth pulley, {=f64} mm pitch",
                 record_crc,
                 drive.rig().encoder_lines,
-                drive.rig().gear_ratio as f32,
+                drive.rig().gear_ratio,
                 drive.rig().pulley_teeth,
-                drive.rig().belt_pitch_mm as f32
+                drive.rig().belt_pitch_mm
             );
         } else {
             drive.forget_configuration();
             defmt::warn!(
-                "no valid configuration stored: the drive is UNCONFIGURED and refuses to enable; set one over the link (ConfigSet, ConfigApply) and save it"
+                "no valid configuration stored: the drive is UNCONFIGURED and refuses to enable; set one over the link (beltctl config set, which applies it) and save it"
             );
         }
-        let config = active.drive_config(Models::Image(&[]));
         // A current limit beyond the amplifier's linear range would wind the integrator up
         // against the DAC buffer's rail: refused (the drive stays disabled), never a panic.
-        let limit_ma = config.pid.max_current_a * 1000.0;
-        let permitted = limit_ma <= hardware::MAX_LINEAR_CURRENT_MA as f64;
+        let permitted = within_amplifier(current_limit);
         AMP_PERMITTED.store(permitted, Ordering::Relaxed);
         if !permitted {
             defmt::error!(
                 "drive current limit {=i32} mA exceeds the amplifier's linear range +-{=i32} mA: the drive stays disabled",
-                limit_ma as i32,
+                milliamperes(current_limit),
                 hardware::MAX_LINEAR_CURRENT_MA
             );
         }
@@ -572,36 +592,40 @@ mod app {
                         }
                     }
                     Effect::Configure => {
-                        // Soft-float work outside the lock; only the install holds it.
-                        let staged = *endpoint.staged();
-                        let result = build_parts(&staged).map_err(Ok).and_then(|p| {
-                            drive
-                                .lock(|d| {
-                                    d.reconfigure(p)?;
-                                    install_default_models(d);
-                                    Ok(())
-                                })
-                                .map_err(Err)
-                        });
-                        if result.is_ok() {
-                            let ma = staged.pid.max_current_a * 1000.0;
-                            AMP_PERMITTED.store(
-                                ma <= hardware::MAX_LINEAR_CURRENT_MA as f64,
-                                Ordering::Relaxed,
-                            );
+                        // The image is read and checked outside the lock; only the install
+                        // holds it.
+                        let result = endpoint
+                            .staged_parts()
+                            .and_then(|p| board_limit(&p).map(|()| p))
+                            .map_err(Ok)
+                            .and_then(|p| {
+                                let limit = p.max_current_a();
+                                drive
+                                    .lock(|d| {
+                                        d.reconfigure(p)?;
+                                        install_default_models(d);
+                                        Ok(())
+                                    })
+                                    .map_err(Err)?;
+                                Ok(limit)
+                            });
+                        if let Ok(limit) = result {
+                            AMP_PERMITTED.store(within_amplifier(limit), Ordering::Relaxed);
                         }
+                        let result = result.map(|_| ());
                         let (reply, event) = endpoint.configure_done(result);
                         log_event(&event);
                         reply
                     }
                     Effect::Save => {
-                        let mut buf = [0u8; settings::ENCODED_LEN];
-                        let result = match endpoint.active().encode(&mut buf) {
-                            Ok(n) => {
+                        let result = match endpoint.active_parts() {
+                            Some(parts) => {
+                                let buf = settings::encode_stored(endpoint.active(), parts);
                                 let blob = endpoint.installed_calibration().unwrap_or(&[]);
-                                persist.save(&buf[..n], blob)
+                                persist.save(&buf, blob)
                             }
-                            Err(_) => Err(persist::detail::ENCODE),
+                            // Refused by the endpoint before: nothing applied to save.
+                            None => Err(persist::detail::ENCODE),
                         };
                         let (reply, event) = endpoint.save_done(result);
                         log_event(&event);
@@ -644,13 +668,44 @@ mod app {
         }
     }
 
-    /// The drive's parts for `s`, with the board's own limit on the current (the DAC's linear
-    /// range) checked like any other field.
-    fn build_parts(s: &Settings) -> Result<Parts, ConfigError> {
-        if s.pid.max_current_a * 1000.0 > hardware::MAX_LINEAR_CURRENT_MA as f64 {
-            return Err(ConfigError::OutOfRange("pid.max_current_a"));
+    /// The board's own limit on the current (the DAC's linear range), checked like any other
+    /// field of a configuration image.
+    fn board_limit(p: &Parts) -> Result<(), ConfigError> {
+        if within_amplifier(p.max_current_a()) {
+            Ok(())
+        } else {
+            Err(ConfigError::OutOfRange("pid.max_current_a"))
         }
-        Parts::build(&s.drive_config(Models::Image(&[])), &s.homing)
+    }
+
+    /// A current limit within the amplifier's linear range.
+    fn within_amplifier(limit: I16F16) -> bool {
+        milliamperes(limit) <= hardware::MAX_LINEAR_CURRENT_MA
+    }
+
+    /// Whole milliamperes, rounded down (|limit| <= 127 A: no overflow in i64).
+    fn milliamperes(a: I16F16) -> i32 {
+        ((a.to_bits() as i64 * 1000) >> 16) as i32
+    }
+
+    fn log_settings_error(e: &SettingsError) {
+        match *e {
+            SettingsError::Invalid(c) => {
+                defmt::error!("stored configuration refused: {=str}", c.field())
+            }
+            SettingsError::UnknownKey(k) => {
+                defmt::error!("stored configuration refused: unknown field key {=u8}", k)
+            }
+            SettingsError::Truncated => defmt::error!(
+                "stored configuration refused: truncated or too long (a record of an older firmware?)"
+            ),
+            SettingsError::BadMagic => {
+                defmt::error!("stored configuration refused: not a settings record")
+            }
+            SettingsError::UnsupportedVersion(v) => {
+                defmt::error!("stored configuration refused: settings version {=u16}", v)
+            }
+        }
     }
 
     /// The paper rig without a calibration runs on the paper's Table 2 (embedded); any other

@@ -94,6 +94,16 @@ fn all_requests() -> Vec<Request> {
             value_bits: (-1.5e-9f64).to_bits(),
         },
         Request::ConfigGet { key: 255 },
+        Request::ConfigParts {
+            offset: 0,
+            len: 1,
+            data: [0; CHUNK_MAX],
+        },
+        Request::ConfigParts {
+            offset: 192,
+            len: CHUNK_MAX as u8,
+            data,
+        },
         Request::ConfigApply,
         Request::Save,
         Request::Record { every_n_ticks: 2 },
@@ -522,6 +532,19 @@ fn arb_request() -> impl Strategy<Value = Request> {
         Just(Request::Save),
         any::<u16>().prop_map(|n| Request::Record { every_n_ticks: n }),
         any::<u32>().prop_map(|offset| Request::CalRead { offset }),
+        (
+            any::<u16>(),
+            proptest::collection::vec(any::<u8>(), 1..=CHUNK_MAX)
+        )
+            .prop_map(|(o, d)| {
+                let mut data = [0u8; CHUNK_MAX];
+                data[..d.len()].copy_from_slice(&d);
+                Request::ConfigParts {
+                    offset: o,
+                    len: d.len() as u8,
+                    data,
+                }
+            }),
     ]
 }
 

@@ -63,8 +63,10 @@ pub mod kind {
     pub const RECORD: u8 = 0x15;
     /// [`super::Request::CalRead`]
     pub const CAL_READ: u8 = 0x16;
+    /// [`super::Request::ConfigParts`]
+    pub const CONFIG_PARTS: u8 = 0x17;
     /// The highest request kind: the kinds after it up to 0x7f are unused.
-    pub const LAST_REQUEST: u8 = CAL_READ;
+    pub const LAST_REQUEST: u8 = CONFIG_PARTS;
 
     /// [`super::Reply::Ack`]
     pub const ACK: u8 = 0x80;
@@ -206,8 +208,19 @@ pub enum Request {
         /// Field key.
         key: u8,
     },
-    /// Check the staged configuration as a whole and make it the drive's (payload 0); only
-    /// while disabled. Refused with [`LinkError::Config`] and the key of the offending field.
+    /// One piece of the configuration image the host built from the staged values (payload
+    /// 2 + `len`): the drive converts no units itself. Pieces arrive in order from offset 0.
+    ConfigParts {
+        /// Offset of `data[0]` in the image.
+        offset: u16,
+        /// Valid bytes in `data`, `1..=CHUNK_MAX`.
+        len: u8,
+        /// The bytes; only `data[..len]` is meaningful (the rest is zero).
+        data: [u8; CHUNK_MAX],
+    },
+    /// Check the configuration image ([`Request::ConfigParts`]) against the staged values and
+    /// make both the drive's (payload 0); only while disabled. Refused with
+    /// [`LinkError::Config`] and the key of the offending field.
     ConfigApply,
     /// Store the configuration and the calibration in persistent storage (payload 0); only
     /// while disabled. Answered with [`Reply::Saved`].
@@ -555,6 +568,7 @@ impl Message for Request {
             Request::Save => kind::SAVE,
             Request::Record { .. } => kind::RECORD,
             Request::CalRead { .. } => kind::CAL_READ,
+            Request::ConfigParts { .. } => kind::CONFIG_PARTS,
         }
     }
 
@@ -624,6 +638,14 @@ impl Message for Request {
             Request::ConfigGet { key } => w.u8(key),
             Request::Record { every_n_ticks } => w.u16(every_n_ticks),
             Request::CalRead { offset } => w.u32(offset),
+            Request::ConfigParts {
+                offset,
+                len,
+                ref data,
+            } => {
+                w.u16(offset);
+                w.put(&data[..(len as usize).min(CHUNK_MAX)]);
+            }
         }
         // Cannot overflow: every payload fits MAX_PAYLOAD.
         w.len()
@@ -721,6 +743,20 @@ impl Message for Request {
             kind::CAL_READ => Ok(Request::CalRead {
                 offset: expect_len(payload, 4)?.u32()?,
             }),
+            kind::CONFIG_PARTS => {
+                if payload.len() < 2 + 1 || payload.len() > 2 + CHUNK_MAX {
+                    return Err(LinkError::BadLength);
+                }
+                let offset = Reader::new(payload).u16()?;
+                let mut data = [0u8; CHUNK_MAX];
+                let n = payload.len() - 2;
+                data[..n].copy_from_slice(&payload[2..]);
+                Ok(Request::ConfigParts {
+                    offset,
+                    len: n as u8,
+                    data,
+                })
+            }
             _ => Err(LinkError::UnknownKind),
         }
     }

@@ -4,6 +4,7 @@
 use std::path::Path;
 
 use belt_link::{status_flags, Reply, Request};
+use estimator_core::endpoint::config_parts_requests;
 use estimator_core::rig::Rig;
 use estimator_core::settings::{self, Field, Settings, FIELDS};
 
@@ -219,6 +220,31 @@ pub fn set_and_apply(
             )),
             e => e,
         })?;
+    }
+    // The drive converts no units: the image of the staged values is built here.
+    let mut staged = Settings::PAPER;
+    for v in get_all(link)? {
+        staged.set(v.field.key, v.staged).map_err(|e| {
+            ToolError::Drive(format!(
+                "{}: the drive's staged configuration holds {} = {}: {e}",
+                link.name(),
+                v.field.name,
+                v.staged
+            ))
+        })?;
+    }
+    let image = staged.parts_image().map_err(|e| {
+        let what = match settings::field_named(e.field()) {
+            Some(f) => format!("{e} (unit {})", f.unit),
+            None => e.to_string(),
+        };
+        ToolError::Drive(format!(
+            "{source}: the configuration is refused: {what}; nothing changed, the values stay \
+             staged (`beltctl config get` shows them) until an apply succeeds"
+        ))
+    })?;
+    for req in config_parts_requests(&image) {
+        link.acked(&req).map_err(with_source)?;
     }
     link.acked(&Request::ConfigApply).map_err(with_source)
 }

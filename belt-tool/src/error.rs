@@ -4,7 +4,7 @@
 use std::io;
 
 use belt_link::{kind, CommandError, LinkError};
-use estimator_core::endpoint::{cal_error, storage_detail};
+use estimator_core::endpoint::{cal_error, storage_detail, CONFIG_IMAGE_REFUSED};
 use estimator_core::settings;
 
 /// Why a `beltctl` command failed.
@@ -256,6 +256,10 @@ pub fn refusal(reason: LinkError, detail: u8) -> String {
                 f.name, f.unit
             ),
             None if detail == 0xff => "the configuration as a whole is invalid".into(),
+            None if detail == CONFIG_IMAGE_REFUSED => "the drive refused the configuration image \
+                 (incomplete, damaged, of another version, or built from other values than the \
+                 staged ones): apply again"
+                .into(),
             None => format!("configuration refused (field key {detail}, unknown to this beltctl)"),
         },
         LinkError::Storage => match detail {
@@ -263,6 +267,13 @@ pub fn refusal(reason: LinkError, detail: u8) -> String {
                 "saving needs the drive disabled (`beltctl disable` first)".into()
             }
             storage_detail::NO_STORAGE => "this drive has no persistent storage".into(),
+            storage_detail::CONFIG_BYTES_GONE => "the active configuration's image was \
+                 overwritten by a transfer that was not applied: apply the configuration again, \
+                 then save"
+                .into(),
+            storage_detail::NOT_CONFIGURED => "the drive holds no configuration to save: set \
+                 one first (`beltctl config set` or `config load`)"
+                .into(),
             storage_detail::CALIBRATION_BYTES_GONE => "the installed calibration's bytes were \
                  overwritten by an unfinished transfer: upload the calibration again, then save"
                 .into(),
@@ -323,6 +334,7 @@ pub fn kind_name(k: u8) -> &'static str {
         kind::CONFIG_SET => "config set",
         kind::CONFIG_GET => "config get",
         kind::CONFIG_APPLY => "config apply",
+        kind::CONFIG_PARTS => "configuration image",
         kind::SAVE => "save",
         kind::RECORD => "record",
         _ => "an unknown request",

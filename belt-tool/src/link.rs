@@ -94,6 +94,7 @@ pub fn describe(req: &Request) -> String {
         Request::Shutdown { .. } => "shutdown".into(),
         Request::ConfigSet { key, .. } => format!("config set {}", field(key)),
         Request::ConfigGet { key } => format!("config get {}", field(key)),
+        Request::ConfigParts { offset, .. } => format!("configuration image at byte {offset}"),
         Request::ConfigApply => "config apply".into(),
         Request::Save => "save".into(),
         Request::Record { every_n_ticks: 0 } => "record stop".into(),

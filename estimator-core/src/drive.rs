@@ -21,6 +21,9 @@ use crate::trajectory::{self, Trajectory};
 use crate::BuildContext;
 use crate::{encoder, pid, ConfigError};
 
+mod parts_image;
+pub use parts_image::{PartsImage, IMAGE_FIELD, PARTS_IMAGE_LEN, PARTS_IMAGE_VERSION};
+
 /// What the board samples at the start of every tick.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Sample {
@@ -243,7 +246,6 @@ pub struct Drive {
     /// Micrometres per count, Q32 (status only).
     um_per_count_q32: i64,
     rig: Rig,
-    rate_hz: f64,
     homing_cfg: HomingCoeffs,
     /// A configuration was given (boot: stored, or over the link); otherwise enabling is refused.
     configured: bool,
@@ -290,13 +292,14 @@ fn to_i32(v: f64, field: &'static str) -> Result<i32, ConfigError> {
 }
 
 /// A checked configuration in the drive's integer units, everything but the model
-/// coefficients: built with f64 arithmetic by [`Parts::build`] (milliseconds of soft float on
-/// the microcontroller, so outside the control task's lock), installed by
-/// [`Drive::reconfigure`].
-#[derive(Clone, Debug)]
+/// coefficients: built with f64 arithmetic by [`Parts::build`] on the host, carried to the
+/// drive as a configuration image ([`Parts::encode`], [`Parts::decode`]: integer checks only),
+/// installed by [`Drive::reconfigure`].
+#[derive(Clone, Debug, PartialEq)]
 pub struct Parts {
     rig: Rig,
-    rate_hz: f64,
+    /// The control rate, whole hertz (the firmware's tick timer).
+    rate_hz: u32,
     limits: Limits,
     motor: encoder::Coeffs<u16>,
     scale: encoder::Coeffs<u16>,
@@ -348,6 +351,12 @@ impl Parts {
             return Err(E::OutOfRange("drive.max_velocity_mm_s"));
         }
         if !(amax > 0.0 && amax * 1000.0 <= u32::MAX as f64) {
+            return Err(E::OutOfRange("drive.max_accel_mm_s2"));
+        }
+        if vmax * 1000.0 < 1.0 {
+            return Err(E::OutOfRange("drive.max_velocity_mm_s"));
+        }
+        if amax * 1000.0 < 1.0 {
             return Err(E::OutOfRange("drive.max_accel_mm_s2"));
         }
         let counts_per_um_q32 = (cpm / 1000.0 * 4_294_967_296.0) as i64;
@@ -416,6 +425,10 @@ impl Parts {
         if !(backoff >= 0.0 && after >= lo && after <= hi) {
             return Err(E::OutOfRange("homing.backoff_mm"));
         }
+        // Whole um/s: a speed that rounds to none would never move (the image refuses it too).
+        if hv * 1000.0 < 1.0 {
+            return Err(E::OutOfRange("homing.velocity_mm_s"));
+        }
         let homing = HomingCoeffs {
             towards_positive: homing.towards_positive,
             velocity_um_s: (hv * 1000.0) as u32,
@@ -433,7 +446,8 @@ impl Parts {
         };
         Ok(Parts {
             rig: cfg.rig,
-            rate_hz,
+            // Whole hertz: `Settings` holds the rate so; a fraction only in host simulations.
+            rate_hz: rate_hz as u32,
             limits,
             motor,
             scale,
@@ -470,6 +484,27 @@ impl Drive {
         Ok(drive)
     }
 
+    /// A disabled drive from a configuration image's `parts` (see [`Parts::decode`]) and a
+    /// calibration image (empty: none, no compensation until one loads), built in place in `slot` as [`Drive::new_in`] does but without any
+    /// `f64`: the firmware's boot. On a refusal `slot` may hold a drive; do not use it.
+    pub fn from_parts_in<'a>(
+        slot: &'a mut MaybeUninit<Drive>,
+        parts: Parts,
+        calibration: &[u8],
+    ) -> Result<&'a mut Drive, BlobError> {
+        let rig = parts.rig;
+        let drive = slot.write(Drive::assemble(parts));
+        if calibration.is_empty() {
+            // No calibration: uncompensated until one loads.
+            drive.models_valid = false;
+            drive.model = ModelKind::None;
+            drive.last.model = ModelKind::None;
+        } else {
+            crate::image::decode_into(calibration, &rig, &mut drive.models)?;
+        }
+        Ok(drive)
+    }
+
     /// The models of `cfg`, into the drive's coefficients in place.
     fn install_models(&mut self, cfg: &DriveConfig) -> Result<(), ConfigError> {
         match cfg.model {
@@ -489,7 +524,6 @@ impl Drive {
     fn assemble(p: Parts) -> Drive {
         Drive {
             rig: p.rig,
-            rate_hz: p.rate_hz,
             limits: p.limits,
             motor: p.motor,
             motor_state: encoder::State::new(0),
@@ -553,7 +587,7 @@ impl Drive {
         self.homing
     }
 
-    /// Installs a configuration built with [`Parts::build`] (outside any lock: it is f64 work).
+    /// Installs a configuration ([`Parts::build`] on the host, [`Parts::decode`] on the drive).
     /// Only while disabled. The drive must be homed again; with another geometry the models no
     /// longer apply, so compensation is off (`ModelKind::None`) until a calibration loads.
     pub fn reconfigure(&mut self, p: Parts) -> Result<(), CommandError> {
@@ -565,7 +599,6 @@ impl Drive {
         }
         let here = self.motor_state.position_counts();
         self.rig = p.rig;
-        self.rate_hz = p.rate_hz;
         self.limits = p.limits;
         self.motor = p.motor;
         self.scale = p.scale;

@@ -11,7 +11,9 @@ use belt_link::{
 use fixed::types::I16F16;
 
 use crate::blob::BlobError;
-use crate::drive::{Drive, Faults, Output, Parts, Sample, Telemetry};
+use crate::drive::{
+    Drive, Faults, Output, Parts, PartsImage, Sample, Telemetry, IMAGE_FIELD, PARTS_IMAGE_LEN,
+};
 use crate::image;
 use crate::settings::{self, Settings, SettingsError};
 use crate::ConfigError;
@@ -42,7 +44,17 @@ pub mod storage_detail {
     pub const CALIBRATION_BYTES_GONE: u8 = 0x41;
     /// Saving needs the drive disabled (an erase stalls the CPU).
     pub const ENABLED: u8 = 0x42;
+    /// No configuration was applied or stored: nothing to save.
+    pub const NOT_CONFIGURED: u8 = 0x43;
+    /// The active configuration's image was overwritten by a later image transfer that was not
+    /// applied: apply a configuration again before saving.
+    pub const CONFIG_BYTES_GONE: u8 = 0x44;
 }
+
+/// The [`LinkError::Config`] detail of a configuration image refused as a whole (incomplete,
+/// damaged, of another version, or built from other values than the staged ones); other
+/// details are the key of the refused field, or 0xff.
+pub const CONFIG_IMAGE_REFUSED: u8 = 0xfe;
 
 /// Wire code of a blob refusal (low bits of a [`cal_error::REJECTED`] detail).
 pub fn blob_error_code(e: BlobError) -> u8 {
@@ -145,9 +157,9 @@ pub enum Effect {
     /// needs, read it in with [`Drive::load_checked_calibration`], then report with
     /// [`Endpoint::calibration_done`].
     Calibrate(usize),
-    /// The staged configuration ([`Endpoint::staged`]) is to be applied: build it with
-    /// [`Parts::build`] outside any lock, install it with [`Drive::reconfigure`], report with
-    /// [`Endpoint::configure_done`].
+    /// The staged configuration ([`Endpoint::staged`]) is to be applied: read its image with
+    /// [`Endpoint::staged_parts`] (integer checks), install it with [`Drive::reconfigure`],
+    /// report with [`Endpoint::configure_done`].
     Configure,
     /// Store [`Endpoint::active`] and [`Endpoint::installed_calibration`] (the drive is
     /// disabled), then report with [`Endpoint::save_done`].
@@ -194,6 +206,23 @@ pub enum Event {
     SaveFailed(u8),
 }
 
+/// The [`Request::ConfigParts`] pieces that carry `image` to the drive, in order (the host's
+/// side of [`Endpoint::staged_parts`]).
+pub fn config_parts_requests(image: &PartsImage) -> impl Iterator<Item = Request> + '_ {
+    image
+        .chunks(belt_link::CHUNK_MAX)
+        .enumerate()
+        .map(|(i, piece)| {
+            let mut data = [0u8; belt_link::CHUNK_MAX];
+            data[..piece.len()].copy_from_slice(piece);
+            Request::ConfigParts {
+                offset: (i * belt_link::CHUNK_MAX) as u16,
+                len: piece.len() as u8,
+                data,
+            }
+        })
+}
+
 /// The calibration blob's buffer: owned on hosts, a `&'static mut` into zero-initialised RAM
 /// on the firmware (so that the 5 KiB buffer costs no flash for an initial image in `.data`).
 pub type BlobBuffer = [u8; image::MAX_BYTES];
@@ -212,6 +241,13 @@ pub struct Endpoint<B = BlobBuffer> {
     /// The configuration in force and the one being edited over the link.
     active: Settings,
     staged: Settings,
+    /// A configuration image and its bytes received so far: the one arriving for `staged`,
+    /// or, while `parts_active`, the image of `active` (one buffer: 229 bytes of RAM less).
+    parts: PartsImage,
+    parts_got: usize,
+    parts_active: bool,
+    /// A configuration was applied or stored (otherwise there is nothing to save).
+    configured: bool,
     /// CRC of the stored record booted from or last saved (0 = none).
     record_crc: u32,
 }
@@ -240,16 +276,43 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
             streaming: false,
             active: Settings::PAPER,
             staged: Settings::PAPER,
+            parts: [0; PARTS_IMAGE_LEN],
+            parts_got: 0,
+            parts_active: false,
+            configured: false,
             record_crc: 0,
         }
     }
 
-    /// Boot: the configuration the drive was built with, and the stored record it came from
-    /// (CRC, 0 if none).
-    pub fn boot_with(&mut self, active: Settings, record_crc: u32) {
+    /// Boot: the configuration the drive was built with, its image, and the stored record it
+    /// came from (CRC, 0 if none).
+    pub fn boot_with(&mut self, active: Settings, parts: &PartsImage, record_crc: u32) {
         self.active = active;
         self.staged = active;
+        self.parts = *parts;
+        self.parts_got = PARTS_IMAGE_LEN;
+        self.parts_active = true;
+        self.configured = true;
         self.record_crc = record_crc;
+    }
+
+    /// The image of the configuration in force, if one was applied or stored and no later
+    /// transfer overwrote it.
+    pub fn active_parts(&self) -> Option<&PartsImage> {
+        self.parts_active.then_some(&self.parts)
+    }
+
+    /// The configuration image received for the staged values, checked in integers: complete,
+    /// intact, and built from exactly [`Endpoint::staged`] (else [`IMAGE_FIELD`] is named).
+    pub fn staged_parts(&self) -> Result<Parts, ConfigError> {
+        if self.parts_got != PARTS_IMAGE_LEN {
+            return Err(ConfigError::OutOfRange(IMAGE_FIELD));
+        }
+        let (parts, settings_crc) = Parts::decode(&self.parts)?;
+        if settings_crc != self.staged.crc32() {
+            return Err(ConfigError::OutOfRange(IMAGE_FIELD));
+        }
+        Ok(parts)
     }
 
     /// Boot: a stored calibration of `len` bytes was copied into [`Endpoint::blob_buffer`] and
@@ -298,13 +361,19 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
         match result {
             Ok(()) => {
                 self.active = self.staged;
+                self.parts_active = true;
+                self.configured = true;
                 (Reply::Ack { of }, Event::Configured)
             }
             Err(Ok(e)) => (
                 Reply::Error {
                     of,
                     reason: LinkError::Config,
-                    detail: settings::key_of(&e),
+                    detail: if e.field() == IMAGE_FIELD {
+                        CONFIG_IMAGE_REFUSED
+                    } else {
+                        settings::key_of(&e)
+                    },
                 },
                 Event::ConfigRefused(e),
             ),
@@ -382,8 +451,8 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
                 (Effect::Reply(reply), event)
             }
             (Effect::Configure, _) => {
-                let cfg = self.staged.drive_config(crate::drive::Models::Image(&[]));
-                let result = Parts::build(&cfg, &self.staged.homing)
+                let result = self
+                    .staged_parts()
                     .map_err(Ok)
                     .and_then(|p| drive.reconfigure(p).map_err(Err));
                 let (reply, event) = self.configure_done(result);
@@ -463,6 +532,14 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
                         Event::SaveFailed(storage_detail::ENABLED),
                     );
                 }
+                if !self.configured {
+                    let d = storage_detail::NOT_CONFIGURED;
+                    return (refuse(LinkError::Storage, d), Event::SaveFailed(d));
+                }
+                if !self.parts_active {
+                    let d = storage_detail::CONFIG_BYTES_GONE;
+                    return (refuse(LinkError::Storage, d), Event::SaveFailed(d));
+                }
                 if self.installed_calibration().is_none() {
                     let d = storage_detail::CALIBRATION_BYTES_GONE;
                     return (refuse(LinkError::Storage, d), Event::SaveFailed(d));
@@ -470,6 +547,28 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
                 (Effect::Save, Event::None)
             }
             Request::Record { every_n_ticks } => (Effect::Record(every_n_ticks), Event::None),
+            Request::ConfigParts {
+                offset,
+                len,
+                ref data,
+            } => {
+                // In order from 0; offset 0 starts over.
+                let at = if offset == 0 { 0 } else { self.parts_got };
+                let piece = &data[..(len as usize).min(belt_link::CHUNK_MAX)];
+                // The buffer no longer holds the active image.
+                self.parts_active = false;
+                match self.parts.get_mut(at..at + piece.len()) {
+                    Some(dst) if offset as usize == at => {
+                        dst.copy_from_slice(piece);
+                        self.parts_got = at + piece.len();
+                        (ack, Event::None)
+                    }
+                    _ => {
+                        self.parts_got = 0;
+                        (refuse(LinkError::OutOfRange, 0), Event::None)
+                    }
+                }
+            }
             Request::CalRead { offset } => {
                 let Some(bytes) = self.installed_calibration() else {
                     let d = cal_error::NOT_STARTED;
@@ -881,5 +980,120 @@ mod tests {
         );
         assert_eq!(ep.calibration(blob.len()), &blob[..]);
         assert_eq!(d.models(), &before);
+    }
+
+    // ---- the configuration: values staged, the host's image applied ----
+
+    fn ack(e: &Effect) -> bool {
+        matches!(e, Effect::Reply(Reply::Ack { .. }))
+    }
+
+    fn send_image(ep: &mut Endpoint, d: &mut Drive, image: &PartsImage) {
+        for req in config_parts_requests(image) {
+            assert!(ack(&ep.handle(&req, d).0));
+        }
+    }
+
+    #[test]
+    fn configuration_applies_only_the_image_of_the_staged_values() {
+        use crate::settings::{self, Settings};
+        let mut d = drive();
+        let mut ep = Endpoint::new();
+        let image_refused = Some((LinkError::Config, CONFIG_IMAGE_REFUSED));
+
+        // Nothing applied yet: nothing to save, and no image to apply.
+        assert_eq!(
+            refused(ep.handle(&Request::Save, &mut d).0),
+            Some((LinkError::Storage, storage_detail::NOT_CONFIGURED))
+        );
+        assert_eq!(
+            refused(ep.handle_inline(&Request::ConfigApply, &mut d).0),
+            image_refused
+        );
+
+        // A new travel: staged, its image sent, applied.
+        let key = settings::field_named("drive.travel_max_mm").unwrap().key;
+        let set = |v: f64| Request::ConfigSet {
+            key,
+            value_bits: v.to_bits(),
+        };
+        assert!(ack(&ep.handle(&set(250.0), &mut d).0));
+        let mut want = Settings::PAPER;
+        want.travel_max_mm = 250.0;
+        assert_eq!(ep.staged(), &want);
+        send_image(&mut ep, &mut d, &want.parts_image().unwrap());
+        let (e, ev) = ep.handle_inline(&Request::ConfigApply, &mut d);
+        assert!(ack(&e), "{e:?}");
+        assert_eq!(ev, Event::Configured);
+        assert_eq!(ep.active(), &want);
+        assert_eq!(ep.active_parts(), Some(&want.parts_image().unwrap()));
+        assert_eq!(ep.handle(&Request::Save, &mut d).0, Effect::Save);
+
+        // An image of other values than the staged ones (a value staged after it was built).
+        let mut other = want;
+        other.travel_max_mm = 200.0;
+        send_image(&mut ep, &mut d, &other.parts_image().unwrap());
+        assert!(ack(&ep.handle(&set(210.0), &mut d).0));
+        assert_eq!(
+            refused(ep.handle_inline(&Request::ConfigApply, &mut d).0),
+            image_refused
+        );
+        assert_eq!(ep.active(), &want, "a refused apply changes nothing");
+        assert_eq!(
+            refused(ep.handle(&Request::Save, &mut d).0),
+            Some((LinkError::Storage, storage_detail::CONFIG_BYTES_GONE))
+        );
+
+        // Pieces out of order are refused, and the image must be sent again from 0.
+        let image = ep.staged().parts_image().unwrap();
+        let pieces: Vec<Request> = config_parts_requests(&image).collect();
+        assert!(ack(&ep.handle(&pieces[0], &mut d).0));
+        assert_eq!(
+            refused(ep.handle(&pieces[2], &mut d).0),
+            Some((LinkError::OutOfRange, 0))
+        );
+        assert!(!ack(&ep.handle(&pieces[1], &mut d).0));
+        assert_eq!(
+            refused(ep.handle_inline(&Request::ConfigApply, &mut d).0),
+            image_refused
+        );
+        send_image(&mut ep, &mut d, &image);
+        assert!(ack(&ep.handle_inline(&Request::ConfigApply, &mut d).0));
+        assert_eq!(ep.active().travel_max_mm, 210.0);
+
+        // Refused while enabled, as every configuration change.
+        assert!(ack(&ep
+            .handle(&Request::Command(Command::Enable), &mut d)
+            .0));
+        send_image(&mut ep, &mut d, &image);
+        assert_eq!(
+            refused(ep.handle_inline(&Request::ConfigApply, &mut d).0),
+            Some((LinkError::Refused, CommandError::Busy.code()))
+        );
+    }
+
+    #[test]
+    fn stored_configuration_round_trips_and_refuses_a_mismatch() {
+        use crate::settings::{decode_stored, encode_stored, Settings, SettingsError};
+        let s = Settings::PAPER;
+        let image = s.parts_image().unwrap();
+        let bytes = encode_stored(&s, &image);
+        let (back, parts) = decode_stored(&bytes).unwrap();
+        assert_eq!(back, s);
+        assert_eq!(&bytes[settings::ENCODED_LEN..], &image[..]);
+        assert_eq!(parts, Parts::decode(&image).unwrap().0);
+        // The image of other settings beside these.
+        let mut other = s;
+        other.max_velocity_mm_s = 100.0;
+        let mixed = encode_stored(&s, &other.parts_image().unwrap());
+        assert_eq!(
+            decode_stored(&mixed).unwrap_err(),
+            SettingsError::Invalid(ConfigError::OutOfRange(IMAGE_FIELD))
+        );
+        // A record of the firmware before the image (settings only).
+        assert_eq!(
+            decode_stored(&bytes[..settings::ENCODED_LEN]).unwrap_err(),
+            SettingsError::Truncated
+        );
     }
 }

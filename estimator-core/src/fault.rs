@@ -323,7 +323,72 @@ pub struct Coeffs {
     link_timeout_ticks: u32,
 }
 
+/// The largest count threshold [`Config::build`] gives (1e9 counts).
+const MAX_THRESHOLD_COUNTS: u32 = 1_000_000_000;
+
 impl Coeffs {
+    /// The thresholds as words, in the order [`Coeffs::from_words`] reads them: for the
+    /// configuration image the host builds (`drive::Parts::encode`).
+    pub(crate) fn to_words(self) -> [u32; 12] {
+        [
+            self.fe_rest_counts,
+            self.fe_slope_q8,
+            self.stall_current,
+            self.stall_motion_counts,
+            self.stall_ticks,
+            self.runaway_current,
+            self.runaway_window_counts,
+            self.runaway_ticks,
+            self.overspeed_window_counts,
+            self.overspeed_ticks,
+            self.saturation_ticks,
+            self.link_timeout_ticks,
+        ]
+    }
+
+    /// Thresholds from words, checked in integers against the ranges [`Config::build`] gives;
+    /// a refusal names the SI field.
+    pub(crate) fn from_words(w: [u32; 12]) -> Result<Coeffs, ConfigError> {
+        let check = |ok: bool, v: u32, field| {
+            if ok {
+                Ok(v)
+            } else {
+                Err(ConfigError::OutOfRange(field))
+            }
+        };
+        let counts = |v: u32, field| check(v <= MAX_THRESHOLD_COUNTS, v, field);
+        // Below 32,000 A in I16F16.
+        let amps = |v: u32, field| check(v < 32_000 << 16, v, field);
+        // Whole ticks up to `u16::MAX`, or never.
+        let ticks = |v: u32, field| {
+            check(
+                v == u32::MAX || (1..=u16::MAX as u32).contains(&v),
+                v,
+                field,
+            )
+        };
+        let [rest, slope, stall_a, motion, stall_t, runaway_a, runaway_w, runaway_t, over_w, over_t, sat_t, link] =
+            w;
+        Ok(Coeffs {
+            fe_rest_counts: counts(rest, "faults.following_error_at_rest_mm")?,
+            fe_slope_q8: check(
+                slope <= 1 << 16,
+                slope,
+                "faults.following_error_at_max_velocity_mm",
+            )?,
+            stall_current: amps(stall_a, "faults.stall_current_a")?,
+            stall_motion_counts: counts(motion, "faults.stall_motion_mm")?,
+            stall_ticks: ticks(stall_t, "faults.stall_time_s")?,
+            runaway_current: amps(runaway_a, "faults.runaway_current_a")?,
+            runaway_window_counts: counts(runaway_w, "faults.runaway_speed_mm_s")?,
+            runaway_ticks: ticks(runaway_t, "faults.runaway_time_s")?,
+            overspeed_window_counts: counts(over_w, "faults.overspeed_ratio")?,
+            overspeed_ticks: ticks(over_t, "faults.overspeed_time_s")?,
+            saturation_ticks: ticks(sat_t, "faults.saturation_time_s")?,
+            link_timeout_ticks: check(link <= u32::MAX / 2, link, "faults.link_timeout_s")?,
+        })
+    }
+
     /// The following-error limit, counts, at a set-point speed of `speed` (counts per tick, any
     /// sign). 32-bit arithmetic: the speed to 1/16 count per tick.
     #[inline]
@@ -331,6 +396,11 @@ impl Coeffs {
         let v_q4 = (speed.to_bits().unsigned_abs() >> (I40F24::FRAC_NBITS - 4)).min(1 << 15) as u32;
         self.fe_rest_counts
             .saturating_add(v_q4.wrapping_mul(self.fe_slope_q8) >> 12)
+    }
+
+    /// The following-error limit at rest, counts.
+    pub fn following_error_at_rest_counts(&self) -> u32 {
+        self.fe_rest_counts
     }
 
     /// Ticks of silence before `LINK_TIMEOUT` (0 = off).

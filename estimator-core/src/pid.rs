@@ -290,6 +290,57 @@ fn mul_shr(a: i32, b: i32, shift: u32) -> i32 {
 }
 
 impl Coeffs {
+    /// The gains as raw bits, in the order [`Coeffs::from_bits`] reads them: for the
+    /// configuration image the host builds (`drive::Parts::encode`).
+    pub(crate) fn to_bits(self) -> [i32; 7] {
+        [
+            self.kp_a_per_count.to_bits(),
+            self.ki_a_per_count_tick.to_bits(),
+            self.kd_a_tick_per_count.to_bits(),
+            self.derivative_alpha.to_bits(),
+            self.kff_vel_a_tick_per_count.to_bits(),
+            self.kff_acc_a_tick2_per_count.to_bits(),
+            self.max_current_a.to_bits(),
+        ]
+    }
+
+    /// Gains from raw bits, checked in integers against the bounds [`Config::build`] keeps
+    /// (which [`Coeffs::update`] relies on to never overflow); a refusal names the SI field.
+    pub(crate) fn from_bits(b: [i32; 7]) -> Result<Coeffs, ConfigError> {
+        // `0 <= bits < 2^max_log2` (the strict upper bounds of `gain`).
+        let gain = |bits: i32, max_log2: u32, field| {
+            if (0..1 << max_log2).contains(&bits) {
+                Ok(bits)
+            } else {
+                Err(ConfigError::OutOfRange(field))
+            }
+        };
+        let [kp, ki, kd, alpha, kff_vel, kff_acc, max] = b;
+        if alpha <= 0 {
+            return Err(ConfigError::OutOfRange("pid.derivative_cutoff_hz"));
+        }
+        if !(max > 0 && max <= MAX_CURRENT_A.to_bits()) {
+            return Err(ConfigError::OutOfRange("pid.max_current_a"));
+        }
+        Ok(Coeffs {
+            kp_a_per_count: I8F24::from_bits(gain(kp, 24, "pid.kp_a_per_mm")?),
+            ki_a_per_count_tick: I1F31::from_bits(gain(ki, 23, "pid.ki_a_per_mm_s")?),
+            kd_a_tick_per_count: I16F16::from_bits(gain(kd, 20, "pid.kd_a_s_per_mm")?),
+            derivative_alpha: I1F31::from_bits(alpha),
+            kff_vel_a_tick_per_count: I16F16::from_bits(gain(
+                kff_vel,
+                20,
+                "pid.kff_vel_a_s_per_mm",
+            )?),
+            kff_acc_a_tick2_per_count: I16F16::from_bits(gain(
+                kff_acc,
+                25,
+                "pid.kff_acc_a_s2_per_mm",
+            )?),
+            max_current_a: I16F16::from_bits(max),
+        })
+    }
+
     /// The output limit.
     pub fn max_current_a(&self) -> I16F16 {
         self.max_current_a

@@ -9,7 +9,9 @@
 use belt_link::bytes::{Reader, Short, Writer};
 use belt_link::ModelKind;
 
-use crate::drive::{DriveConfig, Models, Polarity};
+use crate::drive::{
+    DriveConfig, Models, Parts, PartsImage, Polarity, IMAGE_FIELD, PARTS_IMAGE_LEN,
+};
 use crate::rig::Rig;
 use crate::{fault, pid, ConfigError};
 
@@ -112,6 +114,23 @@ impl Settings {
         }
     }
 
+    /// CRC-32 of the encoded record: what a configuration image is tied to.
+    pub fn crc32(&self) -> u32 {
+        let mut buf = [0u8; ENCODED_LEN];
+        match self.encode(&mut buf) {
+            Ok(n) => belt_link::crc32(&buf[..n]),
+            // Cannot happen: the buffer holds a record.
+            Err(Short) => 0,
+        }
+    }
+
+    /// The configuration image of these settings for the drive ([`Parts::encode`]): built
+    /// with `f64` arithmetic, so on the host; a refusal names the field.
+    pub fn parts_image(&self) -> Result<PartsImage, ConfigError> {
+        let parts = Parts::build(&self.drive_config(Models::Image(&[])), &self.homing)?;
+        Ok(parts.encode(self.crc32()))
+    }
+
     /// The value of field `key`, or `None` for an unknown key.
     pub fn get(&self, key: u8) -> Option<f64> {
         field(key).map(|f| (f.get)(self))
@@ -187,6 +206,35 @@ const MAGIC: [u8; 4] = *b"BDCF";
 pub const VERSION: u16 = 1;
 /// Length of an encoded record.
 pub const ENCODED_LEN: usize = 8 + FIELDS.len() * 9;
+
+/// The configuration part of a stored record: the settings record, then the configuration
+/// image built from it (the drive boots from the image: no unit conversion on the MCU).
+pub const STORED_LEN: usize = ENCODED_LEN + PARTS_IMAGE_LEN;
+
+/// The stored form of `s` with its configuration image.
+pub fn encode_stored(s: &Settings, parts: &PartsImage) -> [u8; STORED_LEN] {
+    let mut out = [0u8; STORED_LEN];
+    // Cannot be short: the buffer holds a record.
+    let _ = s.encode(&mut out[..ENCODED_LEN]);
+    out[ENCODED_LEN..].copy_from_slice(parts);
+    out
+}
+
+/// Reads a stored configuration ([`encode_stored`]): the settings and the parts of the image,
+/// which must have been built from exactly these settings (else [`IMAGE_FIELD`] is named). The
+/// image itself is `bytes[ENCODED_LEN..]`.
+pub fn decode_stored(bytes: &[u8]) -> Result<(Settings, Parts), SettingsError> {
+    if bytes.len() != STORED_LEN {
+        return Err(SettingsError::Truncated);
+    }
+    let (record, image) = bytes.split_at(ENCODED_LEN);
+    let settings = Settings::decode(record)?;
+    let (parts, settings_crc) = Parts::decode(image).map_err(SettingsError::Invalid)?;
+    if settings_crc != belt_link::crc32(record) {
+        return Err(SettingsError::Invalid(ConfigError::OutOfRange(IMAGE_FIELD)));
+    }
+    Ok((settings, parts))
+}
 
 /// Why a value or a record was refused.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

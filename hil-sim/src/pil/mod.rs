@@ -351,6 +351,13 @@ impl PilController {
             })
             .map_err(|e| link_err(format!("{} = {value}: {e}", f.name)))?;
         }
+        // The drive converts no units: the image is built here, from the very same values.
+        let image = s
+            .parts_image()
+            .map_err(|e| link_err(format!("configuration refused: {e}")))?;
+        for req in estimator_core::endpoint::config_parts_requests(&image) {
+            self.expect_ack(&req)?;
+        }
         self.expect_ack(&Request::ConfigApply)
     }
 
