@@ -131,4 +131,10 @@ fn blob_vectors(out: &mut String) {
         .parts_image()
         .unwrap();
     std::fs::write(out_dir.join("paper_parts.bin"), parts).unwrap();
+    // The paper rig's settings record: what an unconfigured drive reports and stages first.
+    let mut record = [0u8; estimator_core::settings::ENCODED_LEN];
+    let n = estimator_core::settings::Settings::PAPER
+        .encode(&mut record)
+        .unwrap();
+    std::fs::write(out_dir.join("paper_settings.bin"), &record[..n]).unwrap();
 }

@@ -40,14 +40,15 @@ mod app {
     use belt_drive::postmortem::{self, reset_cause};
     use belt_drive::stack;
     use belt_link::{
-        LinkError, Message, Receiver, RecordSample, Reply, Request, WireTelemetry, RECORD_BATCH,
+        LinkError, Message, ModelKind, Receiver, RecordSample, Reply, Request, WireTelemetry,
+        RECORD_BATCH,
     };
     use estimator_core::blob::BlobError;
     use estimator_core::endpoint::{answer, BlobBuffer, Effect, Endpoint, Event as LinkEvent};
     use estimator_core::fixed::types::I16F16;
     use estimator_core::image;
     use estimator_core::rig::Rig;
-    use estimator_core::settings::{self, SettingsError};
+    use estimator_core::settings::{self, RawSettings, SettingsError};
     use estimator_core::ConfigError;
 
     /// Received bytes waiting for `link` (one slot stays free): more than one largest frame
@@ -68,6 +69,9 @@ mod app {
     /// The paper rig's configuration image (built by build.rs): the drive before any stored
     /// configuration.
     static PAPER_PARTS: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/paper_parts.bin"));
+    /// The paper rig's settings record (built by build.rs): what an unconfigured drive reports
+    /// and stages first.
+    static PAPER_SETTINGS: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/paper_settings.bin"));
     /// The board accepts the drive's current limit (set once in `init`); otherwise the drive is
     /// kept disabled and the amplifier off.
     static AMP_PERMITTED: AtomicBool = AtomicBool::new(false);
@@ -112,10 +116,16 @@ mod app {
     fn init(cx: init::Context) -> (Shared, Local) {
         // The amplifier enable and the DAC pin are already safe (board: `__pre_init`).
         stack::paint();
+        // Built on the host (build.rs) and checked by the host tests: refused only by a broken
+        // build.
+        let defaults = match RawSettings::decode(PAPER_SETTINGS) {
+            Ok(s) => s,
+            Err(_) => defmt::panic!("built-in settings record refused"),
+        };
         let endpoint = cx
             .local
             .endpoint_storage
-            .write(Endpoint::with_buffer(cx.local.blob_buffer));
+            .write(Endpoint::with_buffer(cx.local.blob_buffer, defaults));
         // The stored configuration and calibration, read before the clocks and timers start
         // (the control rate comes from it).
         let mut persist = Persist::open();
@@ -183,8 +193,10 @@ mod app {
             Err(e) => defmt::panic!("built-in calibration refused: {=str}", blob_error_name(e)),
         };
         let mut configured = false;
+        let mut initial_model = ModelKind::None;
         if let Some((active, parts)) = stored {
             let limit = parts.max_current_a();
+            initial_model = parts.initial_model();
             match board_limit(&parts)
                 .map_err(Ok)
                 .and_then(|()| drive.reconfigure(parts).map_err(Err))
@@ -212,7 +224,7 @@ mod app {
                         endpoint.boot_calibration(len);
                         // The geometry changed from the paper rig's: the configured model
                         // comes back with its calibration.
-                        let model = endpoint.active().initial_model;
+                        let model = initial_model;
                         let _ = drive.command(Command::SelectModel(model));
                         defmt::info!(
                             "stored calibration loaded ({=usize} bytes): model {=str}",
@@ -711,7 +723,7 @@ mod app {
     /// The paper rig without a calibration runs on the paper's Table 2 (embedded); any other
     /// geometry runs uncompensated until its calibration loads.
     fn install_default_models(d: &mut Drive) {
-        if !d.is_calibrated() && *d.rig() == Rig::PAPER {
+        if !d.is_calibrated() && d.rig().same_bits(&Rig::PAPER) {
             // Built on the host and checked by the tests: refused only by a broken build.
             let _ = d.load_calibration(PAPER_IMAGE);
         }

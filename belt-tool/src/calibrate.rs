@@ -70,7 +70,7 @@ pub fn plan(
     let mut clipped = 0;
     let mut scenarios = Vec::new();
     for name in hil_sim::eval::CALIBRATION_SCENARIOS {
-        let s = Scenario::load(name).map_err(ToolError::Drive)?;
+        let s = Scenario::load(name).map_err(|e| ToolError::Drive(e.to_string()))?;
         let moves = s
             .moves
             .iter()

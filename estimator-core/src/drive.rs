@@ -594,7 +594,7 @@ impl Drive {
         if self.enabled || !self.trajectory.is_done() {
             return Err(CommandError::Busy);
         }
-        if p.rig != self.rig {
+        if !p.rig.same_bits(&self.rig) {
             self.models_valid = false;
         }
         let here = self.motor_state.position_counts();

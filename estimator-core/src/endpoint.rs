@@ -15,7 +15,7 @@ use crate::drive::{
     Drive, Faults, Output, Parts, PartsImage, Sample, Telemetry, IMAGE_FIELD, PARTS_IMAGE_LEN,
 };
 use crate::image;
-use crate::settings::{self, Settings, SettingsError};
+use crate::settings::{self, RawSettings, Settings};
 use crate::ConfigError;
 
 /// `detail` codes of [`LinkError::Calibration`].
@@ -238,9 +238,10 @@ pub struct Endpoint<B = BlobBuffer> {
     installed: Option<(usize, u32)>,
     calibrated: bool,
     streaming: bool,
-    /// The configuration in force and the one being edited over the link.
-    active: Settings,
-    staged: Settings,
+    /// The configuration in force and the one being edited over the link, as bits (the drive
+    /// runs on the image built from them: see [`RawSettings`]).
+    active: RawSettings,
+    staged: RawSettings,
     /// A configuration image and its bytes received so far: the one arriving for `staged`,
     /// or, while `parts_active`, the image of `active` (one buffer: 229 bytes of RAM less).
     parts: PartsImage,
@@ -259,23 +260,25 @@ impl Default for Endpoint {
 }
 
 impl Endpoint {
-    /// A fresh endpoint owning its blob buffer (drive disabled, nothing loaded).
-    pub const fn new() -> Self {
-        Self::with_buffer([0; image::MAX_BYTES])
+    /// A fresh endpoint owning its blob buffer (drive disabled, nothing loaded, the paper rig's
+    /// values staged).
+    pub fn new() -> Self {
+        Self::with_buffer([0; image::MAX_BYTES], RawSettings::of(&Settings::PAPER))
     }
 }
 
 impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
-    /// A fresh endpoint assembling calibrations in `blob` (drive disabled, nothing loaded).
-    pub const fn with_buffer(blob: B) -> Self {
+    /// A fresh endpoint assembling calibrations in `blob` (drive disabled, nothing loaded),
+    /// with `defaults` active and staged until a configuration is applied or booted.
+    pub fn with_buffer(blob: B, defaults: RawSettings) -> Self {
         Endpoint {
             blob,
             transfer: None,
             installed: None,
             calibrated: false,
             streaming: false,
-            active: Settings::PAPER,
-            staged: Settings::PAPER,
+            active: defaults,
+            staged: defaults,
             parts: [0; PARTS_IMAGE_LEN],
             parts_got: 0,
             parts_active: false,
@@ -286,7 +289,7 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
 
     /// Boot: the configuration the drive was built with, its image, and the stored record it
     /// came from (CRC, 0 if none).
-    pub fn boot_with(&mut self, active: Settings, parts: &PartsImage, record_crc: u32) {
+    pub fn boot_with(&mut self, active: RawSettings, parts: &PartsImage, record_crc: u32) {
         self.active = active;
         self.staged = active;
         self.parts = *parts;
@@ -333,12 +336,12 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
     }
 
     /// The configuration in force.
-    pub fn active(&self) -> &Settings {
+    pub fn active(&self) -> &RawSettings {
         &self.active
     }
 
     /// The configuration being edited (what [`Effect::Configure`] applies).
-    pub fn staged(&self) -> &Settings {
+    pub fn staged(&self) -> &RawSettings {
         &self.staged
     }
 
@@ -498,21 +501,18 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
                 (Effect::Stream(every_n_ticks), Event::None)
             }
             Request::Shutdown { code } => (Effect::Shutdown(code), Event::None),
-            Request::ConfigSet { key, value_bits } => {
-                match self.staged.set(key, f64::from_bits(value_bits)) {
-                    Ok(()) => (ack, Event::None),
-                    Err(SettingsError::Invalid(e)) => {
-                        (refuse(LinkError::Config, key), Event::ConfigRefused(e))
-                    }
-                    Err(_) => (refuse(LinkError::OutOfRange, key), Event::None),
-                }
-            }
+            // Values are staged as sent: the host checks them when it builds the image, and
+            // the drive checks the image.
+            Request::ConfigSet { key, value_bits } => match self.staged.set(key, value_bits) {
+                Ok(()) => (ack, Event::None),
+                Err(_) => (refuse(LinkError::OutOfRange, key), Event::None),
+            },
             Request::ConfigGet { key } => match (self.active.get(key), self.staged.get(key)) {
-                (Some(a), Some(s)) => (
+                (Some(active_bits), Some(staged_bits)) => (
                     Effect::Reply(Reply::ConfigValue {
                         key,
-                        active_bits: a.to_bits(),
-                        staged_bits: s.to_bits(),
+                        active_bits,
+                        staged_bits,
                     }),
                     Event::None,
                 ),
@@ -1020,12 +1020,12 @@ mod tests {
         assert!(ack(&ep.handle(&set(250.0), &mut d).0));
         let mut want = Settings::PAPER;
         want.travel_max_mm = 250.0;
-        assert_eq!(ep.staged(), &want);
+        assert_eq!(ep.staged(), &RawSettings::of(&want));
         send_image(&mut ep, &mut d, &want.parts_image().unwrap());
         let (e, ev) = ep.handle_inline(&Request::ConfigApply, &mut d);
         assert!(ack(&e), "{e:?}");
         assert_eq!(ev, Event::Configured);
-        assert_eq!(ep.active(), &want);
+        assert_eq!(ep.active(), &RawSettings::of(&want));
         assert_eq!(ep.active_parts(), Some(&want.parts_image().unwrap()));
         assert_eq!(ep.handle(&Request::Save, &mut d).0, Effect::Save);
 
@@ -1038,14 +1038,18 @@ mod tests {
             refused(ep.handle_inline(&Request::ConfigApply, &mut d).0),
             image_refused
         );
-        assert_eq!(ep.active(), &want, "a refused apply changes nothing");
+        assert_eq!(
+            ep.active(),
+            &RawSettings::of(&want),
+            "a refused apply changes nothing"
+        );
         assert_eq!(
             refused(ep.handle(&Request::Save, &mut d).0),
             Some((LinkError::Storage, storage_detail::CONFIG_BYTES_GONE))
         );
 
         // Pieces out of order are refused, and the image must be sent again from 0.
-        let image = ep.staged().parts_image().unwrap();
+        let image = ep.staged().settings().unwrap().parts_image().unwrap();
         let pieces: Vec<Request> = config_parts_requests(&image).collect();
         assert!(ack(&ep.handle(&pieces[0], &mut d).0));
         assert_eq!(
@@ -1059,7 +1063,7 @@ mod tests {
         );
         send_image(&mut ep, &mut d, &image);
         assert!(ack(&ep.handle_inline(&Request::ConfigApply, &mut d).0));
-        assert_eq!(ep.active().travel_max_mm, 210.0);
+        assert_eq!(ep.active().settings().unwrap().travel_max_mm, 210.0);
 
         // Refused while enabled, as every configuration change.
         assert!(ack(&ep
@@ -1077,15 +1081,15 @@ mod tests {
         use crate::settings::{decode_stored, encode_stored, Settings, SettingsError};
         let s = Settings::PAPER;
         let image = s.parts_image().unwrap();
-        let bytes = encode_stored(&s, &image);
+        let bytes = encode_stored(&RawSettings::of(&s), &image);
         let (back, parts) = decode_stored(&bytes).unwrap();
-        assert_eq!(back, s);
+        assert_eq!(back.settings().unwrap(), s);
         assert_eq!(&bytes[settings::ENCODED_LEN..], &image[..]);
         assert_eq!(parts, Parts::decode(&image).unwrap().0);
         // The image of other settings beside these.
         let mut other = s;
         other.max_velocity_mm_s = 100.0;
-        let mixed = encode_stored(&s, &other.parts_image().unwrap());
+        let mixed = encode_stored(&RawSettings::of(&s), &other.parts_image().unwrap());
         assert_eq!(
             decode_stored(&mixed).unwrap_err(),
             SettingsError::Invalid(ConfigError::OutOfRange(IMAGE_FIELD))

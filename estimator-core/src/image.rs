@@ -412,10 +412,7 @@ fn read_image(image: &[u8], rig: &Rig, mut out: Option<&mut ModelCoeffs>) -> Res
     let mut r = Reader::new(&image[HEADER..]);
     // Bit for bit: the geometry must be the drive's exactly, and no float compare is needed.
     let made_for = crate::blob::read_rig(&mut r)?;
-    if (made_for.encoder_lines, made_for.pulley_teeth) != (rig.encoder_lines, rig.pulley_teeth)
-        || made_for.gear_ratio.to_bits() != rig.gear_ratio.to_bits()
-        || made_for.belt_pitch_mm.to_bits() != rig.belt_pitch_mm.to_bits()
-    {
+    if !made_for.same_bits(rig) {
         return Err(BlobError::RigMismatch);
     }
     let deadband_counts = r.u32()?;

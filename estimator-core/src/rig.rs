@@ -68,6 +68,14 @@ impl Rig {
         self.mm_per_pulley_rev() / (2.0 * core::f64::consts::PI)
     }
 
+    /// The same geometry bit for bit: what a calibration made for `other` needs, with no float
+    /// compare (no soft float on the drive).
+    pub fn same_bits(&self, other: &Rig) -> bool {
+        (self.encoder_lines, self.pulley_teeth) == (other.encoder_lines, other.pulley_teeth)
+            && self.gear_ratio.to_bits() == other.gear_ratio.to_bits()
+            && self.belt_pitch_mm.to_bits() == other.belt_pitch_mm.to_bits()
+    }
+
     /// Checks that every field is finite and positive.
     pub fn validate(&self) -> Result<(), crate::ConfigError> {
         use crate::ConfigError as E;

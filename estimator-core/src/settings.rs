@@ -116,12 +116,7 @@ impl Settings {
 
     /// CRC-32 of the encoded record: what a configuration image is tied to.
     pub fn crc32(&self) -> u32 {
-        let mut buf = [0u8; ENCODED_LEN];
-        match self.encode(&mut buf) {
-            Ok(n) => belt_link::crc32(&buf[..n]),
-            // Cannot happen: the buffer holds a record.
-            Err(Short) => 0,
-        }
+        RawSettings::of(self).crc32()
     }
 
     /// The configuration image of these settings for the drive ([`Parts::encode`]): built
@@ -154,19 +149,79 @@ impl Settings {
     /// The record's bytes: magic, version, field count, then `key, f64` pairs in key order.
     /// Returns the length ([`ENCODED_LEN`]).
     pub fn encode(&self, out: &mut [u8]) -> Result<usize, Short> {
-        let mut w = Writer::new(out);
-        w.put(&MAGIC);
-        w.u16(VERSION);
-        w.u16(FIELDS.len() as u16);
-        for f in &FIELDS {
-            w.u8(f.key);
-            w.u64((f.get)(self).to_bits());
-        }
-        w.finish()
+        RawSettings::of(self).encode(out)
     }
 
     /// Parses a record; every field must be present once and hold a valid value.
     pub fn decode(bytes: &[u8]) -> Result<Settings, SettingsError> {
+        RawSettings::decode(bytes)?.settings()
+    }
+}
+
+/// Fields in the record; their keys are `0..FIELD_COUNT` (tested).
+pub const FIELD_COUNT: usize = FIELDS.len();
+
+/// The settings as the drive holds them: each field's `f64` bits by key, stored and reported
+/// but never interpreted. The drive runs on the configuration image built from them on the host
+/// (no unit conversion, no float compare, no field table on the MCU); the host checks the
+/// values ([`RawSettings::settings`]) when it builds the image, naming the field.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RawSettings {
+    bits: [u64; FIELD_COUNT],
+}
+
+impl RawSettings {
+    /// The bits of `s`.
+    pub fn of(s: &Settings) -> RawSettings {
+        let mut bits = [0u64; FIELD_COUNT];
+        for (b, f) in bits.iter_mut().zip(&FIELDS) {
+            *b = (f.get)(s).to_bits();
+        }
+        RawSettings { bits }
+    }
+
+    /// The bits of field `key`, or `None` for an unknown key.
+    pub fn get(&self, key: u8) -> Option<u64> {
+        self.bits.get(key as usize).copied()
+    }
+
+    /// Stores the bits of field `key`, unchecked (see the type); an unknown key is refused and
+    /// changes nothing.
+    pub fn set(&mut self, key: u8, bits: u64) -> Result<(), SettingsError> {
+        let b = self
+            .bits
+            .get_mut(key as usize)
+            .ok_or(SettingsError::UnknownKey(key))?;
+        *b = bits;
+        Ok(())
+    }
+
+    /// The values as [`Settings`], each checked by its field (the first refused is named).
+    pub fn settings(&self) -> Result<Settings, SettingsError> {
+        let mut s = Settings::PAPER;
+        for f in &FIELDS {
+            s.set(f.key, f64::from_bits(self.bits[f.key as usize]))?;
+        }
+        Ok(s)
+    }
+
+    /// The record's bytes: magic, version, field count, then `key, f64` pairs in key order.
+    /// Returns the length ([`ENCODED_LEN`]).
+    pub fn encode(&self, out: &mut [u8]) -> Result<usize, Short> {
+        let mut w = Writer::new(out);
+        w.put(&MAGIC);
+        w.u16(VERSION);
+        w.u16(FIELD_COUNT as u16);
+        for (key, b) in self.bits.iter().enumerate() {
+            w.u8(key as u8);
+            w.u64(*b);
+        }
+        w.finish()
+    }
+
+    /// Parses a record's structure: magic, version, every key present once (the values are the
+    /// host's to check, [`RawSettings::settings`]).
+    pub fn decode(bytes: &[u8]) -> Result<RawSettings, SettingsError> {
         let mut r = Reader::new(bytes);
         let short = |_: Short| SettingsError::Truncated;
         if r.take::<4>().map_err(short)? != MAGIC {
@@ -177,20 +232,33 @@ impl Settings {
             return Err(SettingsError::UnsupportedVersion(version));
         }
         let n = r.u16().map_err(short)? as usize;
-        if n != FIELDS.len() || r.remaining() != n * 9 {
+        if n != FIELD_COUNT || r.remaining() != n * 9 {
             return Err(SettingsError::Truncated);
         }
-        let mut s = Settings::PAPER;
-        let mut seen = [false; 256];
+        let mut out = RawSettings {
+            bits: [0; FIELD_COUNT],
+        };
+        let mut seen = [false; FIELD_COUNT];
         for _ in 0..n {
             let key = r.u8().map_err(short)?;
-            let value = f64::from_bits(r.u64().map_err(short)?);
-            if core::mem::replace(&mut seen[key as usize], true) {
-                return Err(SettingsError::UnknownKey(key));
+            let bits = r.u64().map_err(short)?;
+            match seen.get_mut(key as usize) {
+                Some(s) if !*s => *s = true,
+                _ => return Err(SettingsError::UnknownKey(key)),
             }
-            s.set(key, value)?;
+            out.set(key, bits)?;
         }
-        Ok(s)
+        Ok(out)
+    }
+
+    /// CRC-32 of the encoded record: what a configuration image is tied to.
+    pub fn crc32(&self) -> u32 {
+        let mut buf = [0u8; ENCODED_LEN];
+        match self.encode(&mut buf) {
+            Ok(n) => belt_link::crc32(&buf[..n]),
+            // Cannot happen: the buffer holds a record.
+            Err(Short) => 0,
+        }
     }
 }
 
@@ -212,7 +280,7 @@ pub const ENCODED_LEN: usize = 8 + FIELDS.len() * 9;
 pub const STORED_LEN: usize = ENCODED_LEN + PARTS_IMAGE_LEN;
 
 /// The stored form of `s` with its configuration image.
-pub fn encode_stored(s: &Settings, parts: &PartsImage) -> [u8; STORED_LEN] {
+pub fn encode_stored(s: &RawSettings, parts: &PartsImage) -> [u8; STORED_LEN] {
     let mut out = [0u8; STORED_LEN];
     // Cannot be short: the buffer holds a record.
     let _ = s.encode(&mut out[..ENCODED_LEN]);
@@ -223,12 +291,12 @@ pub fn encode_stored(s: &Settings, parts: &PartsImage) -> [u8; STORED_LEN] {
 /// Reads a stored configuration ([`encode_stored`]): the settings and the parts of the image,
 /// which must have been built from exactly these settings (else [`IMAGE_FIELD`] is named). The
 /// image itself is `bytes[ENCODED_LEN..]`.
-pub fn decode_stored(bytes: &[u8]) -> Result<(Settings, Parts), SettingsError> {
+pub fn decode_stored(bytes: &[u8]) -> Result<(RawSettings, Parts), SettingsError> {
     if bytes.len() != STORED_LEN {
         return Err(SettingsError::Truncated);
     }
     let (record, image) = bytes.split_at(ENCODED_LEN);
-    let settings = Settings::decode(record)?;
+    let settings = RawSettings::decode(record)?;
     let (parts, settings_crc) = Parts::decode(image).map_err(SettingsError::Invalid)?;
     if settings_crc != belt_link::crc32(record) {
         return Err(SettingsError::Invalid(ConfigError::OutOfRange(IMAGE_FIELD)));
@@ -296,7 +364,10 @@ pub fn field_named(name: &str) -> Option<&'static Field> {
 
 /// The key of the field a [`ConfigError`] names (0xff if none does).
 pub fn key_of(e: &ConfigError) -> u8 {
-    field_named(e.field()).map_or(0xff, |f| f.key)
+    FIELD_NAMES
+        .iter()
+        .position(|n| *n == e.field())
+        .map_or(0xff, |k| k as u8)
 }
 
 const INF: f64 = f64::INFINITY;
@@ -332,7 +403,21 @@ macro_rules! flag {
 }
 
 /// Every field, in key order.
-pub static FIELDS: [Field; 40] = [
+pub static FIELDS: [Field; 40] = TABLE;
+
+/// The fields' names by key, without the table's accessors: what the drive needs to name a
+/// refused field on the link (the accessors would link the `f64` checks into the firmware).
+pub const FIELD_NAMES: [&str; FIELD_COUNT] = {
+    let mut out = [""; FIELD_COUNT];
+    let mut i = 0;
+    while i < FIELD_COUNT {
+        out[i] = TABLE[i].name;
+        i += 1;
+    }
+    out
+};
+
+const TABLE: [Field; 40] = [
     Field {
         key: 0,
         name: "rig.encoder_lines",
@@ -464,6 +549,8 @@ mod tests {
     fn keys_are_their_index_and_names_unique() {
         for (i, f) in FIELDS.iter().enumerate() {
             assert_eq!(f.key as usize, i, "{}", f.name);
+            assert_eq!(FIELD_NAMES[i], f.name);
+            assert_eq!(key_of(&ConfigError::OutOfRange(f.name)), f.key);
             assert_eq!(field_named(f.name).map(|g| g.key), Some(f.key));
         }
     }
@@ -494,6 +581,49 @@ mod tests {
         let mut buf = [0u8; ENCODED_LEN];
         assert_eq!(s.encode(&mut buf), Ok(ENCODED_LEN));
         assert_eq!(Settings::decode(&buf), Ok(s));
+    }
+
+    #[test]
+    fn raw_settings_hold_any_bits_and_the_host_names_the_bad_field() {
+        let mut raw = RawSettings::of(&Settings::PAPER);
+        assert_eq!(raw.settings(), Ok(Settings::PAPER));
+        // The drive stores what it is sent (it runs on the image, not on these)...
+        raw.set(1, f64::NAN.to_bits()).unwrap();
+        assert_eq!(raw.get(1), Some(f64::NAN.to_bits()));
+        assert_eq!(
+            raw.set(FIELD_COUNT as u8, 0),
+            Err(SettingsError::UnknownKey(40))
+        );
+        assert_eq!(raw.get(FIELD_COUNT as u8), None);
+        // ...the record keeps the bits exactly...
+        let mut buf = [0u8; ENCODED_LEN];
+        assert_eq!(raw.encode(&mut buf), Ok(ENCODED_LEN));
+        assert_eq!(RawSettings::decode(&buf), Ok(raw));
+        // ...and the host's check names the field.
+        assert_eq!(
+            raw.settings(),
+            Err(SettingsError::Invalid(ConfigError::NotFinite(
+                "rig.gear_ratio"
+            )))
+        );
+        // The same bytes as the checked record.
+        let mut checked = [0u8; ENCODED_LEN];
+        Settings::PAPER.encode(&mut checked).unwrap();
+        let mut raw_bytes = [0u8; ENCODED_LEN];
+        RawSettings::of(&Settings::PAPER)
+            .encode(&mut raw_bytes)
+            .unwrap();
+        assert_eq!(checked, raw_bytes);
+        // Structure refusals: a key out of range, a key twice.
+        let mut bad = raw_bytes;
+        bad[8] = FIELD_COUNT as u8;
+        assert_eq!(
+            RawSettings::decode(&bad),
+            Err(SettingsError::UnknownKey(40))
+        );
+        let mut bad = raw_bytes;
+        bad[8 + 9] = 0;
+        assert_eq!(RawSettings::decode(&bad), Err(SettingsError::UnknownKey(0)));
     }
 
     #[test]

@@ -94,7 +94,8 @@ pub fn record_calibration(
     let scenarios = CALIBRATION_SCENARIOS
         .iter()
         .map(|name| Scenario::load(name))
-        .collect::<Result<Vec<_>, _>>()?;
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| e.to_string())?;
     // All checked before the first is recorded: a plant they do not fit fails at once.
     for s in &scenarios {
         s.check_against(&drive_limits(plant.rig()), plant)

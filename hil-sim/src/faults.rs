@@ -350,7 +350,7 @@ pub fn false_trips(
     let mut checked = 0;
     let mut trips = Vec::new();
     for (name, _) in PRESETS {
-        let s = Scenario::load(name)?;
+        let s = Scenario::load(name).map_err(|e| e.to_string())?;
         let label = format!("no injection: {name}");
         match crate::eval::run_in_process(
             &s,

@@ -86,7 +86,8 @@ pub fn workloads(plant: &PlantParams, seed: u64) -> Result<Vec<Scenario>, String
     let mut out: Vec<Scenario> = PRESETS
         .iter()
         .map(|(n, _)| Scenario::load(n))
-        .collect::<Result<_, _>>()?;
+        .collect::<Result<_, _>>()
+        .map_err(|e: crate::scenario::ScenarioError| e.to_string())?;
     out.extend(
         Class::ALL
             .into_iter()

@@ -288,9 +288,11 @@ fn scenario_and_plant(
     scenario: &str,
     plant: &Option<PathBuf>,
 ) -> Result<(Scenario, PlantParams), String> {
-    let scenario = Scenario::load(scenario)?;
+    let scenario = Scenario::load(scenario).map_err(|e| e.to_string())?;
     let plant = plant_params(plant)?;
-    scenario.check_against(&drive_setup::drive_limits(plant.rig()), &plant)?;
+    scenario
+        .check_against(&drive_setup::drive_limits(plant.rig()), &plant)
+        .map_err(|e| e.to_string())?;
     Ok((scenario, plant))
 }
 

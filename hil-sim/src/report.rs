@@ -148,7 +148,7 @@ pub fn write(
 
     // Fig. 11 from the second of two cycles: a fresh plant starts on the forward band edge, so
     // the first cycle lacks the reverse-to-forward transition; the second shows the whole loop.
-    let rep = Scenario::load("repeatability")?;
+    let rep = Scenario::load("repeatability").map_err(|e| e.to_string())?;
     let cycle = rep.moves.len();
     let twice = Scenario {
         moves: [rep.moves.clone(), rep.moves.clone()].concat(),

@@ -167,9 +167,9 @@ pub fn run(
     // The limits hil-sim's drive runs with, in-process and in the firmware (the paper rig's).
     scenario
         .validate()
-        .map_err(|e| format!("{}: {e}", scenario.source()))
+        .map_err(|e| e.in_file(scenario.source()))
         .and_then(|_| scenario.check_against(&crate::drive_setup::drive_limits(*rig), plant_params))
-        .map_err(RunError::Scenario)?;
+        .map_err(|e| RunError::Scenario(e.to_string()))?;
     let dt = 1.0 / cfg.rate_hz;
     let mut plant =
         Plant::new(plant_params, scenario.start_mm, cfg.seed).map_err(RunError::Scenario)?;

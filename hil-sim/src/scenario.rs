@@ -66,6 +66,95 @@ pub struct Scenario {
     pub source: String,
 }
 
+/// Why a scenario was refused: the file, the place in the TOML, or the move (counted from 1)
+/// and the field out of its range, its own or the drive's and the plant's.
+#[derive(Debug, thiserror::Error)]
+pub enum ScenarioError {
+    /// The file could not be read (and it is no preset's name).
+    #[error("scenario {path}: {source} (presets: {})", preset_names())]
+    Io {
+        /// What was given.
+        path: String,
+        /// What the system said.
+        source: std::io::Error,
+    },
+    /// Not a scenario in TOML (a syntax error, a missing or unknown key), with line and column.
+    #[error("{0}")]
+    Toml(String),
+    /// A field out of its range: the scenario's own, the drive's or the plant's.
+    #[error("{}{field} = {value} {rule}", at_move(*move_n))]
+    Field {
+        /// The move, counted from 1 (`None`: the scenario's `start_mm`).
+        move_n: Option<usize>,
+        /// The field, e.g. `velocity_mm_s`.
+        field: &'static str,
+        /// Its value as written.
+        value: String,
+        /// The rule it breaks, with the limit and whose it is.
+        rule: String,
+    },
+    /// No moves.
+    #[error("a scenario needs at least one [[move]]")]
+    NoMoves,
+    /// A retarget that cannot work (the field is `retarget_after_ms`).
+    #[error("move {move_n}: {reason}")]
+    Retarget {
+        /// The move, counted from 1.
+        move_n: usize,
+        /// Why.
+        reason: &'static str,
+    },
+    /// The run would be longer than a run may be.
+    #[error(
+        "the moves and dwells take about {seconds:.3e} s of simulated time; a run is limited to \
+         {MAX_DURATION_S:.0} s; the longest is move {longest_move} ({longest_s:.3e} s, mostly its \
+         {mostly})"
+    )]
+    TooLong {
+        /// The estimate, seconds.
+        seconds: f64,
+        /// The longest move, counted from 1.
+        longest_move: usize,
+        /// Its estimate, seconds.
+        longest_s: f64,
+        /// The field that makes it long.
+        mostly: &'static str,
+    },
+    /// The drive configuration the scenario is checked against was refused.
+    #[error("drive configuration: {0}")]
+    Drive(estimator_core::ConfigError),
+    /// One of the above, in a file or preset.
+    #[error("{file}: {error}")]
+    InFile {
+        /// The file, or `preset NAME`.
+        file: String,
+        /// What is wrong in it.
+        error: Box<ScenarioError>,
+    },
+}
+
+fn at_move(n: Option<usize>) -> String {
+    n.map_or(String::new(), |n| format!("move {n}: "))
+}
+
+impl ScenarioError {
+    /// This error in the file or preset `source`.
+    pub fn in_file(self, source: &str) -> ScenarioError {
+        ScenarioError::InFile {
+            file: source.to_string(),
+            error: Box::new(self),
+        }
+    }
+
+    /// The innermost error (what is wrong, without where).
+    pub fn cause(&self) -> &ScenarioError {
+        match self {
+            ScenarioError::InFile { error, .. } => error.cause(),
+            e => e,
+        }
+    }
+}
+
 /// The shipped presets, by name, mirroring the paper's experiments.
 pub const PRESETS: &[(&str, &str)] = &[
     (
@@ -84,26 +173,25 @@ pub const PRESETS: &[(&str, &str)] = &[
 
 impl Scenario {
     /// Parses and validates a scenario; errors name the move and field.
-    pub fn from_toml_str(text: &str) -> Result<Scenario, String> {
-        let s: Scenario = crate::input::from_toml(text)?;
+    pub fn from_toml_str(text: &str) -> Result<Scenario, ScenarioError> {
+        let s: Scenario = crate::input::from_toml(text).map_err(ScenarioError::Toml)?;
         s.validate()?;
         Ok(s)
     }
 
     /// Loads a file path, or a shipped preset by name (`fig18`, `reversals`, ...).
-    pub fn load(path_or_preset: &str) -> Result<Scenario, String> {
+    pub fn load(path_or_preset: &str) -> Result<Scenario, ScenarioError> {
         if let Some((name, text)) = PRESETS.iter().find(|(n, _)| *n == path_or_preset) {
-            let mut s = Scenario::from_toml_str(text).map_err(|e| format!("preset {name}: {e}"))?;
-            s.source = format!("preset {name}");
+            let source = format!("preset {name}");
+            let mut s = Scenario::from_toml_str(text).map_err(|e| e.in_file(&source))?;
+            s.source = source;
             return Ok(s);
         }
-        let text = std::fs::read_to_string(path_or_preset).map_err(|e| {
-            format!(
-                "scenario {path_or_preset}: {e} (presets: {})",
-                preset_names()
-            )
+        let text = std::fs::read_to_string(path_or_preset).map_err(|source| ScenarioError::Io {
+            path: path_or_preset.to_string(),
+            source,
         })?;
-        let mut s = Scenario::from_toml_str(&text).map_err(|e| format!("{path_or_preset}: {e}"))?;
+        let mut s = Scenario::from_toml_str(&text).map_err(|e| e.in_file(path_or_preset))?;
         s.source = path_or_preset.to_string();
         Ok(s)
     }
@@ -135,111 +223,146 @@ impl Scenario {
     /// Checks the scenario against the drive's limits (the checks `Drive::command` makes, in
     /// the units it receives) and the plant's travel, before anything runs. Errors name the
     /// scenario, the move (counted from 1) and the field.
-    pub fn check_against(&self, drive: &DriveConfig, plant: &PlantParams) -> Result<(), String> {
-        let src = self.source();
+    pub fn check_against(
+        &self,
+        drive: &DriveConfig,
+        plant: &PlantParams,
+    ) -> Result<(), ScenarioError> {
+        self.check_limits(drive, plant)
+            .map_err(|e| e.in_file(self.source()))
+    }
+
+    fn check_limits(&self, drive: &DriveConfig, plant: &PlantParams) -> Result<(), ScenarioError> {
         let plant_mm = (
             plant.carriage.travel_min_m * 1e3,
             plant.carriage.travel_max_m * 1e3,
         );
         let in_plant = |v: f64| (plant_mm.0..=plant_mm.1).contains(&v);
         let plant_name = plant.name();
+        let outside_plant = |move_n, v| ScenarioError::Field {
+            move_n,
+            field: if move_n.is_some() {
+                "to_mm"
+            } else {
+                "start_mm"
+            },
+            value: show(v),
+            rule: format!(
+                "mm is outside the plant's travel {}..={} mm (carriage.travel_min_m, \
+                 carriage.travel_max_m of {plant_name})",
+                plant_mm.0, plant_mm.1
+            ),
+        };
         if !in_plant(self.start_mm) {
-            return Err(format!(
-                "{src}: start_mm = {} mm is outside the plant's travel {}..={} mm \
-                 (carriage.travel_min_m, carriage.travel_max_m of {plant_name})",
-                show(self.start_mm),
-                plant_mm.0,
-                plant_mm.1
-            ));
+            return Err(outside_plant(None, self.start_mm));
         }
         // The drive's own range checks, on the integers the run will send.
-        let checker = estimator_core::drive::Drive::new(drive)
-            .map_err(|e| format!("drive configuration: {e}"))?;
+        let checker = estimator_core::drive::Drive::new(drive).map_err(ScenarioError::Drive)?;
         for (i, m) in self.moves.iter().enumerate() {
             let n = i + 1;
             let (target_um, velocity_um_s, accel_um_s2) = m.drive_units();
             use estimator_core::drive::CommandError as E;
+            let field = |field, v: f64, rule| ScenarioError::Field {
+                move_n: Some(n),
+                field,
+                value: show(v),
+                rule,
+            };
             match checker.check_move(target_um, velocity_um_s, accel_um_s2) {
                 Ok(()) => {}
                 Err(E::TargetOutOfTravel) => {
-                    return Err(format!(
-                        "{src}: move {n}: to_mm = {} mm is outside the drive's travel {}..={} mm",
-                        show(m.to_mm),
-                        drive.travel_min_mm,
-                        drive.travel_max_mm
+                    return Err(field(
+                        "to_mm",
+                        m.to_mm,
+                        format!(
+                            "mm is outside the drive's travel {}..={} mm",
+                            drive.travel_min_mm, drive.travel_max_mm
+                        ),
                     ))
                 }
                 Err(E::VelocityOutOfRange) => {
-                    return Err(format!(
-                        "{src}: move {n}: velocity_mm_s = {} must be in 0.001..={} mm/s (the \
-                         drive's limit; it takes whole um/s)",
-                        show(m.velocity_mm_s),
-                        drive.max_velocity_mm_s
+                    return Err(field(
+                        "velocity_mm_s",
+                        m.velocity_mm_s,
+                        format!(
+                            "must be in 0.001..={} mm/s (the drive's limit; it takes whole um/s)",
+                            drive.max_velocity_mm_s
+                        ),
                     ))
                 }
                 Err(_) => {
-                    return Err(format!(
-                        "{src}: move {n}: accel_mm_s2 = {} must be in 0.001..={} mm/s^2 (the \
-                         drive's limit; it takes whole um/s^2)",
-                        show(m.accel_mm_s2),
-                        drive.max_accel_mm_s2
+                    return Err(field(
+                        "accel_mm_s2",
+                        m.accel_mm_s2,
+                        format!(
+                            "must be in 0.001..={} mm/s^2 (the drive's limit; it takes whole \
+                             um/s^2)",
+                            drive.max_accel_mm_s2
+                        ),
                     ))
                 }
             }
             if !in_plant(m.to_mm) {
-                return Err(format!(
-                    "{src}: move {n}: to_mm = {} mm is outside the plant's travel {}..={} mm \
-                     (carriage.travel_min_m, carriage.travel_max_m of {plant_name})",
-                    show(m.to_mm),
-                    plant_mm.0,
-                    plant_mm.1
-                ));
+                return Err(outside_plant(Some(n), m.to_mm));
             }
         }
         Ok(())
     }
 
     /// Checks ranges: finite numbers, positive speeds, travel within 0..=2000 mm.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), ScenarioError> {
         let travel = |v: f64| v.is_finite() && (0.0..=2000.0).contains(&v);
+        let field = |move_n, field, v: f64, rule: &str| ScenarioError::Field {
+            move_n,
+            field,
+            value: show(v),
+            rule: rule.to_string(),
+        };
         if !travel(self.start_mm) {
-            return Err(format!(
-                "start_mm = {} is outside 0..=2000 mm",
-                show(self.start_mm)
+            return Err(field(
+                None,
+                "start_mm",
+                self.start_mm,
+                "is outside 0..=2000 mm",
             ));
         }
         if self.moves.is_empty() {
-            return Err("a scenario needs at least one [[move]]".into());
+            return Err(ScenarioError::NoMoves);
         }
         for (i, m) in self.moves.iter().enumerate() {
-            let n = i + 1;
+            let n = Some(i + 1);
             if !travel(m.to_mm) {
-                return Err(format!(
-                    "move {n}: to_mm = {} is outside 0..=2000 mm",
-                    show(m.to_mm)
-                ));
+                return Err(field(n, "to_mm", m.to_mm, "is outside 0..=2000 mm"));
             }
             // The drive takes whole um/s and um/s^2: 0.001 is the least it can be asked for.
             if !(m.velocity_mm_s.is_finite() && (0.001..=1000.0).contains(&m.velocity_mm_s)) {
-                return Err(format!(
-                    "move {n}: velocity_mm_s = {} must be in 0.001..=1000",
-                    show(m.velocity_mm_s)
+                return Err(field(
+                    n,
+                    "velocity_mm_s",
+                    m.velocity_mm_s,
+                    "must be in 0.001..=1000",
                 ));
             }
             if !(m.accel_mm_s2.is_finite() && (0.001..=50_000.0).contains(&m.accel_mm_s2)) {
-                return Err(format!(
-                    "move {n}: accel_mm_s2 = {} must be in 0.001..=50000",
-                    show(m.accel_mm_s2)
+                return Err(field(
+                    n,
+                    "accel_mm_s2",
+                    m.accel_mm_s2,
+                    "must be in 0.001..=50000",
                 ));
             }
             if m.retarget_after_ms == Some(0) {
-                return Err(format!("move {n}: retarget_after_ms must be > 0"));
+                return Err(ScenarioError::Retarget {
+                    move_n: i + 1,
+                    reason: "retarget_after_ms must be > 0",
+                });
             }
-            if m.retarget_after_ms.is_some() && n == self.moves.len() {
-                return Err(format!(
-                    "move {n}: retarget_after_ms on the last move: there is no next move to \
-                     start (the run would end mid-move); remove it"
-                ));
+            if m.retarget_after_ms.is_some() && i + 1 == self.moves.len() {
+                return Err(ScenarioError::Retarget {
+                    move_n: i + 1,
+                    reason: "retarget_after_ms on the last move: there is no next move to \
+                             start (the run would end mid-move); remove it",
+                });
             }
         }
         let t = self.duration_estimate_s();
@@ -262,11 +385,12 @@ impl Scenario {
                 }
                 x = m.to_mm;
             }
-            return Err(format!(
-                "the moves and dwells take about {t:.3e} s of simulated time; a run is limited to \
-                 {MAX_DURATION_S:.0} s; the longest is move {} ({:.3e} s, mostly its {})",
-                worst.0, worst.1, worst.2
-            ));
+            return Err(ScenarioError::TooLong {
+                seconds: t,
+                longest_move: worst.0,
+                longest_s: worst.1,
+                mostly: worst.2,
+            });
         }
         Ok(())
     }
@@ -306,13 +430,80 @@ mod tests {
     fn errors_name_the_move_and_field() {
         let bad = "name='x'\nstart_mm=10\n[[move]]\nto_mm=20\nvelocity_mm_s=-1\naccel_mm_s2=100\n";
         let e = Scenario::from_toml_str(bad).unwrap_err();
-        assert!(e.contains("move 1") && e.contains("velocity_mm_s"), "{e}");
+        assert!(
+            matches!(
+                e,
+                ScenarioError::Field {
+                    move_n: Some(1),
+                    field: "velocity_mm_s",
+                    ..
+                }
+            ),
+            "{e:?}"
+        );
+        let text = e.to_string();
+        assert!(
+            text.starts_with("move 1: velocity_mm_s = -1 must be in"),
+            "{text}"
+        );
         let unknown = "name='x'\nstart_mm=10\n[[move]]\nto_mm=20\nvelocity_mm_s=1\naccel_mm_s2=100\nspeed=3\n";
-        assert!(Scenario::from_toml_str(unknown)
-            .unwrap_err()
-            .contains("speed"));
-        assert!(Scenario::load("no-such-file.toml")
-            .unwrap_err()
-            .contains("fig18"));
+        let e = Scenario::from_toml_str(unknown).unwrap_err();
+        assert!(
+            matches!(&e, ScenarioError::Toml(t) if t.contains("speed")),
+            "{e:?}"
+        );
+        let e = Scenario::load("no-such-file.toml").unwrap_err();
+        assert!(matches!(e, ScenarioError::Io { .. }), "{e:?}");
+        assert!(e.to_string().contains("fig18"), "{e}");
+        let empty = "name='x'\nstart_mm=10\nmove=[]\n";
+        assert!(matches!(
+            Scenario::from_toml_str(empty).unwrap_err(),
+            ScenarioError::NoMoves
+        ));
+        let last = "name='x'\nstart_mm=10\n[[move]]\nto_mm=20\nvelocity_mm_s=1\naccel_mm_s2=100\nretarget_after_ms=5\n";
+        assert!(matches!(
+            Scenario::from_toml_str(last).unwrap_err(),
+            ScenarioError::Retarget { move_n: 1, .. }
+        ));
+    }
+
+    #[test]
+    fn limits_of_the_drive_and_the_plant_name_the_scenario_move_and_field() {
+        let plant = PlantParams::paper_rig();
+        let drive = crate::drive_setup::drive_limits(plant.rig());
+        let mut s = Scenario::load("fig18").unwrap();
+        s.moves[2].velocity_mm_s = drive.max_velocity_mm_s * 2.0;
+        let e = s.check_against(&drive, &plant).unwrap_err();
+        assert!(
+            matches!(
+                e.cause(),
+                ScenarioError::Field {
+                    move_n: Some(3),
+                    field: "velocity_mm_s",
+                    ..
+                }
+            ),
+            "{e:?}"
+        );
+        assert!(
+            e.to_string()
+                .starts_with("preset fig18: move 3: velocity_mm_s = "),
+            "{e}"
+        );
+        let mut s = Scenario::load("fig18").unwrap();
+        s.start_mm = plant.carriage.travel_max_m * 1e3 + 1.0;
+        let e = s.check_against(&drive, &plant).unwrap_err();
+        assert!(
+            matches!(
+                e.cause(),
+                ScenarioError::Field {
+                    move_n: None,
+                    field: "start_mm",
+                    ..
+                }
+            ),
+            "{e:?}"
+        );
+        assert!(e.to_string().contains("outside the plant's travel"), "{e}");
     }
 }

@@ -51,6 +51,11 @@ impl Parts {
         self.pid.max_current_a()
     }
 
+    /// The model selected after the configuration is installed.
+    pub fn initial_model(&self) -> ModelKind {
+        self.initial_model
+    }
+
     /// The drive-train geometry.
     pub fn rig(&self) -> &Rig {
         &self.rig
