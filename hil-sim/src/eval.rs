@@ -33,16 +33,17 @@ pub const ESTIMATORS: &[&str] = &[
     "model4",
 ];
 
-/// The firmware under QEMU boots configured for the paper rig (configuration over the link is
-/// not there yet): a plant of another geometry cannot run with it in the loop.
+/// A firmware under QEMU that is sent no configuration (`PilOptions::settings` is `None`) runs
+/// with the paper rig's: a plant of another geometry cannot run with it in the loop. With a
+/// configuration sent, [`run_pil`] configures the drive for the plant's geometry instead.
 pub fn check_pil_geometry(plant: &PlantParams) -> Result<(), String> {
     let (want, have) = (Rig::PAPER, plant.rig());
     if want == have {
         return Ok(());
     }
     Err(format!(
-        "PIL: the QEMU firmware is configured for the paper rig ({}); {} has {}: run it \
-         in-process (without --pil) until the drive takes its configuration over the link",
+        "PIL: the QEMU firmware is configured for the paper rig ({}); {} has {}: send it a \
+         configuration (PilOptions::settings) or run it in-process (without --pil)",
         want,
         plant.name(),
         have
@@ -248,9 +249,10 @@ fn first_null(path: &str, v: &serde_json::Value) -> Option<String> {
     }
 }
 
-/// Runs `scenario` with the firmware under QEMU in the loop: the calibration goes over the link
-/// as the blob, the model is selected by command, then the very same scenario code as
-/// [`run_in_process`] drives it. Ends QEMU and checks its exit status.
+/// Runs `scenario` with the firmware under QEMU in the loop: the drive is configured over the
+/// link for the plant's geometry (the paper rig's limits, as in-process), the calibration goes
+/// over the link as the image, the model is selected by command, then the very same scenario
+/// code as [`run_in_process`] drives it. Ends QEMU and checks its exit status.
 pub fn run_pil(
     scenario: &Scenario,
     plant: &PlantParams,
@@ -260,10 +262,13 @@ pub fn run_pil(
     opts: &crate::pil::PilOptions,
     progress: &mut dyn FnMut(f64),
 ) -> Result<Trace, String> {
-    check_pil_geometry(plant)?;
-    let rig = Rig::PAPER;
+    let rig = plant.rig();
+    let opts = opts.clone().with_rig(rig);
+    if opts.settings.is_none() {
+        check_pil_geometry(plant)?;
+    }
     let image = estimator_core::image::of_params(params, &rig).map_err(|e| e.to_string())?;
-    let mut c = crate::pil::PilController::start(opts).map_err(|e| format!("PIL: {e}"))?;
+    let mut c = crate::pil::PilController::start(&opts).map_err(|e| format!("PIL: {e}"))?;
     c.load_calibration(&image)
         .map_err(|e| format!("PIL: loading the calibration: {e}"))?;
     c.send_command(estimator_core::drive::Command::SelectModel(model))

@@ -389,7 +389,6 @@ fn faults_campaign(
     }
     let mut pil_same = Vec::new();
     if pil {
-        eval::check_pil_geometry(&plant)?;
         let elf = elf.clone().unwrap_or_else(|| PilOptions::default_elf(None));
         if !elf.exists() {
             return Err(format!(
@@ -406,7 +405,8 @@ fn faults_campaign(
                 "fault injection, firmware under QEMU",
                 k as f64 / applicable.len() as f64,
             );
-            let mut opts = PilOptions::new(&elf);
+            // Configured over the link for the plant's geometry.
+            let mut opts = PilOptions::new(&elf).with_rig(plant.rig());
             opts.min_level = "warn";
             let mut c =
                 hil_sim::pil::PilController::start(&opts).map_err(|e| format!("PIL: {e}"))?;

@@ -202,3 +202,76 @@ accel_mm_s2 = 1500.0
     );
     eprintln!("positioning: firmware under QEMU = host: {pil}");
 }
+
+/// A drive train that is not the paper rig's (a 15-tooth pulley, a 500-line encoder: 3.5 times
+/// fewer counts per millimetre): the firmware under QEMU is configured for it over the link (the
+/// host-built configuration image), loads that plant's calibration, and runs a short scenario
+/// bit for bit like the core in-process.
+#[test]
+#[ignore = "needs the QEMU firmware ELF (cargo fw-qemu); run by .ci/test"]
+fn another_geometry_pil_is_bit_identical_to_the_host() {
+    let elf = elf();
+    let mut plant = PlantParams::paper_rig();
+    plant.pulley.teeth = 15;
+    plant.encoder.lines = 500;
+    plant.validate().unwrap();
+    assert_ne!(plant.rig(), PlantParams::paper_rig().rig());
+    let cal = eval::calibrate_plant(&plant, &mut |_, _| {}).unwrap();
+    let scenario = Scenario::from_toml_str(
+        r#"
+name = "geometry-pil"
+start_mm = 40.0
+[[move]]
+to_mm = 110.0
+velocity_mm_s = 150.0
+accel_mm_s2 = 3000.0
+dwell_ms = 100
+[[move]]
+to_mm = 70.0
+velocity_mm_s = 50.0
+accel_mm_s2 = 1000.0
+dwell_ms = 100
+[[move]]
+to_mm = 90.0
+velocity_mm_s = 100.0
+accel_mm_s2 = 2000.0
+"#,
+    )
+    .unwrap();
+    let rc = hil_sim::run::RunConfig {
+        seed: 5,
+        ..Default::default()
+    };
+    let host = eval::run_in_process(
+        &scenario,
+        &plant,
+        &cal.params,
+        ModelKind::Exponential,
+        rc.seed,
+        &mut |_| {},
+    )
+    .unwrap();
+    let mut opts = PilOptions::new(elf);
+    opts.log = LogSink::Discard;
+    let pil = eval::run_pil(
+        &scenario,
+        &plant,
+        &cal.params,
+        ModelKind::Exponential,
+        &rc,
+        &opts,
+        &mut |_| {},
+    )
+    .unwrap();
+    assert_eq!(host.records.len(), pil.records.len(), "tick counts differ");
+    for (k, (h, p)) in host.records.iter().zip(&pil.records).enumerate() {
+        assert_eq!(h, p, "tick {k} differs: host {h:?} firmware {p:?}");
+    }
+    // The estimate is in use (the plant's calibration, not the paper rig's Table 2).
+    assert!(
+        pil.records
+            .iter()
+            .any(|r| r.out.telemetry.est_error_um != 0),
+        "no estimate"
+    );
+}

@@ -174,6 +174,15 @@ impl PilOptions {
         }
     }
 
+    /// The configuration sent after boot with the geometry `rig` (the drive-train of the plant
+    /// in the loop); nothing changes when no configuration is sent.
+    pub fn with_rig(mut self, rig: estimator_core::rig::Rig) -> Self {
+        if let Some(s) = &mut self.settings {
+            s.rig = rig;
+        }
+        self
+    }
+
     /// The firmware ELF `cargo fw-qemu` builds, under `target_dir` (default `target`).
     pub fn default_elf(target_dir: Option<&str>) -> PathBuf {
         let dir = target_dir
