@@ -86,13 +86,13 @@ pub fn transitions(p: &mut Producer, prev: &Telemetry, t: &Telemetry) {
             if t.moving {
                 Event::MoveStart {
                     tick: t.tick,
-                    motor_counts: t.motor_counts,
+                    motor_counts: t.motor_counts.0,
                 }
             } else {
                 Event::MoveEnd {
                     tick: t.tick,
-                    motor_counts: t.motor_counts,
-                    following_error_counts: t.following_error_counts,
+                    motor_counts: t.motor_counts.0,
+                    following_error_counts: t.following_error_counts.0,
                 }
             },
         );
@@ -104,7 +104,7 @@ pub fn transitions(p: &mut Producer, prev: &Telemetry, t: &Telemetry) {
                 p,
                 Event::FaultRaised {
                     tick: t.tick,
-                    motor_counts: t.motor_counts,
+                    motor_counts: t.motor_counts.0,
                     new: now & !before,
                 },
             );

@@ -399,8 +399,8 @@ mod app {
                 events_in,
                 Event::Trace {
                     tick: t.tick,
-                    motor_counts: t.motor_counts,
-                    setpoint_counts: t.setpoint_counts,
+                    motor_counts: t.motor_counts.0,
+                    setpoint_counts: t.setpoint_counts.0,
                     current_bits: t.current_a.to_bits(),
                 },
             );
@@ -457,9 +457,9 @@ mod app {
             }
             let ma = (t.current_a.to_bits() as i64 * 1000) >> 16;
             self.samples[self.count as usize % RECORD_BATCH] = RecordSample {
-                motor_counts: t.motor_counts,
-                scale_counts: t.scale_counts,
-                setpoint_counts: t.setpoint_counts,
+                motor_counts: t.motor_counts.0,
+                scale_counts: t.scale_counts.0,
+                setpoint_counts: t.setpoint_counts.0,
                 current_ma: ma.clamp(i16::MIN as i64, i16::MAX as i64) as i16,
             };
             self.count += 1;

@@ -70,8 +70,8 @@ mod tests {
             let o = drive.step(rest);
             defmt::assert!(!o.telemetry.moving, "moving after frame {=u32}", i);
             defmt::assert_eq!(
-                o.telemetry.setpoint_counts,
-                before.telemetry.setpoint_counts
+                o.telemetry.setpoint_counts.0,
+                before.telemetry.setpoint_counts.0
             );
             defmt::assert_eq!(o.current_a.to_bits(), before.current_a.to_bits());
         }

@@ -14,6 +14,7 @@ use estimator_core::fixed::types::I16F16;
 use estimator_core::model::ModelParams;
 use estimator_core::rig::Rig;
 use estimator_core::settings::Settings;
+use estimator_core::units::{MotorCounts, ScaleCounts};
 use hil_sim::calibrate::Calibration;
 use hil_sim::run::{Record, Trace};
 use hil_sim::scenario::{Move, Scenario};
@@ -138,10 +139,12 @@ pub fn to_trace(
                     current_a,
                     telemetry: Telemetry {
                         tick: s.tick,
-                        motor_counts: r.motor_counts,
-                        scale_counts: r.scale_counts,
-                        setpoint_counts: r.setpoint_counts,
-                        following_error_counts: r.setpoint_counts.wrapping_sub(r.motor_counts),
+                        motor_counts: MotorCounts(r.motor_counts),
+                        scale_counts: ScaleCounts(r.scale_counts),
+                        setpoint_counts: MotorCounts(r.setpoint_counts),
+                        following_error_counts: MotorCounts(
+                            r.setpoint_counts.wrapping_sub(r.motor_counts),
+                        ),
                         current_a,
                         faults: Faults::NONE,
                         moving,

@@ -18,6 +18,7 @@ use crate::model::{self, ModelCoeffs, ModelKind, ModelParams, ModelState};
 use crate::rig::Rig;
 pub use crate::settings::HomingConfig;
 use crate::trajectory::{self, Trajectory};
+use crate::units::{MotorCounts, ScaleCounts};
 use crate::BuildContext;
 use crate::{encoder, pid, ConfigError};
 
@@ -39,14 +40,14 @@ pub struct Sample {
 pub struct Telemetry {
     /// Tick counter since start.
     pub tick: u32,
-    /// Unwrapped motor position (x_PE) in encoder counts.
-    pub motor_counts: i32,
-    /// Unwrapped linear-scale position (x_LS) in scale counts (0.5 um each).
-    pub scale_counts: i32,
-    /// Trajectory set-point, whole counts.
-    pub setpoint_counts: i32,
-    /// Set-point minus measured position, counts.
-    pub following_error_counts: i32,
+    /// Unwrapped motor position (x_PE).
+    pub motor_counts: MotorCounts,
+    /// Unwrapped linear-scale position (x_LS).
+    pub scale_counts: ScaleCounts,
+    /// Trajectory set-point, whole motor counts.
+    pub setpoint_counts: MotorCounts,
+    /// Set-point minus measured position, whole motor counts.
+    pub following_error_counts: MotorCounts,
     /// Estimated transmission error y = x_LS - x_PE, micrometres.
     pub est_error_um: I16F16,
     /// Current command sent to the amplifier, amperes.
@@ -734,7 +735,7 @@ impl Drive {
     /// The estimated carriage position of the last tick: motor position plus the active
     /// compensator's estimate, um of travel (rounded, saturating).
     pub fn carriage_estimate_um(&self) -> i32 {
-        let motor_q32 = (self.last.motor_counts as i64).saturating_mul(self.um_per_count_q32);
+        let motor_q32 = (self.last.motor_counts.0 as i64).saturating_mul(self.um_per_count_q32);
         let est_q32 = (self.last.est_error_um.to_bits() as i64) << 16;
         let um = motor_q32.saturating_add(est_q32).saturating_add(1 << 31) >> 32;
         um.clamp(i32::MIN as i64, i32::MAX as i64) as i32
@@ -1133,10 +1134,10 @@ impl Drive {
         let command_a = self.polarity.current_frame(current_a);
         self.last = Telemetry {
             tick: self.tick,
-            motor_counts: x,
-            scale_counts: scale,
-            setpoint_counts,
-            following_error_counts,
+            motor_counts: MotorCounts(x),
+            scale_counts: ScaleCounts(scale),
+            setpoint_counts: MotorCounts(setpoint_counts),
+            following_error_counts: MotorCounts(following_error_counts),
             est_error_um,
             current_a: command_a,
             faults: self.faults,

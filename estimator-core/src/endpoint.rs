@@ -16,6 +16,7 @@ use crate::drive::{
 };
 use crate::image;
 use crate::settings::{self, RawSettings, Settings};
+use crate::units::{MotorCounts, ScaleCounts};
 use crate::ConfigError;
 
 /// `detail` codes of [`LinkError::Calibration`].
@@ -77,10 +78,10 @@ impl From<&Telemetry> for WireTelemetry {
     fn from(t: &Telemetry) -> Self {
         WireTelemetry {
             tick: t.tick,
-            motor_counts: t.motor_counts,
-            scale_counts: t.scale_counts,
-            setpoint_counts: t.setpoint_counts,
-            following_error_counts: t.following_error_counts,
+            motor_counts: t.motor_counts.0,
+            scale_counts: t.scale_counts.0,
+            setpoint_counts: t.setpoint_counts.0,
+            following_error_counts: t.following_error_counts.0,
             est_error_um_bits: t.est_error_um.to_bits(),
             current_a_bits: t.current_a.to_bits(),
             faults: t.faults.0,
@@ -97,10 +98,10 @@ impl TryFrom<WireTelemetry> for Telemetry {
     fn try_from(w: WireTelemetry) -> Result<Self, LinkError> {
         Ok(Telemetry {
             tick: w.tick,
-            motor_counts: w.motor_counts,
-            scale_counts: w.scale_counts,
-            setpoint_counts: w.setpoint_counts,
-            following_error_counts: w.following_error_counts,
+            motor_counts: MotorCounts(w.motor_counts),
+            scale_counts: ScaleCounts(w.scale_counts),
+            setpoint_counts: MotorCounts(w.setpoint_counts),
+            following_error_counts: MotorCounts(w.following_error_counts),
             est_error_um: I16F16::from_bits(w.est_error_um_bits),
             current_a: I16F16::from_bits(w.current_a_bits),
             faults: Faults(w.faults),
@@ -679,7 +680,7 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
         .fold(0, |acc, (_, bit)| acc | bit);
         WireStatus {
             tick: last.tick,
-            motor_counts: last.motor_counts,
+            motor_counts: last.motor_counts.0,
             faults: last.faults.0,
             model: last.model as u8,
             flags,
@@ -692,7 +693,7 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
             stack_peak_bytes,
             carriage_target_um: drive.carriage_target_um(),
             carriage_estimate_um: drive.carriage_estimate_um(),
-            scale_counts: last.scale_counts,
+            scale_counts: last.scale_counts.0,
             record_crc: self.record_crc,
         }
     }

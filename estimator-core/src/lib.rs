@@ -12,6 +12,7 @@
 #![warn(missing_docs)]
 
 pub mod rig;
+pub mod units;
 
 pub mod encoder;
 pub mod pid;

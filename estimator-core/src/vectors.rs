@@ -95,7 +95,7 @@ pub fn closed_loop(model: crate::model::ModelKind) -> RunDigest {
         digest.est_abs_sum += t.est_error_um.to_bits().unsigned_abs() as u64;
         let push = ((out.current_a.to_bits() as i64) * 3) >> 16;
         // The raw counter moves by what takes the motor to the set-point, plus the push.
-        pos += (t.setpoint_counts as i64 - t.motor_counts as i64) + push.clamp(-100, 100);
+        pos += (t.setpoint_counts.0 as i64 - t.motor_counts.0 as i64) + push.clamp(-100, 100);
         rest_ticks = if t.moving { 0 } else { rest_ticks + 1 };
         digest.ticks += 1;
         if (tick + 1) % BLOCK_TICKS == 0 {
@@ -107,6 +107,6 @@ pub fn closed_loop(model: crate::model::ModelKind) -> RunDigest {
             break;
         }
     }
-    digest.final_counts = drive.telemetry().motor_counts;
+    digest.final_counts = drive.telemetry().motor_counts.0;
     digest
 }

@@ -41,17 +41,17 @@ fn move_arrives_and_holds() {
     let last = outs.last().unwrap().telemetry;
     assert!(!last.moving && last.faults.is_clear());
     let target = (120.0 * m.cpm).round() as i32;
-    assert_eq!(last.setpoint_counts, target);
+    assert_eq!(last.setpoint_counts.0, target);
     assert!(
-        (last.motor_counts - target).abs() <= 2,
+        (last.motor_counts.0 - target).abs() <= 2,
         "{} vs {}",
-        last.motor_counts,
+        last.motor_counts.0,
         target
     );
     // Following error stays small throughout a moderate move.
     let worst = outs
         .iter()
-        .map(|o| o.telemetry.following_error_counts.abs())
+        .map(|o| o.telemetry.following_error_counts.0.abs())
         .max()
         .unwrap();
     assert!(
@@ -169,7 +169,7 @@ fn retargets_with_new_limits_mid_move_are_continuous() {
         outs.extend(run(&mut d, &mut m, 2000 * 6));
         let sp: Vec<i64> = outs
             .iter()
-            .map(|o| o.telemetry.setpoint_counts as i64)
+            .map(|o| o.telemetry.setpoint_counts.0 as i64)
             .collect();
         let max_step = sp.windows(2).map(|w| (w[1] - w[0]).abs()).max().unwrap();
         let max_dv = sp
@@ -273,7 +273,7 @@ fn following_error_fault_when_the_motor_lags() {
             motor_counter: (x.floor() as i64) as u16,
             scale_counter: 0,
         });
-        sp = [sp[1], Some(o.telemetry.setpoint_counts as f64)];
+        sp = [sp[1], Some(o.telemetry.setpoint_counts.0 as f64)];
         if !o.telemetry.faults.is_clear() {
             tripped = Some((k, o));
             break;
@@ -297,7 +297,7 @@ fn travel_limit_fault() {
         if o.telemetry.faults.has(Faults::TRAVEL_LIMIT) {
             faulted = true;
             assert_eq!(o.current_a.to_bits(), 0);
-            assert!(o.telemetry.motor_counts < -(5.0 * m.cpm) as i32);
+            assert!(o.telemetry.motor_counts.0 < -(5.0 * m.cpm) as i32);
             break;
         }
     }
@@ -454,7 +454,7 @@ fn carriage_moves_put_the_estimated_carriage_on_target() {
             let t = run(d, m, 2000 * 4).last().unwrap().telemetry;
             assert!(!t.moving);
             let est_counts = t.est_error_um.to_num::<f64>() / 1000.0 * m.cpm;
-            let carriage_counts = t.motor_counts as f64 + est_counts;
+            let carriage_counts = t.motor_counts.0 as f64 + est_counts;
             let target = target_mm * m.cpm;
             assert!(
                 (carriage_counts - target).abs() <= 3.0,

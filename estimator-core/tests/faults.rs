@@ -6,6 +6,7 @@ use estimator_core::drive::{Command, CommandError, Drive, DriveConfig, Faults, P
 use estimator_core::fault::{self, Inputs, State, WINDOW};
 use estimator_core::fixed::types::I16F16;
 use estimator_core::rig::Rig;
+use estimator_core::units::MotorCounts;
 
 const RATE_HZ: f64 = 2000.0;
 const VMAX_MM_S: f64 = 250.0;
@@ -341,7 +342,7 @@ fn reversed_motor_wires_trip_runaway_and_polarity_setting_fixes_them() {
     }
     let t = d.telemetry();
     assert!(!t.moving);
-    assert!((t.motor_counts - (150.0 * cpm()) as i32).abs() <= 3);
+    assert!((t.motor_counts.0 - (150.0 * cpm()) as i32).abs() <= 3);
 }
 
 #[test]
@@ -367,7 +368,7 @@ fn inverted_encoder_counts_the_other_way() {
     });
     assert_eq!(
         o.telemetry.motor_counts,
-        (50.0 * cpm()).round() as i32 - 100
+        MotorCounts((50.0 * cpm()).round() as i32 - 100)
     );
 }
 

@@ -226,15 +226,19 @@ pub fn run(
                 t_s: t,
             });
         }
-        if last_sp != i32::MIN && tel.setpoint_counts != last_sp {
-            cmd_dir = if tel.setpoint_counts > last_sp { 1 } else { -1 };
+        if last_sp != i32::MIN && tel.setpoint_counts.0 != last_sp {
+            cmd_dir = if tel.setpoint_counts.0 > last_sp {
+                1
+            } else {
+                -1
+            };
         }
-        last_sp = tel.setpoint_counts;
+        last_sp = tel.setpoint_counts.0;
         records.push(Record {
             t_s: t,
-            motor_counts: tel.motor_counts,
+            motor_counts: tel.motor_counts.0,
             x_ls_mm: plant.scale_counts() as f64 / plant.scale_counts_per_mm(),
-            setpoint_counts: tel.setpoint_counts,
+            setpoint_counts: tel.setpoint_counts.0,
             cmd_dir,
             out,
         });

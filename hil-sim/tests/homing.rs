@@ -69,7 +69,7 @@ fn homing_finds_the_stop_and_ties_motor_and_scale_to_it() {
     // The carriage presses into the stop (the plant's stop is compliant): the scale reads the
     // homing position there, a fixed offset from the true carriage.
     let tel = d.telemetry();
-    assert_eq!(tel.scale_counts, -20_000);
+    assert_eq!(tel.scale_counts.0, -20_000);
     let pressed_um = p.carriage_mm() * 1000.0 - -10_000.0;
     assert!((-300.0..0.0).contains(&pressed_um), "{pressed_um} um");
     // Back off to 5 mm, then a move works.

@@ -1,0 +1,25 @@
+//! Positions in their own types: motor encoder counts and linear-scale counts are both `i32`
+//! on the wire and in the per-tick arithmetic, but they are different lengths (one motor count
+//! is 0.535 um of belt on the paper rig, one scale count 0.5 um of carriage), and mixing them
+//! is a silent error of 7 %. Where positions leave the drive ([`crate::drive::Telemetry`]) they
+//! carry their unit in the type; `.0` is the raw count where arithmetic needs it.
+
+/// Motor encoder counts (x4 quadrature of the motor's encoder), the drive's position unit.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[repr(transparent)]
+pub struct MotorCounts(pub i32);
+
+/// Linear-scale counts (x4 quadrature of a 500 lines/mm scale: 0.5 um each).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[repr(transparent)]
+pub struct ScaleCounts(pub i32);
+
+impl ScaleCounts {
+    /// Scale counts per micrometre.
+    pub const PER_UM: i32 = crate::drive::SCALE_COUNTS_PER_UM;
+
+    /// The position in micrometres.
+    pub fn um(self) -> f64 {
+        self.0 as f64 / Self::PER_UM as f64
+    }
+}
