@@ -22,7 +22,7 @@
 //!                     columns per Q16.16 um Q0.32 u32, n_d x n_g0 gaps U11F5 u16
 //!     backlash        forward, reverse I16F16 um                          2 x i32
 //!     bidir table     rows u16, 0 u16, x0 counts i32, step counts u32,
-//!                     rows x (forward, reverse) I16F16 um
+//!                     rows x (forward, reverse) I13F3 um i16
 //!     model4          widths counts, weights reverse, weights forward Q24 um/count
 //!                     3 x N_OPS x i32; x_ref counts, offset I16F16, slope Q31 um/count, hat
 //!                     start counts, hat reciprocal u32, knots N_KNOTS x I16F16, pitch rate u32,
@@ -38,7 +38,7 @@
 //! that needs the parameters' `f64` interpolation: Model 3's reverse band at or above its forward
 //! band (a violation misplaces the estimate, never the drive).
 
-use fixed::types::{I16F16, I1F31, U11F5};
+use fixed::types::{I13F3, I16F16, I1F31, U11F5};
 
 use crate::blob::{check_header_of, BlobError};
 use crate::model::fixmath::{Recip, Scale, MAX_SHIFT};
@@ -56,12 +56,12 @@ use belt_link::bytes::Reader;
 /// First four bytes of every image.
 pub const MAGIC: [u8; 4] = *b"BDCI";
 /// The version this code writes and reads.
-pub const VERSION: u16 = 2;
+pub const VERSION: u16 = 3;
 const HEADER: usize = 16;
 const RIG_BYTES: usize = 24;
 const BAND_BYTES: usize = 4 + 8 * MAX_BAND_POINTS;
 const TRANSITION_BYTES: usize = 12 + 2 * MAX_TRANSITION_D * MAX_TRANSITION_G0;
-const BIDIR_BYTES: usize = 12 + 8 * MAX_BIDIR_ROWS;
+const BIDIR_BYTES: usize = 12 + 4 * MAX_BIDIR_ROWS;
 const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 9);
 /// Largest image: every table full.
 pub const MAX_BYTES: usize = HEADER
@@ -284,13 +284,14 @@ fn read_bidir(r: &mut Reader, mut out: Option<&mut BidirCoeffs>) -> Result<(), B
     }
     let span = step_counts.saturating_mul(rows as u32 - 1);
     for i in 0..MAX_BIDIR_ROWS {
+        // Any I13F3 is a value the table can hold (+-4096 um).
         let (f, v) = if i < rows {
             (
-                um(r, ANY, "bidir_table.forward_um")?,
-                um(r, ANY, "bidir_table.reverse_um")?,
+                I13F3::from_bits(r.u16()? as i16),
+                I13F3::from_bits(r.u16()? as i16),
             )
         } else {
-            (I16F16::ZERO, I16F16::ZERO)
+            (I13F3::ZERO, I13F3::ZERO)
         };
         if let Some(b) = out.as_deref_mut() {
             b.values[0][i] = f;
@@ -572,8 +573,8 @@ mod write {
         w.i32(b.x0_counts);
         w.u32(b.step_counts);
         for i in 0..(b.rows as usize).min(MAX_BIDIR_ROWS) {
-            w.i32(b.values[0][i].to_bits());
-            w.i32(b.values[1][i].to_bits());
+            w.u16(b.values[0][i].to_bits() as u16);
+            w.u16(b.values[1][i].to_bits() as u16);
         }
         model4(&mut w, &c.model4);
         closing(&mut w, &c.model1.closing);

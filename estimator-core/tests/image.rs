@@ -200,7 +200,7 @@ fn every_section_is_checked() {
     let transition = MODEL3 + bands;
     let backlash = transition + trans(m3.transition(Forward)) + trans(m3.transition(Reverse));
     let bidir = backlash + 8;
-    let model4 = bidir + 12 + 8 * c.bidir().rows();
+    let model4 = bidir + 12 + 4 * c.bidir().rows();
     assert_eq!(
         model4 + MODEL4_BYTES + 24,
         good.len(),

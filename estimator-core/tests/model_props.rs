@@ -193,7 +193,8 @@ fn baselines(cpm: f64) -> impl Strategy<Value = (BacklashParams, BidirParams)> {
         2usize..=MAX_BIDIR_ROWS,
         -1.0f64..0.5,
         0.0f64..1.0,
-        prop::collection::vec(-8_000.0f64..8_000.0, 2 * MAX_BIDIR_ROWS),
+        // The table's values span its format (I13F3: +-4095 um).
+        prop::collection::vec(-4_095.0f64..4_095.0, 2 * MAX_BIDIR_ROWS),
     )
         .prop_map(move |(offset, backlash, rows, start, span, values)| {
             let mut t = BidirParams::ZERO;

@@ -9,7 +9,7 @@
 //! The direction is the reversal detector's (the same dead band as the models'), which equals the
 //! commanded direction along a planned path. Neither keeps any state of its own.
 
-use fixed::types::I16F16;
+use fixed::types::{I13F3, I16F16};
 
 use super::convert::{finite, um_q16};
 use super::fixmath::{lerp_q32, round_i32, round_u64, Recip};
@@ -143,8 +143,10 @@ pub struct BidirCoeffs {
     pub(crate) step_recip: Recip,
     /// Rows in use, `2..=MAX_BIDIR_ROWS`.
     pub(crate) rows: u16,
-    /// Per direction (forward, reverse), I16F16 um.
-    pub(crate) values: [[I16F16; MAX_BIDIR_ROWS]; 2],
+    /// Per direction (forward, reverse), um in I13F3 (+-4096 um to 1/8 um): half the RAM of
+    /// I16F16, which the drive's coefficients and the link's calibration buffer both hold
+    /// (2 KiB of static RAM together), for at most 1/16 um of rounding.
+    pub(crate) values: [[I13F3; MAX_BIDIR_ROWS]; 2],
 }
 
 impl BidirCoeffs {
@@ -168,13 +170,13 @@ impl BidirCoeffs {
             .ok_or(ConfigError::OutOfRange("bidir_table.step_mm"))?
             as u32;
         let x0_counts = round_i32(x0).ok_or(ConfigError::OutOfRange("bidir_table.x0_mm"))?;
-        let mut values = [[I16F16::ZERO; MAX_BIDIR_ROWS]; 2];
+        let mut values = [[I13F3::ZERO; MAX_BIDIR_ROWS]; 2];
         for (dir, name) in ["bidir_table.forward_um", "bidir_table.reverse_um"]
             .into_iter()
             .enumerate()
         {
             for (i, v) in values[dir].iter_mut().enumerate().take(rows) {
-                *v = um_q16(src.value_um(dir, i), -super::MAX_ABS_UM, name)?;
+                *v = bidir_um(src.value_um(dir, i), name)?;
             }
         }
         Ok(BidirCoeffs {
@@ -203,7 +205,10 @@ impl BidirCoeffs {
             Direction::Forward => 0,
             Direction::Reverse => 1,
         };
-        self.values[d].get(i).copied().filter(|_| i < self.rows())
+        self.values[d]
+            .get(i)
+            .filter(|_| i < self.rows())
+            .map(|v| I16F16::from(*v))
     }
 
     /// The table of `dir` at `x_counts`, interpolated, held flat outside. Integer-only: one
@@ -225,11 +230,25 @@ impl BidirCoeffs {
             self.step_recip.frac(w)
         };
         let i = i as usize % MAX_BIDIR_ROWS;
-        let a = t[i].to_bits();
-        let b = t[(i + 1) % MAX_BIDIR_ROWS].to_bits();
+        // I13F3 to I16F16 bits: exact.
+        let a = (t[i].to_bits() as i32) << 13;
+        let b = (t[(i + 1) % MAX_BIDIR_ROWS].to_bits() as i32) << 13;
         I16F16::from_bits(lerp_q32(a, b, frac))
     }
 }
+
+/// A bidirectional table's value, um, as I13F3 (rounded to 1/8 um): within +-4095 um, which
+/// holds the paper's Table 2 bands over +-2.5 m of travel; the error names the field.
+pub(crate) fn bidir_um(v_um: f64, field: &'static str) -> Result<I13F3, ConfigError> {
+    let v = finite(v_um, field)?;
+    if v.abs() > BIDIR_MAX_ABS_UM {
+        return Err(ConfigError::OutOfRange(field));
+    }
+    I13F3::checked_from_num(v).ok_or(ConfigError::OutOfRange(field))
+}
+
+/// The largest bidirectional table value, um (I13F3's range, with rounding room).
+pub const BIDIR_MAX_ABS_UM: f64 = 4095.0;
 
 /// Backlash for the current direction.
 #[inline]
@@ -301,6 +320,24 @@ mod tests {
         assert_eq!(
             BidirCoeffs::build(&p, cpm),
             Err(ConfigError::OutOfRange("bidir_table.x0_mm"))
+        );
+        // The values' format (I13F3) ends at +-4095 um; within it, they round to 1/8 um.
+        p = table(4);
+        p.forward_um[2] = 4095.5;
+        assert_eq!(
+            BidirCoeffs::build(&p, cpm),
+            Err(ConfigError::OutOfRange("bidir_table.forward_um"))
+        );
+        p.forward_um[2] = -4095.0;
+        p.reverse_um[1] = 12.3;
+        let c = BidirCoeffs::build(&p, cpm).unwrap();
+        assert_eq!(
+            c.value_um(Direction::Forward, 2),
+            Some(I16F16::from_num(-4095))
+        );
+        assert_eq!(
+            c.value_um(Direction::Reverse, 1),
+            Some(I16F16::from_num(12.25))
         );
         let b = BacklashParams {
             offset_um: 0.0,
