@@ -473,6 +473,15 @@ fn receiver_resynchronises_after_garbage() {
     assert_eq!(rx.last_error, Some(LinkError::Oversize));
 }
 
+/// A transfer's piece: 1..=CHUNK_MAX random bytes, zero-padded, with their count.
+fn piece() -> impl Strategy<Value = (u8, [u8; CHUNK_MAX])> {
+    proptest::collection::vec(any::<u8>(), 1..=CHUNK_MAX).prop_map(|d| {
+        let mut data = [0u8; CHUNK_MAX];
+        data[..d.len()].copy_from_slice(&d);
+        (d.len() as u8, data)
+    })
+}
+
 fn arb_request() -> impl Strategy<Value = Request> {
     prop_oneof![
         (any::<i32>(), 1..=u32::MAX, 1..=u32::MAX).prop_map(|(t, v, a)| Request::Command(
@@ -499,19 +508,11 @@ fn arb_request() -> impl Strategy<Value = Request> {
             total_len: l,
             crc32: c
         }),
-        (
-            any::<u32>(),
-            proptest::collection::vec(any::<u8>(), 1..=CHUNK_MAX)
-        )
-            .prop_map(|(o, d)| {
-                let mut data = [0u8; CHUNK_MAX];
-                data[..d.len()].copy_from_slice(&d);
-                Request::CalChunk {
-                    offset: o,
-                    len: d.len() as u8,
-                    data,
-                }
-            }),
+        (any::<u32>(), piece()).prop_map(|(offset, (len, data))| Request::CalChunk {
+            offset,
+            len,
+            data
+        }),
         Just(Request::CalCommit),
         Just(Request::Status),
         any::<u16>().prop_map(|n| Request::Telemetry { every_n_ticks: n }),
@@ -532,19 +533,11 @@ fn arb_request() -> impl Strategy<Value = Request> {
         Just(Request::Save),
         any::<u16>().prop_map(|n| Request::Record { every_n_ticks: n }),
         any::<u32>().prop_map(|offset| Request::CalRead { offset }),
-        (
-            any::<u16>(),
-            proptest::collection::vec(any::<u8>(), 1..=CHUNK_MAX)
-        )
-            .prop_map(|(o, d)| {
-                let mut data = [0u8; CHUNK_MAX];
-                data[..d.len()].copy_from_slice(&d);
-                Request::ConfigParts {
-                    offset: o,
-                    len: d.len() as u8,
-                    data,
-                }
-            }),
+        (any::<u16>(), piece()).prop_map(|(offset, (len, data))| Request::ConfigParts {
+            offset,
+            len,
+            data
+        }),
     ]
 }
 

@@ -482,6 +482,19 @@ impl From<Short> for LinkError {
     }
 }
 
+/// The bytes after a `head`-byte header: `min..=CHUNK_MAX` of them, zero-padded to
+/// [`CHUNK_MAX`], with their count (the chunked transfers' pieces).
+#[inline(always)]
+fn piece(payload: &[u8], head: usize, min: usize) -> Result<(u8, [u8; CHUNK_MAX]), LinkError> {
+    if payload.len() < head + min || payload.len() > head + CHUNK_MAX {
+        return Err(LinkError::BadLength);
+    }
+    let n = payload.len() - head;
+    let mut data = [0u8; CHUNK_MAX];
+    data[..n].copy_from_slice(&payload[head..]);
+    Ok((n as u8, data))
+}
+
 fn expect_len(payload: &[u8], len: usize) -> Result<Reader<'_>, LinkError> {
     if payload.len() == len {
         Ok(Reader::new(payload))
@@ -697,17 +710,10 @@ impl Message for Request {
                 Ok(Request::CalBegin { total_len, crc32 })
             }
             kind::CAL_CHUNK => {
-                if payload.len() < 4 + 1 || payload.len() > 4 + CHUNK_MAX {
-                    return Err(LinkError::BadLength);
-                }
-                let mut r = Reader::new(payload);
-                let offset = r.u32()?;
-                let mut data = [0u8; CHUNK_MAX];
-                let n = payload.len() - 4;
-                data[..n].copy_from_slice(&payload[4..]);
+                let (len, data) = piece(payload, 4, 1)?;
                 Ok(Request::CalChunk {
-                    offset,
-                    len: n as u8,
+                    offset: Reader::new(payload).u32()?,
+                    len,
                     data,
                 })
             }
@@ -744,16 +750,10 @@ impl Message for Request {
                 offset: expect_len(payload, 4)?.u32()?,
             }),
             kind::CONFIG_PARTS => {
-                if payload.len() < 2 + 1 || payload.len() > 2 + CHUNK_MAX {
-                    return Err(LinkError::BadLength);
-                }
-                let offset = Reader::new(payload).u16()?;
-                let mut data = [0u8; CHUNK_MAX];
-                let n = payload.len() - 2;
-                data[..n].copy_from_slice(&payload[2..]);
+                let (len, data) = piece(payload, 2, 1)?;
                 Ok(Request::ConfigParts {
-                    offset,
-                    len: n as u8,
+                    offset: Reader::new(payload).u16()?,
+                    len,
                     data,
                 })
             }
@@ -958,18 +958,12 @@ impl Message for Reply {
                 }
             }
             kind::CAL_DATA => {
-                if payload.len() < 8 || payload.len() > 8 + CHUNK_MAX {
-                    return Err(LinkError::BadLength);
-                }
+                let (len, data) = piece(payload, 8, 0)?;
                 let mut r = Reader::new(payload);
-                let (offset, total_len) = (r.u32()?, r.u32()?);
-                let n = payload.len() - 8;
-                let mut data = [0u8; CHUNK_MAX];
-                data[..n].copy_from_slice(&payload[8..]);
                 Reply::CalData {
-                    offset,
-                    total_len,
-                    len: n as u8,
+                    offset: r.u32()?,
+                    total_len: r.u32()?,
+                    len,
                     data,
                 }
             }

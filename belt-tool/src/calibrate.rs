@@ -10,6 +10,7 @@ use std::time::Duration;
 
 use belt_link::{crc32, Command, ModelKind, Reply, Request, CHUNK_MAX};
 use estimator_core::drive::{Faults, Output, Polarity, Telemetry, SCALE_COUNTS_PER_UM};
+use estimator_core::endpoint::calibration_requests;
 use estimator_core::fixed::types::I16F16;
 use estimator_core::model::ModelParams;
 use estimator_core::rig::Rig;
@@ -298,20 +299,10 @@ pub fn upload(link: &mut Link, blob: &[u8]) -> Result<(), ToolError> {
 }
 
 fn upload_once(link: &mut Link, blob: &[u8]) -> Result<(), ToolError> {
-    link.acked(&Request::CalBegin {
-        total_len: blob.len() as u32,
-        crc32: crc32(blob),
-    })?;
-    for (i, piece) in blob.chunks(CHUNK_MAX).enumerate() {
-        let mut data = [0u8; CHUNK_MAX];
-        data[..piece.len()].copy_from_slice(piece);
-        link.acked(&Request::CalChunk {
-            offset: (i * CHUNK_MAX) as u32,
-            len: piece.len() as u8,
-            data,
-        })?;
+    for req in calibration_requests(blob) {
+        link.acked(&req)?;
     }
-    link.acked(&Request::CalCommit)
+    Ok(())
 }
 
 /// Reads the installed calibration blob back (`CalRead`); `expected_len` is what was uploaded.

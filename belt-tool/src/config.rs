@@ -156,14 +156,21 @@ pub fn get_all(link: &mut Link) -> Result<Vec<FieldValue>, ToolError> {
 /// The drive's active configuration as [`Settings`]; a value the drive holds that its own
 /// table would refuse is reported by name.
 pub fn settings(link: &mut Link) -> Result<Settings, ToolError> {
+    read_settings(link, false)
+}
+
+/// The active (or, with `staged`, the staged) values as [`Settings`], each checked by its field:
+/// the drive stores them unread, so a refused one is named here.
+fn read_settings(link: &mut Link, staged: bool) -> Result<Settings, ToolError> {
     let mut s = Settings::PAPER;
     for v in get_all(link)? {
-        s.set(v.field.key, v.active).map_err(|e| {
+        let value = if staged { v.staged } else { v.active };
+        s.set(v.field.key, value).map_err(|e| {
             ToolError::Drive(format!(
-                "{}: the drive's configuration holds {} = {}: {e}",
+                "{}: the drive's {}configuration holds {} = {value}: {e}",
                 link.name(),
+                if staged { "staged " } else { "" },
                 v.field.name,
-                v.active
             ))
         })?;
     }
@@ -222,18 +229,7 @@ pub fn set_and_apply(
         })?;
     }
     // The drive converts no units: the image of the staged values is built here.
-    let mut staged = Settings::PAPER;
-    for v in get_all(link)? {
-        staged.set(v.field.key, v.staged).map_err(|e| {
-            ToolError::Drive(format!(
-                "{}: the drive's staged configuration holds {} = {}: {e}",
-                link.name(),
-                v.field.name,
-                v.staged
-            ))
-        })?;
-    }
-    let image = staged.parts_image().map_err(|e| {
+    let image = read_settings(link, true)?.parts_image().map_err(|e| {
         let what = match settings::field_named(e.field()) {
             Some(f) => format!("{e} (unit {})", f.unit),
             None => e.to_string(),

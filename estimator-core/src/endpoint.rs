@@ -207,21 +207,42 @@ pub enum Event {
     SaveFailed(u8),
 }
 
-/// The [`Request::ConfigParts`] pieces that carry `image` to the drive, in order (the host's
-/// side of [`Endpoint::staged_parts`]).
-pub fn config_parts_requests(image: &PartsImage) -> impl Iterator<Item = Request> + '_ {
-    image
+/// `bytes` in link-sized pieces, in order: offset, length, the bytes zero-padded.
+fn pieces(bytes: &[u8]) -> impl Iterator<Item = (usize, u8, [u8; belt_link::CHUNK_MAX])> + '_ {
+    bytes
         .chunks(belt_link::CHUNK_MAX)
         .enumerate()
         .map(|(i, piece)| {
             let mut data = [0u8; belt_link::CHUNK_MAX];
             data[..piece.len()].copy_from_slice(piece);
-            Request::ConfigParts {
-                offset: (i * belt_link::CHUNK_MAX) as u16,
-                len: piece.len() as u8,
-                data,
-            }
+            (i * belt_link::CHUNK_MAX, piece.len() as u8, data)
         })
+}
+
+/// The whole calibration transfer of `image`, in order: `CalBegin` with its length and CRC,
+/// the `CalChunk` pieces, `CalCommit` (the host's side of the endpoint's transfer).
+pub fn calibration_requests(image: &[u8]) -> impl Iterator<Item = Request> + '_ {
+    let begin = Request::CalBegin {
+        total_len: image.len() as u32,
+        crc32: belt_link::crc32(image),
+    };
+    core::iter::once(begin)
+        .chain(pieces(image).map(|(offset, len, data)| Request::CalChunk {
+            offset: offset as u32,
+            len,
+            data,
+        }))
+        .chain(core::iter::once(Request::CalCommit))
+}
+
+/// The [`Request::ConfigParts`] pieces that carry `image` to the drive, in order (the host's
+/// side of [`Endpoint::staged_parts`]).
+pub fn config_parts_requests(image: &PartsImage) -> impl Iterator<Item = Request> + '_ {
+    pieces(image).map(|(offset, len, data)| Request::ConfigParts {
+        offset: offset as u16,
+        len,
+        data,
+    })
 }
 
 /// The calibration blob's buffer: owned on hosts, a `&'static mut` into zero-initialised RAM
@@ -640,7 +661,7 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
                     Some((_, want, _, crc)) if crc.finish() != want => cal_error::CRC,
                     Some((total, ..)) => {
                         self.transfer = None;
-                        // Decoding takes milliseconds of soft-float: the caller does it outside
+                        // Checking the whole image takes a while: the caller does it outside
                         // the drive's lock (see `Effect::Calibrate`).
                         return (Effect::Calibrate(total), Event::None);
                     }
@@ -960,25 +981,18 @@ mod tests {
 
         // Without the inline helper, a complete transfer is handed back for decoding outside
         // the drive's lock, with exactly the bytes that arrived; the drive is untouched.
+        // The host's side is `calibration_requests`: begin, every piece, commit.
         let before = d.models().clone();
-        let begin = Request::CalBegin {
-            total_len: blob.len() as u32,
-            crc32: crc32(&blob),
-        };
-        assert!(matches!(
-            ep.handle(&begin, &mut d).0,
-            Effect::Reply(Reply::Ack { .. })
-        ));
-        for (i, piece) in blob.chunks(CHUNK_MAX).enumerate() {
+        let reqs: Vec<Request> = calibration_requests(&blob).collect();
+        assert_eq!(reqs.len(), blob.len().div_ceil(CHUNK_MAX) + 2);
+        let (commit, rest) = reqs.split_last().unwrap();
+        for req in rest {
             assert!(matches!(
-                ep.handle(&chunk(i * CHUNK_MAX, piece), &mut d).0,
+                ep.handle(req, &mut d).0,
                 Effect::Reply(Reply::Ack { .. })
             ));
         }
-        assert_eq!(
-            ep.handle(&Request::CalCommit, &mut d).0,
-            Effect::Calibrate(blob.len())
-        );
+        assert_eq!(ep.handle(commit, &mut d).0, Effect::Calibrate(blob.len()));
         assert_eq!(ep.calibration(blob.len()), &blob[..]);
         assert_eq!(d.models(), &before);
     }

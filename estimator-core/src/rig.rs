@@ -82,11 +82,10 @@ impl Rig {
         if self.encoder_lines == 0 || self.encoder_lines > 1 << 20 {
             return Err(E::OutOfRange("rig.encoder_lines"));
         }
-        if !(self.gear_ratio.is_finite() && self.gear_ratio > 0.0 && self.gear_ratio < 1e4) {
+        if !positive_below(self.gear_ratio, 1e4) {
             return Err(E::OutOfRange("rig.gear_ratio"));
         }
-        if !(self.belt_pitch_mm.is_finite() && self.belt_pitch_mm > 0.0 && self.belt_pitch_mm < 1e3)
-        {
+        if !positive_below(self.belt_pitch_mm, 1e3) {
             return Err(E::OutOfRange("rig.belt_pitch_mm"));
         }
         if self.pulley_teeth == 0 || self.pulley_teeth > 1000 {
@@ -94,6 +93,14 @@ impl Rig {
         }
         Ok(())
     }
+}
+
+/// `0 < x < max` and finite, on the bits (positive doubles order like their bits; NaN, the
+/// infinities and negative values fall outside): no float compare, so the drive can check a
+/// geometry it receives without soft float.
+fn positive_below(x: f64, max: f64) -> bool {
+    let b = x.to_bits();
+    b > 0 && b < max.to_bits()
 }
 
 impl Default for Rig {

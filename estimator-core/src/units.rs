@@ -13,13 +13,3 @@ pub struct MotorCounts(pub i32);
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash)]
 #[repr(transparent)]
 pub struct ScaleCounts(pub i32);
-
-impl ScaleCounts {
-    /// Scale counts per micrometre.
-    pub const PER_UM: i32 = crate::drive::SCALE_COUNTS_PER_UM;
-
-    /// The position in micrometres.
-    pub fn um(self) -> f64 {
-        self.0 as f64 / Self::PER_UM as f64
-    }
-}

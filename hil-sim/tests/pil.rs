@@ -32,40 +32,37 @@ fn fig18_pil_is_bit_identical_to_the_host() {
     let plant = PlantParams::paper_rig();
     let cal = eval::calibrate_plant(&plant, &mut |_, _| {}).unwrap();
     let scenario = Scenario::load("fig18").unwrap();
+    let pil = assert_pil_matches_host(elf, &plant, &cal.params, &scenario, ModelKind::Table, 3);
+    eprintln!(
+        "fig18: {} ticks bit-identical between host and firmware under QEMU",
+        pil.records.len()
+    );
+}
 
-    let host = eval::run_in_process(
-        &scenario,
-        &plant,
-        &cal.params,
-        ModelKind::Table,
-        3,
-        &mut |_| {},
-    )
-    .unwrap();
+/// Runs `scenario` in-process and with the firmware under QEMU (the pipe transport) with the
+/// same plant, calibration, model and seed, asserts every tick identical, and returns the
+/// firmware's trace.
+fn assert_pil_matches_host(
+    elf: std::path::PathBuf,
+    plant: &PlantParams,
+    params: &estimator_core::model::ModelParams,
+    scenario: &Scenario,
+    model: ModelKind,
+    seed: u64,
+) -> hil_sim::run::Trace {
+    let host = eval::run_in_process(scenario, plant, params, model, seed, &mut |_| {}).unwrap();
     let mut opts = PilOptions::new(elf);
     opts.log = LogSink::Discard;
-    let pil = eval::run_pil(
-        &scenario,
-        &plant,
-        &cal.params,
-        ModelKind::Table,
-        &hil_sim::run::RunConfig {
-            seed: 3,
-            ..Default::default()
-        },
-        &opts,
-        &mut |_| {},
-    )
-    .unwrap();
-
+    let rc = hil_sim::run::RunConfig {
+        seed,
+        ..Default::default()
+    };
+    let pil = eval::run_pil(scenario, plant, params, model, &rc, &opts, &mut |_| {}).unwrap();
     assert_eq!(host.records.len(), pil.records.len(), "tick counts differ");
     for (k, (h, p)) in host.records.iter().zip(&pil.records).enumerate() {
         assert_eq!(h, p, "tick {k} differs: host {h:?} firmware {p:?}");
     }
-    eprintln!(
-        "fig18: {} ticks bit-identical between host and firmware under QEMU",
-        host.records.len()
-    );
+    pil
 }
 
 /// Carriage placement with the firmware in the loop: the same carriage-space moves give the same
@@ -238,35 +235,14 @@ accel_mm_s2 = 2000.0
 "#,
     )
     .unwrap();
-    let rc = hil_sim::run::RunConfig {
-        seed: 5,
-        ..Default::default()
-    };
-    let host = eval::run_in_process(
-        &scenario,
+    let pil = assert_pil_matches_host(
+        elf,
         &plant,
         &cal.params,
-        ModelKind::Exponential,
-        rc.seed,
-        &mut |_| {},
-    )
-    .unwrap();
-    let mut opts = PilOptions::new(elf);
-    opts.log = LogSink::Discard;
-    let pil = eval::run_pil(
         &scenario,
-        &plant,
-        &cal.params,
         ModelKind::Exponential,
-        &rc,
-        &opts,
-        &mut |_| {},
-    )
-    .unwrap();
-    assert_eq!(host.records.len(), pil.records.len(), "tick counts differ");
-    for (k, (h, p)) in host.records.iter().zip(&pil.records).enumerate() {
-        assert_eq!(h, p, "tick {k} differs: host {h:?} firmware {p:?}");
-    }
+        5,
+    );
     // The estimate is in use (the plant's calibration, not the paper rig's Table 2).
     assert!(
         pil.records

@@ -33,13 +33,6 @@ pub const IMAGE_FIELD: &str = "config_image";
 const ROUNDING_SLACK_UM: i32 = 2;
 const ROUNDING_SLACK_COUNTS: i64 = 2;
 
-/// A positive, finite `f64` below `max`, checked on its bits (positive doubles order like their
-/// bits): no soft float.
-fn positive_below(x: f64, max: f64) -> bool {
-    let b = x.to_bits();
-    b > 0 && b < max.to_bits()
-}
-
 impl Parts {
     /// The control rate, whole hertz.
     pub fn rate_hz(&self) -> u32 {
@@ -54,11 +47,6 @@ impl Parts {
     /// The model selected after the configuration is installed.
     pub fn initial_model(&self) -> ModelKind {
         self.initial_model
-    }
-
-    /// The drive-train geometry.
-    pub fn rig(&self) -> &Rig {
-        &self.rig
     }
 
     /// The image of these parts, tied to the settings record whose CRC-32 is `settings_crc`.
@@ -147,13 +135,8 @@ impl Parts {
             belt_pitch_mm: f64::from_bits(r.u64().map_err(short)?),
             pulley_teeth: r.u32().map_err(short)?,
         };
-        check(
-            (1..=1 << 20).contains(&rig.encoder_lines),
-            "rig.encoder_lines",
-        )?;
-        check(positive_below(rig.gear_ratio, 1e4), "rig.gear_ratio")?;
-        check(positive_below(rig.belt_pitch_mm, 1e3), "rig.belt_pitch_mm")?;
-        check((1..=1000).contains(&rig.pulley_teeth), "rig.pulley_teeth")?;
+        // The geometry's own check, float-free (its doubles on their bits).
+        rig.validate().map_err(Some)?;
         let rate_hz = r.u32().map_err(short)?;
         check((100..=100_000).contains(&rate_hz), "drive.rate_hz")?;
 

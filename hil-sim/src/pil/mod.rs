@@ -28,7 +28,7 @@ use std::time::{Duration, Instant};
 
 use belt_link::{
     encode, kind, Command, CommandError, LinkError, Message, Receiver, Reply, Request, WireStatus,
-    CHUNK_MAX, MAX_FRAME,
+    MAX_FRAME,
 };
 use estimator_core::drive::{Output, Sample};
 use estimator_core::endpoint::output_of;
@@ -462,22 +462,10 @@ impl PilController {
 
     /// Sends a calibration blob (begin, chunks, commit).
     pub fn load_calibration(&mut self, blob: &[u8]) -> Result<(), PilError> {
-        let crc32 = belt_link::crc32(blob);
-        self.expect_ack(&Request::CalBegin {
-            total_len: blob.len() as u32,
-            crc32,
-        })?;
-        for (i, piece) in blob.chunks(CHUNK_MAX).enumerate() {
-            let mut data = [0u8; CHUNK_MAX];
-            data[..piece.len()].copy_from_slice(piece);
-            let offset = (i * CHUNK_MAX) as u32;
-            self.expect_ack(&Request::CalChunk {
-                offset,
-                len: piece.len() as u8,
-                data,
-            })?;
+        for req in estimator_core::endpoint::calibration_requests(blob) {
+            self.expect_ack(&req)?;
         }
-        self.expect_ack(&Request::CalCommit)
+        Ok(())
     }
 
     fn expect_ack(&mut self, req: &Request) -> Result<(), PilError> {
