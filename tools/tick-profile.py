@@ -25,6 +25,8 @@ def main(elf, trace, top=40):
     caller = next(s for s in syms if s[2] == "TIM7")
     pc_re = re.compile(r"\[[0-9a-f]+/([0-9a-f]+)/")
     counts, ticks, inside = collections.Counter(), 0, False
+    # The heaviest tick's own instructions: where the per-tick maximum goes.
+    this, heaviest = collections.Counter(), collections.Counter()
     with open(trace, errors="replace") as f:
         for line in f:
             m = pc_re.search(line)
@@ -33,10 +35,14 @@ def main(elf, trace, top=40):
             pc = int(m.group(1), 16)
             if pc == step[0]:
                 inside, ticks = True, ticks + 1
+                this = collections.Counter()
             elif inside and caller[0] <= pc < caller[1]:
                 inside = False
+                if sum(this.values()) > sum(heaviest.values()):
+                    heaviest = this
             if inside:
                 counts[pc] += 1
+                this[pc] += 1
     if ticks == 0:
         sys.exit("tick-profile: no Drive::step call in the trace")
     print(f"\n{ticks} ticks, {sum(counts.values()) / ticks:.1f} instructions per tick in Drive::step")
@@ -62,11 +68,12 @@ def main(elf, trace, top=40):
             chains[cur] = []
         elif cur is not None:
             chains[cur].append(line)
-    by_line = collections.Counter()
+    by_line, where_of = collections.Counter(), {}
     for pc in pcs:
         own = [c for c in chains.get(pc, []) if "/estimator-core/" in c or "/belt-link/" in c]
         where = own[0] if own else (chains.get(pc) or ["?"])[0]
-        by_line[re.sub(r".*/(estimator-core|belt-link)/", r"\1/", where).split(" ")[0]] += counts[pc]
+        where_of[pc] = re.sub(r".*/(estimator-core|belt-link)/", r"\1/", where).split(" ")[0]
+        by_line[where_of[pc]] += counts[pc]
     by_file = collections.Counter()
     for where, n in by_line.items():
         by_file[where.split(":")[0]] += n
@@ -76,6 +83,12 @@ def main(elf, trace, top=40):
     print("\nper source line (innermost line of this workspace):")
     for where, n in by_line.most_common(top):
         print(f"{n / ticks:8.1f}  {where}")
+    heavy_file = collections.Counter()
+    for pc, n in heaviest.items():
+        heavy_file[where_of[pc].split(":")[0]] += n
+    print(f"\nthe heaviest tick ({sum(heaviest.values())} instructions in Drive::step), per source file:")
+    for where, n in heavy_file.most_common(top):
+        print(f"{n:8d}  {where}")
 
 
 if __name__ == "__main__":
