@@ -83,11 +83,15 @@ def main(elf, trace, top=40):
     print("\nper source line (innermost line of this workspace):")
     for where, n in by_line.most_common(top):
         print(f"{n / ticks:8.1f}  {where}")
-    heavy_file = collections.Counter()
+    heavy_file, heavy_line = collections.Counter(), collections.Counter()
     for pc, n in heaviest.items():
         heavy_file[where_of[pc].split(":")[0]] += n
+        heavy_line[where_of[pc]] += n
     print(f"\nthe heaviest tick ({sum(heaviest.values())} instructions in Drive::step), per source file:")
     for where, n in heavy_file.most_common(top):
+        print(f"{n:8d}  {where}")
+    print("\nthe heaviest tick, per source line:")
+    for where, n in heavy_line.most_common(top // 2):
         print(f"{n:8d}  {where}")
 
 

@@ -17,7 +17,8 @@
 //!     model1          m I1F31 um/count, offset, h, h_g I16F16 um, slopes a, b I1F31  6 x i32
 //!     model2          m, offset, h, h_g, A, B (as Model 1), then per rate: mantissa u32,
 //!                     shift u16, 0 u16                                    6 x i32, 2 x 8
-//!     model3 bands    forward, reverse: n u16, 0 u16, n x (x counts i32, y I16F16 um)
+//!     model3 bands    forward, reverse: n u16, 0 u16, first point counts i32, points per
+//!                     count Q0.32 u32, n x y I16F16 um
 //!     model3 trans.   forward, reverse: n_d u16, n_g0 u16, rows per count Q0.32 u32,
 //!                     columns per Q16.16 um Q0.32 u32, n_d x n_g0 gaps U11F5 u16
 //!     backlash        forward, reverse I16F16 um                          2 x i32
@@ -56,10 +57,10 @@ use belt_link::bytes::Reader;
 /// First four bytes of every image.
 pub const MAGIC: [u8; 4] = *b"BDCI";
 /// The version this code writes and reads.
-pub const VERSION: u16 = 3;
+pub const VERSION: u16 = 4;
 const HEADER: usize = 16;
 const RIG_BYTES: usize = 24;
-const BAND_BYTES: usize = 4 + 8 * MAX_BAND_POINTS;
+const BAND_BYTES: usize = 12 + 4 * MAX_BAND_POINTS;
 const TRANSITION_BYTES: usize = 12 + 2 * MAX_TRANSITION_D * MAX_TRANSITION_G0;
 const BIDIR_BYTES: usize = 12 + 4 * MAX_BIDIR_ROWS;
 const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 9);
@@ -162,25 +163,27 @@ fn read_band_table(
     if !(2..=MAX_BAND_POINTS).contains(&n) {
         return Err(BlobError::Invalid(ConfigError::TableSize(len_f)));
     }
-    let mut prev = i32::MIN;
+    let x0_counts = r.i32()?;
+    // Steps of two counts or more (as the builder makes them); any start is safe (the tick
+    // clamps its distance from it in `i64`).
+    let points_q32 = r.u32()?;
+    if !(1..=1 << 31).contains(&points_q32) {
+        return Err(out_of_range(x_f));
+    }
     for i in 0..MAX_BAND_POINTS {
-        let (x, y) = if i < n {
-            let (x, y) = (r.i32()?, um(r, ANY, y_f)?);
-            if i > 0 && x <= prev {
-                return Err(BlobError::Invalid(ConfigError::NotMonotonic(x_f)));
-            }
-            prev = x;
-            (x, y)
+        let y = if i < n {
+            um(r, ANY, y_f)?
         } else {
-            (0, I16F16::ZERO)
+            I16F16::ZERO
         };
         if let Some(b) = out.as_deref_mut() {
-            b.x_counts[i] = x;
             b.y_um[i] = y;
         }
     }
     if let Some(b) = out {
         b.len = n as u8;
+        b.x0_counts = x0_counts;
+        b.points_q32 = points_q32;
     }
     Ok(())
 }
@@ -501,9 +504,10 @@ mod write {
         for b in [&m.forward_band, &m.reverse_band] {
             w.u16(b.len as u16);
             w.u16(0);
-            for i in 0..(b.len as usize).min(MAX_BAND_POINTS) {
-                w.i32(b.x_counts[i]);
-                w.i32(b.y_um[i].to_bits());
+            w.i32(b.x0_counts);
+            w.u32(b.points_q32);
+            for y in b.y_um.iter().take(b.len as usize) {
+                w.i32(y.to_bits());
             }
         }
         for t in [&m.forward_transition, &m.reverse_transition] {

@@ -87,6 +87,8 @@ pub enum ConfigError {
     OutOfRange(&'static str),
     /// A table axis is not strictly increasing.
     NotMonotonic(&'static str),
+    /// A table axis that must be evenly spaced is not.
+    NotUniform(&'static str),
     /// A table has more points than the firmware reserves, or too few to interpolate.
     TableSize(&'static str),
 }
@@ -98,6 +100,7 @@ impl ConfigError {
             ConfigError::NotFinite(f)
             | ConfigError::OutOfRange(f)
             | ConfigError::NotMonotonic(f)
+            | ConfigError::NotUniform(f)
             | ConfigError::TableSize(f) => f,
         }
     }
@@ -109,6 +112,7 @@ impl core::fmt::Display for ConfigError {
             ConfigError::NotFinite(x) => write!(f, "{x}: not a finite number"),
             ConfigError::OutOfRange(x) => write!(f, "{x}: out of range"),
             ConfigError::NotMonotonic(x) => write!(f, "{x}: axis is not strictly increasing"),
+            ConfigError::NotUniform(x) => write!(f, "{x}: axis is not evenly spaced"),
             ConfigError::TableSize(x) => write!(f, "{x}: table size out of bounds"),
         }
     }

@@ -14,7 +14,7 @@ use crate::rig::Rig;
 use crate::ConfigError;
 use fixed::types::I16F16;
 
-/// A Model 3 band table as `f64`: `(x_counts, y_mm)`.
+/// A Model 3 band table as `f64`: `(x_counts, y_mm)` on the coefficients' even axis.
 #[derive(Clone, Debug)]
 struct RefBand(Vec<(f64, f64)>);
 
@@ -22,7 +22,7 @@ impl RefBand {
     fn from_coeffs(b: &BandCoeffs) -> RefBand {
         RefBand(
             b.points()
-                .map(|(x, y)| (x as f64, y.to_num::<f64>() / 1000.0))
+                .map(|(x, y)| (x, y.to_num::<f64>() / 1000.0))
                 .collect(),
         )
     }

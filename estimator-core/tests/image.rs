@@ -177,12 +177,19 @@ fn well_signed_nonsense_is_refused_naming_the_field() {
         (MODEL2 + 16, &neg, "model2.amplitude_a_mm"),
         // A rate's shift beyond 63.
         (MODEL2 + 28, &64u16.to_le_bytes(), "model2.rate_a_per_mm"),
-        // Band: too many points, or an axis that does not increase.
+        // Band: too many points, an axis step under two counts or of none, a value beyond the
+        // format's range.
         (MODEL3, &65u16.to_le_bytes(), "model3.forward_band.len"),
         (
-            MODEL3 + 4 + 8,
-            &i32::MIN.to_le_bytes(),
+            MODEL3 + 8,
+            &((1u32 << 31) + 1).to_le_bytes(),
             "model3.forward_band.x_mm",
+        ),
+        (MODEL3 + 8, &0u32.to_le_bytes(), "model3.forward_band.x_mm"),
+        (
+            MODEL3 + 12,
+            &i32::MAX.to_le_bytes(),
+            "model3.forward_band.y_um",
         ),
     ]);
 }
@@ -195,7 +202,7 @@ fn every_section_is_checked() {
     let good = image::of_params(&p, &rig).unwrap();
     let c = p.build(&rig).unwrap();
     let m3 = c.model3();
-    let bands = 8 + 8 * (m3.band(Forward).len() + m3.band(Reverse).len());
+    let bands = 24 + 4 * (m3.band(Forward).len() + m3.band(Reverse).len());
     let trans = |t: &estimator_core::model::TransitionCoeffs| 12 + 2 * t.n_d() * t.n_g0();
     let transition = MODEL3 + bands;
     let backlash = transition + trans(m3.transition(Forward)) + trans(m3.transition(Reverse));

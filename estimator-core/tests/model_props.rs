@@ -123,8 +123,8 @@ fn size(max: usize) -> impl Strategy<Value = usize> {
     prop_oneof![1 => Just(max), 2 => 2..=max]
 }
 
-/// Random band tables on a shared, strictly increasing axis inside the accurate range; the
-/// reverse band lies a random non-negative height above the forward band.
+/// Random band tables on a shared, evenly spaced axis of random start and step inside the
+/// accurate range; the reverse band lies a random non-negative height above the forward band.
 fn bands(cpm: f64) -> impl Strategy<Value = (BandParams, BandParams)> {
     let range_mm = ACCURATE_RANGE_COUNTS as f64 / cpm;
     (
@@ -135,20 +135,19 @@ fn bands(cpm: f64) -> impl Strategy<Value = (BandParams, BandParams)> {
     )
         .prop_map(move |(n, pts, start, y0)| {
             let start_mm = start * range_mm;
-            // Spread n segments over at most the rest of the range.
-            let total: f64 = pts.iter().take(n).map(|p| p.0).sum();
-            let span = (range_mm - start_mm) * 0.999;
+            // n points over a random part of the rest of the range.
+            let step = (range_mm - start_mm) * 0.999 * pts[0].0 / (n - 1) as f64;
             let mut f = BandParams::EMPTY;
             let mut r = BandParams::EMPTY;
             f.len = n;
             r.len = n;
             let (mut x, mut y) = (start_mm, y0);
-            for (i, &(dx, dy, hgt)) in pts.iter().take(n).enumerate() {
+            for (i, &(_, dy, hgt)) in pts.iter().take(n).enumerate() {
                 f.x_mm[i] = x;
                 r.x_mm[i] = x;
                 f.y_um[i] = y;
                 r.y_um[i] = y + 1500.0 * hgt;
-                x += span * dx / total;
+                x += step;
                 y = (y + 400.0 * dy).clamp(-13_000.0, 13_000.0);
             }
             (f, r)

@@ -460,6 +460,23 @@ fn config_errors_name_the_field() {
         build_err(|p| p.model3.reverse_band.x_mm[3] = p.model3.reverse_band.x_mm[2] + 1e-5),
         NotMonotonic("model3.reverse_band.x_mm")
     );
+    // Increasing but not evenly spaced: off the even axis by 2 um (the tolerance is 1.5 um);
+    // within it, accepted.
+    assert_eq!(
+        build_err(|p| p.model3.forward_band.x_mm[4] += 0.002),
+        NotUniform("model3.forward_band.x_mm")
+    );
+    let mut p = ModelParams::PAPER;
+    p.model3.reverse_band.x_mm[4] += 0.001;
+    assert!(p.build(&Rig::PAPER).is_ok());
+    // The ends set the axis: a moved end point moves the axis, and the inner points are off it.
+    assert_eq!(
+        build_err(|p| {
+            let n = p.model3.reverse_band.len;
+            p.model3.reverse_band.x_mm[n - 1] += 1.0;
+        }),
+        NotUniform("model3.reverse_band.x_mm")
+    );
     assert_eq!(
         build_err(|p| p.model3.forward_band.x_mm[0] = f64::NAN),
         NotFinite("model3.forward_band.x_mm")

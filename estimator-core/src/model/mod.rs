@@ -78,11 +78,12 @@
 //! | 2     | 66               | 145..153        | 158..166      |
 //! | 3     | 116              | 178..181        | 368..384      |
 //!
-//! Model 3's worst case is a jump to another band segment on a reversal tick (two segment
-//! searches of at most 6 steps and two reciprocals, about 550). The per-tick path calls no
-//! runtime library (no software division; multiplies are `UMULL`/`SMULL`/`SMLAL`; two 32/32
-//! `UDIV`s only when Model 3 enters another band segment). `ModelCoeffs` is 2708 bytes (Model 3's
-//! tables 2608), `ModelState` 72 bytes, on the host and on the target alike.
+//! (These are the figures of the first fixed-point models; the drive's whole tick per model is in
+//! the README's tick table, measured by `tools/bench-target.sh`.) Model 3's worst case is a
+//! reversal tick: the band edge at the turning point, the `g0` cell and two interpolated
+//! transition rows. Its bands lie on an even axis, so every lookup is a multiply: no search and
+//! no division. The per-tick path calls no runtime library (no software division; multiplies are
+//! `UMULL`/`SMULL`/`SMLAL`). See the size guards below for `ModelCoeffs` and `ModelState`.
 
 pub mod baseline;
 pub mod fixmath;
@@ -256,16 +257,17 @@ pub struct ModelCoeffs {
 }
 
 // The firmware keeps one `ModelCoeffs` in static RAM (budget 8 KiB) and moves it when a
-// calibration loads: any growth must be deliberate (3992 B with the host's closing distances,
-// the 256-row bidirectional table 1 KiB in I13F3 and Model 4 224 B of it; ModelState 184 B,
+// calibration loads: any growth must be deliberate (3496 B with the host's closing distances,
+// the 256-row bidirectional table 1 KiB in I13F3, Model 3's even-axis bands 528 B and Model 4
+// 224 B of it; ModelState 152 B,
 // Model 4's plays with their running sums and its Model 2 term 112 B of it). Exact: a
 // shrink shows here too.
 #[cfg(feature = "std")]
-const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3992);
+const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3496);
 // On the drive (no closing distances): what the static RAM figures count.
 #[cfg(not(feature = "std"))]
-const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3944);
-const _: () = assert!(core::mem::size_of::<ModelState>() <= 184);
+const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3448);
+const _: () = assert!(core::mem::size_of::<ModelState>() == 152);
 
 impl ModelCoeffs {
     /// Everything zero and no tables: a value to decode a calibration image into
@@ -284,7 +286,8 @@ impl ModelCoeffs {
         };
         const TABLE: BandCoeffs = BandCoeffs {
             len: 0,
-            x_counts: [0; MAX_BAND_POINTS],
+            x0_counts: 0,
+            points_q32: 0,
             y_um: [I16F16::ZERO; MAX_BAND_POINTS],
         };
         const TRANSITION: TransitionCoeffs = TransitionCoeffs {
@@ -406,11 +409,10 @@ impl ModelCoeffs {
     }
 }
 
-/// Per-tick state: the reversal detector, the turning point and Model 3's caches (72 bytes).
+/// Per-tick state: the reversal detector, the turning point and Model 3's caches and Model 4's plays.
 ///
-/// Model 3's caches are checked against the coefficients where that is cheap (the band segment
-/// cache compares the segment's length); the `g0` cell and the interpolated transition rows are
-/// refreshed at every reversal. After replacing the coefficients call [`ModelState::reset`]: a
+/// Model 3's caches (the `g0` cell and the interpolated transition rows) are refreshed at every
+/// reversal. After replacing the coefficients call [`ModelState::reset`]: a
 /// stale cache costs accuracy until the next reversal, never safety.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct ModelState {
@@ -425,8 +427,7 @@ pub struct ModelState {
     pub(crate) y_d_um: I16F16,
     /// A transition from `(x_d, y_d)` is in progress (false at start-up).
     pub(crate) transition: bool,
-    /// Model 3: band segment caches per direction and the `g0` cell of the current transition.
-    segments: [table::SegmentCache; 2],
+    /// Model 3: the `g0` cell of the current transition.
     pub(crate) g0_cell: table::Cell,
     pub(crate) g0_valid: bool,
     pub(crate) rows: table::RowCache,
@@ -453,7 +454,6 @@ impl ModelState {
             x_d_counts: x0_counts,
             y_d_um: I16F16::ZERO,
             transition: false,
-            segments: [table::SegmentCache::EMPTY; 2],
             g0_cell: table::Cell { lo: 0, hi: 0, t: 0 },
             g0_valid: false,
             rows: table::RowCache::EMPTY,
@@ -497,21 +497,6 @@ impl ModelState {
     /// Whether a transition is in progress (a reversal was registered with a model active).
     pub fn in_transition(&self) -> bool {
         self.transition
-    }
-
-    pub(crate) fn segment_cache(&mut self, dir: Direction) -> &mut table::SegmentCache {
-        match dir {
-            Direction::Forward => &mut self.segments[0],
-            Direction::Reverse => &mut self.segments[1],
-        }
-    }
-
-    /// Copies the other direction's band segment cache into `dir`'s (at a reversal).
-    pub(crate) fn seed_segment_cache(&mut self, dir: Direction) {
-        self.segments = match dir {
-            Direction::Forward => [self.segments[1]; 2],
-            Direction::Reverse => [self.segments[0]; 2],
-        };
     }
 
     /// Eqs. 15-16 with the dead band: update the extreme, or register a reversal.

@@ -1,9 +1,10 @@
 //! Model 3 (eq. 18): lookup tables.
 //!
 //! Our parametrisation of the paper's `Λ_f, Λ_r, Λ_ft, Λ_rt`:
-//! - **Band tables** `Λ_f(x)` (lower, forward) and `Λ_r(x)` (upper, reverse): an explicit, strictly
-//!   increasing axis along travel (mm in the parameters, rounded to encoder counts at build time)
-//!   with error values in um; linear interpolation, clamped to the end values outside the axis.
+//! - **Band tables** `Λ_f(x)` (lower, forward) and `Λ_r(x)` (upper, reverse): error values in um on
+//!   an evenly spaced axis along travel (mm in the parameters, as the calibration's bins are; to
+//!   [`UNIFORM_TOLERANCE_MM`], the blob's rounding of the axis to whole um); linear interpolation,
+//!   clamped to the end values outside the axis.
 //! - **Transition tables** `G_f(d, g0)`, `G_r(d, g0)`: the remaining gap (um, `>= 0`) between the
 //!   error and the new direction's band edge, as a function of the travel since the reversal
 //!   `d = |x - x_d|` and of the initial gap `g0 = max(0, y_d - Λ_f(x_d))` forward
@@ -18,25 +19,25 @@
 //! point lies inside the band, and a turning point outside it then starts on the edge instead of
 //! mirrored to the far side of it.
 //!
-//! Storage: band axes `i32` counts and values `I16F16` um (512 B per direction at 64 points);
-//! gaps `U11F5` um (0..2047.97 um in steps of 1/32 um, far finer than the 0.5 um linear scale),
-//! 768 B per direction at 16 x 24. The whole of [`Model3Coeffs`] is 2608 bytes.
+//! Storage: band values `I16F16` um (256 B per direction at 64 points) with the axis as its
+//! start (counts) and points per count (Q0.32); gaps `U11F5` um (0..2047.97 um in steps of
+//! 1/32 um, far finer than the 0.5 um linear scale), 768 B per direction at 16 x 24. The whole of
+//! [`Model3Coeffs`] is 2112 bytes (496 fewer than with an explicit axis of `i32` counts).
 //!
 //! The sizes were chosen by measurement (`hil-sim calibrate` and `evaluate` on the simulated
 //! rig): 64-point bands with 16 x 24 transitions fit the calibration data better (14.7 um RMS)
 //! than 128 points with 32 x 24 (15.2 um) or 64 with 32 x 12 (15.2 um), with the same error on
 //! held-out scenarios, at half the RAM. 896 points in all; the paper used 650.
 //!
-//! Per tick: the band segment is found from the previous tick's segment (one or two compares; a
-//! 7-step binary search after a jump), the fraction within the segment by one multiply with the
-//! segment's reciprocal length, cached in the state (computed with two 32/32 `UDIV`s when the
-//! segment changes), the cell of the transition table by one multiply; `g0`'s cell is found once
-//! per reversal (on the first Model 3 tick after it) and cached in the state.
+//! Per tick: the band segment and the fraction within it are one multiply (the position on the
+//! even axis, like the transition table's cells: no search, no division, no cache), the cell of
+//! the transition table one more; `g0`'s cell is found once per reversal (on the first Model 3
+//! tick after it) and cached in the state.
 
 use fixed::types::{I16F16, U11F5};
 
 use super::convert::{finite, um_q16, MAX_ABS_UM};
-use super::fixmath::{lerp_q32, round_i32, Recip};
+use super::fixmath::{lerp_q32, round_i32};
 use super::linear::Model1Params;
 #[cfg(feature = "std")]
 use super::Closing;
@@ -199,13 +200,23 @@ const fn model1_transition(p: &Model1Params, slope: f64, h_um: f64) -> Transitio
     t
 }
 
-/// A band table in fixed point: axis in encoder counts, values in Q16.16 um.
+/// A band table in fixed point: values in Q16.16 um on an even axis in encoder counts.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct BandCoeffs {
     pub(crate) len: u8,
-    pub(crate) x_counts: [i32; MAX_BAND_POINTS],
+    /// The first point, counts.
+    pub(crate) x0_counts: i32,
+    /// Points per count of travel in Q0.32: `(x - x0) * points_q32` is the position on the axis in
+    /// Q32.32, one `UMULL` (steps of at least two counts keep it below 2^31). The step is
+    /// honoured to `1 / points_q32` relative; the reference uses the same quantised value.
+    pub(crate) points_q32: u32,
     pub(crate) y_um: [I16F16; MAX_BAND_POINTS],
 }
+
+/// How far a band table's axis point may lie from the even axis through its first and last
+/// points, mm: the blob carries the axis in whole um, so a calibration's evenly spaced bins come
+/// back within 1 um of it.
+pub const UNIFORM_TOLERANCE_MM: f64 = 0.0015;
 
 /// A transition table in fixed point.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -370,21 +381,43 @@ fn build_band(
     if !(2..=MAX_BAND_POINTS).contains(&len) {
         return Err(ConfigError::TableSize(f.len));
     }
-    let mut c = BandCoeffs {
-        len: len as u8,
-        x_counts: [0; MAX_BAND_POINTS],
-        y_um: [I16F16::ZERO; MAX_BAND_POINTS],
-    };
-    for i in 0..len {
-        let (x_mm, y_um) = src.band_point(dir, i);
-        let x = finite(x_mm, f.x)? * counts_per_mm;
-        c.x_counts[i] = round_i32(x).ok_or(ConfigError::OutOfRange(f.x))?;
-        c.y_um[i] = um_q16(y_um, -MAX_ABS_UM, f.y)?;
-        if i > 0 && c.x_counts[i] <= c.x_counts[i - 1] {
+    let mut y_um = [I16F16::ZERO; MAX_BAND_POINTS];
+    let mut prev_counts = None;
+    for (i, y) in y_um.iter_mut().enumerate().take(len) {
+        let (x_mm, v_um) = src.band_point(dir, i);
+        let x =
+            round_i32(finite(x_mm, f.x)? * counts_per_mm).ok_or(ConfigError::OutOfRange(f.x))?;
+        if prev_counts.is_some_and(|p| x <= p) {
             return Err(ConfigError::NotMonotonic(f.x));
         }
+        prev_counts = Some(x);
+        *y = um_q16(v_um, -MAX_ABS_UM, f.y)?;
     }
-    Ok(c)
+    // The even axis through the first and last points; every point on it.
+    let (first_mm, last_mm) = (src.band_point(dir, 0).0, src.band_point(dir, len - 1).0);
+    let step_mm = (last_mm - first_mm) / (len - 1) as f64;
+    for i in 1..len - 1 {
+        let on_axis = first_mm + i as f64 * step_mm;
+        if (src.band_point(dir, i).0 - on_axis).abs() > UNIFORM_TOLERANCE_MM {
+            return Err(ConfigError::NotUniform(f.x));
+        }
+    }
+    let step_counts = step_mm * counts_per_mm;
+    if step_counts < 2.0 {
+        return Err(ConfigError::OutOfRange(f.x));
+    }
+    let points_q32 =
+        round_i32(4_294_967_296.0 / step_counts).ok_or(ConfigError::OutOfRange(f.x))?;
+    if points_q32 < 1 {
+        // A step beyond 2^33 counts cannot be resolved.
+        return Err(ConfigError::OutOfRange(f.x));
+    }
+    Ok(BandCoeffs {
+        len: len as u8,
+        x0_counts: round_i32(first_mm * counts_per_mm).ok_or(ConfigError::OutOfRange(f.x))?,
+        points_q32: points_q32 as u32,
+        y_um,
+    })
 }
 
 /// Linear interpolation of band `dir` of `src` in `f64`, clamped outside the axis.
@@ -473,123 +506,39 @@ impl BandCoeffs {
         self.len == 0
     }
 
-    /// The quantised points `(x_counts, y_um)`.
-    pub fn points(&self) -> impl Iterator<Item = (i32, I16F16)> + '_ {
-        self.x_counts
+    /// The quantised points: counts on the even axis (as `f64`, the step need not be whole
+    /// counts) and Q16.16 um.
+    pub fn points(&self) -> impl Iterator<Item = (f64, I16F16)> + '_ {
+        let step = self.step_counts();
+        self.y_um
             .iter()
             .copied()
-            .zip(self.y_um.iter().copied())
             .take(self.len())
+            .enumerate()
+            .map(move |(i, y)| (self.x0_counts as f64 + i as f64 * step, y))
+    }
+
+    /// The axis step in counts, as the tick uses it (`2^32 / points_q32`).
+    pub fn step_counts(&self) -> f64 {
+        4_294_967_296.0 / self.points_q32.max(1) as f64
     }
 
     // MAX_BAND_POINTS is a power of two: masking an index proves it in bounds to the compiler
     // (no panic path, no bounds-check branch); every index used is below `len` anyway.
     #[inline]
-    fn x(&self, i: usize) -> i32 {
-        self.x_counts[i & (MAX_BAND_POINTS - 1)]
+    fn y(&self, i: u8) -> i32 {
+        self.y_um[i as usize & (MAX_BAND_POINTS - 1)].to_bits()
     }
 
-    #[inline]
-    fn y(&self, i: usize) -> i32 {
-        self.y_um[i & (MAX_BAND_POINTS - 1)].to_bits()
-    }
-
-    /// `Λ(x)` as Q16.16 um bits, using and updating `cache` (the segment found last time and its
-    /// reciprocal length; any content is accepted).
-    ///
-    /// Bounded: the cached segment and its two neighbours are tried first (the usual case at
-    /// control rates), otherwise a binary search of at most 7 steps. The fraction within the
-    /// segment needs a division only when the segment changes (two `UDIV`s in
-    /// [`Recip::new`]); otherwise it is one `UMULL` with the cached reciprocal.
-    ///
-    /// The fast path is inlined into the tick; the rest is out of line (it needs many more
-    /// registers, which the fast path would otherwise save and restore on every tick).
+    /// `Λ(x)` as Q16.16 um bits: the cell on the even axis by one multiply, held at the end
+    /// values outside it. Total on any coefficients (an empty table gives 0).
     #[inline(always)]
-    pub(crate) fn eval(&self, x: i32, cache: &mut SegmentCache) -> i32 {
-        let last = self.len().saturating_sub(1);
-        // Fast path: still in the cached segment (its length matches: same table).
-        let h = cache.seg as usize;
-        if h < last {
-            let (x0, x1) = (self.x(h), self.x(h + 1));
-            if x0 <= x && x < x1 && x1.wrapping_sub(x0) as u32 == cache.len {
-                let t = cache.recip.frac(x.wrapping_sub(x0) as u32);
-                return lerp_q32(self.y(h), self.y(h + 1), t);
-            }
-        }
-        self.eval_moved(x, cache)
+    pub(crate) fn eval(&self, x: i32) -> i32 {
+        // In [0, 2^32): times a Q0.32 below 2^31, the product stays below 2^63.
+        let d = (x as i64 - self.x0_counts as i64).clamp(0, u32::MAX as i64) as u64;
+        let cell = Cell::locate(d * self.points_q32 as u64, self.len);
+        lerp_q32(self.y(cell.lo), self.y(cell.hi), cell.t)
     }
-
-    /// [`BandCoeffs::eval`] off the cached segment: at an end, a neighbour, or a search.
-    #[inline(never)]
-    fn eval_moved(&self, x: i32, cache: &mut SegmentCache) -> i32 {
-        let n = self.len();
-        let last = n.saturating_sub(1);
-        let h = cache.seg as usize;
-        if n < 2 || x <= self.x(0) {
-            return self.y(0);
-        }
-        if x >= self.x(last) {
-            return self.y(last);
-        }
-        // Invariant from here: x(0) < x < x(last); find i with x(i) <= x < x(i + 1), trying the
-        // neighbours of the cached segment first.
-        let h = h.min(last - 1);
-        let i = if self.x(h) <= x {
-            if x < self.x(h + 1) {
-                h
-            } else if h + 2 <= last && x < self.x(h + 2) {
-                h + 1
-            } else {
-                self.search(x, h + 1, last)
-            }
-        } else if h >= 1 && self.x(h - 1) <= x {
-            h - 1
-        } else {
-            self.search(x, 0, h)
-        };
-        let (x0, x1) = (self.x(i), self.x(i + 1));
-        // Both differences are in [0, 2^32): exact in wrapping u32 arithmetic.
-        let len = x1.wrapping_sub(x0) as u32;
-        *cache = SegmentCache {
-            seg: i as u8,
-            len,
-            recip: Recip::new(len),
-        };
-        let t = cache.recip.frac(x.wrapping_sub(x0) as u32);
-        lerp_q32(self.y(i), self.y(i + 1), t)
-    }
-
-    /// The `i` in `[lo, hi)` with `x(i) <= x < x(i + 1)`, given `x(lo) <= x < x(hi)`: at most 6
-    /// halvings for 64 points.
-    #[inline(never)]
-    fn search(&self, x: i32, mut lo: usize, mut hi: usize) -> usize {
-        while hi > lo + 1 {
-            let mid = lo + (hi - lo) / 2;
-            if self.x(mid) <= x {
-                lo = mid;
-            } else {
-                hi = mid;
-            }
-        }
-        lo
-    }
-}
-
-/// Per-direction cache of the band segment in use: its index, length (counts) and reciprocal.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub(crate) struct SegmentCache {
-    seg: u8,
-    len: u32,
-    recip: Recip,
-}
-
-impl SegmentCache {
-    /// Matches no segment (a zero length never occurs in a built table).
-    pub(crate) const EMPTY: SegmentCache = SegmentCache {
-        seg: 0,
-        len: 0,
-        recip: Recip::ZERO,
-    };
 }
 
 /// A cell coordinate along one uniform axis: lower index, upper index, fraction in Q0.32.
@@ -760,12 +709,7 @@ impl Model3Coeffs {
 #[inline(never)]
 fn g0_cell(c: &Model3Coeffs, s: &mut ModelState) -> Cell {
     let dir = s.dir;
-    // The turning point was last evaluated in the other direction's band: start from that
-    // segment. A segment cache is valid for any table whose segment at that index has the same
-    // length (the reciprocal depends on the length only), so with a shared axis this hits, and
-    // otherwise it just falls back to the search.
-    s.seed_segment_cache(dir);
-    let edge = c.band(dir).eval(s.x_d_counts, s.segment_cache(dir));
+    let edge = c.band(dir).eval(s.x_d_counts);
     let y_d = s.y_d_um.to_bits() as i64;
     let g0 = match dir {
         Direction::Forward => y_d - edge as i64,
@@ -780,14 +724,14 @@ fn g0_cell(c: &Model3Coeffs, s: &mut ModelState) -> Cell {
 pub(crate) fn eval(c: &Model3Coeffs, s: &mut ModelState, x_counts: i32) -> I16F16 {
     let dir = s.dir;
     if !s.transition {
-        return I16F16::from_bits(c.band(dir).eval(x_counts, s.segment_cache(dir)));
+        return I16F16::from_bits(c.band(dir).eval(x_counts));
     }
     if !s.g0_valid {
         s.g0_cell = g0_cell(c, s);
         s.g0_valid = true;
         s.rows.valid = false;
     }
-    let edge = c.band(dir).eval(x_counts, s.segment_cache(dir));
+    let edge = c.band(dir).eval(x_counts);
     let dx = x_counts as i64 - s.x_d_counts as i64;
     let d = match dir {
         Direction::Forward => dx,
