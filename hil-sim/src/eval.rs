@@ -8,6 +8,7 @@ use estimator_core::rig::Rig;
 use crate::calibrate::{calibrate, Calibration};
 use crate::controller::{Controller, InProcess};
 use crate::drive_setup::{drive_config, drive_limits};
+use crate::error::{Context, Error};
 use crate::plant::PlantParams;
 use crate::run::{run, RunConfig, RunError, Trace};
 use crate::scenario::Scenario;
@@ -36,18 +37,16 @@ pub const ESTIMATORS: &[&str] = &[
 /// A firmware under QEMU that is sent no configuration (`PilOptions::settings` is `None`) runs
 /// with the paper rig's: a plant of another geometry cannot run with it in the loop. With a
 /// configuration sent, [`run_pil`] configures the drive for the plant's geometry instead.
-pub fn check_pil_geometry(plant: &PlantParams) -> Result<(), String> {
-    let (want, have) = (Rig::PAPER, plant.rig());
-    if want == have {
+pub fn check_pil_geometry(plant: &PlantParams) -> Result<(), Error> {
+    let (paper, has) = (Rig::PAPER, plant.rig());
+    if paper == has {
         return Ok(());
     }
-    Err(format!(
-        "PIL: the QEMU firmware is configured for the paper rig ({}); {} has {}: send it a \
-         configuration (PilOptions::settings) or run it in-process (without --pil)",
-        want,
-        plant.name(),
-        have
-    ))
+    Err(Error::PilGeometry {
+        paper,
+        plant: plant.name().to_string(),
+        has,
+    })
 }
 
 /// Runs `scenario` with the core in-process.
@@ -90,23 +89,22 @@ pub fn run_with(
 pub fn record_calibration(
     plant: &PlantParams,
     progress: &mut dyn FnMut(&str, f64),
-) -> Result<Vec<Trace>, String> {
+) -> Result<Vec<Trace>, Error> {
     let mut traces = Vec::new();
     let scenarios = CALIBRATION_SCENARIOS
         .iter()
         .map(|name| Scenario::load(name))
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(|e| e.to_string())?;
+        .collect::<Result<Vec<_>, _>>()?;
     // All checked before the first is recorded: a plant they do not fit fails at once.
     for s in &scenarios {
         s.check_against(&drive_limits(plant.rig()), plant)
-            .map_err(|e| format!("calibration scenario {e}"))?;
+            .context(|| "calibration scenario".into())?;
     }
     // The default plan across the drive's configured range (see `workloads::calibration_plan`).
     let lim = crate::workloads::Limits::of(&drive_limits(plant.rig()));
     let plan = crate::workloads::calibration_plan(&lim, CALIBRATION_PLAN_SEED, CALIBRATION_PLAN_S);
     plan.check_against(&drive_limits(plant.rig()), plant)
-        .map_err(|e| format!("calibration plan {e}"))?;
+        .context(|| "calibration plan".into())?;
     let names: Vec<String> = CALIBRATION_SCENARIOS
         .iter()
         .map(|s| s.to_string())
@@ -123,7 +121,7 @@ pub fn record_calibration(
             CALIBRATION_SEED_BASE + k as u64,
             &mut |f| progress(&label, f),
         )
-        .map_err(|e| format!("{name}: {e}"))?;
+        .context(|| name.clone())?;
         traces.push(t);
     }
     Ok(traces)
@@ -150,9 +148,9 @@ pub fn is_paper_fig18(scenario: &Scenario) -> bool {
 pub fn calibrate_plant(
     plant: &PlantParams,
     progress: &mut dyn FnMut(&str, f64),
-) -> Result<Calibration, String> {
+) -> Result<Calibration, Error> {
     let traces = record_calibration(plant, progress)?;
-    calibrate(&traces, &plant.rig(), progress).map_err(|e| e.to_string())
+    Ok(calibrate(&traces, &plant.rig(), progress)?)
 }
 
 /// Every estimator's y along `trace`, um, in `ESTIMATORS` order: every compensator of the drive
@@ -205,7 +203,7 @@ pub fn to_json(
     samples: usize,
     table: &[(&'static str, ErrorStats)],
     positioning: &[(&'static str, crate::placement::Positioning)],
-) -> Result<String, String> {
+) -> Result<String, Error> {
     fn by_name<T: serde::Serialize>(
         rows: &[(&'static str, T)],
     ) -> serde_json::Map<String, serde_json::Value> {
@@ -226,10 +224,10 @@ pub fn to_json(
     });
     // serde_json writes NaN and infinities as null: a result that is not a number is an error.
     match first_null("", &v) {
-        Some(at) => Err(format!(
-            "{scenario}: {} is not a number: nothing to report",
-            at.trim_start_matches('.')
-        )),
+        Some(at) => Err(Error::NotANumber {
+            scenario: scenario.to_string(),
+            field: at.trim_start_matches('.').to_string(),
+        }),
         None => Ok(v.to_string()),
     }
 }
@@ -261,23 +259,23 @@ pub fn run_pil(
     rc: &RunConfig,
     opts: &crate::pil::PilOptions,
     progress: &mut dyn FnMut(f64),
-) -> Result<Trace, String> {
+) -> Result<Trace, Error> {
     let rig = plant.rig();
     let opts = opts.clone().with_rig(rig);
     if opts.settings.is_none() {
         check_pil_geometry(plant)?;
     }
-    let image = estimator_core::image::of_params(params, &rig).map_err(|e| e.to_string())?;
-    let mut c = crate::pil::PilController::start(&opts).map_err(|e| format!("PIL: {e}"))?;
+    let image = estimator_core::image::of_params(params, &rig)?;
+    let mut c = crate::pil::PilController::start(&opts).context(|| "PIL".into())?;
     c.load_calibration(&image)
-        .map_err(|e| format!("PIL: loading the calibration: {e}"))?;
+        .context(|| "PIL: loading the calibration".into())?;
     c.send_command(estimator_core::drive::Command::SelectModel(model))
-        .map_err(|e| format!("PIL: selecting {model}: {e}"))?;
+        .context(|| format!("PIL: selecting {model}"))?;
     let trace = run(scenario, plant, &rig, &mut c, rc, progress)
-        .map_err(|e| format!("PIL: {}: {e}", scenario.source()))?;
-    let status = c.shutdown(0).map_err(|e| format!("PIL: {e}"))?;
+        .context(|| format!("PIL: {}", scenario.source()))?;
+    let status = c.shutdown(0).context(|| "PIL".into())?;
     if status != 0 {
-        return Err(format!("PIL: QEMU exited with status {status}"));
+        return Err(Error::QemuExit(status));
     }
     Ok(trace)
 }

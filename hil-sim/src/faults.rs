@@ -6,6 +6,7 @@
 //! (zero current, `Enable` refused) until it is cleared. Every scenario preset is also run with
 //! no injection: any fault there is a false trip.
 
+use crate::error::{Context, Error};
 use estimator_core::drive::{Command, CommandError, Drive, Faults, Output, Sample};
 use estimator_core::model::{ModelKind, ModelParams};
 use estimator_core::rig::Rig;
@@ -200,10 +201,6 @@ impl Sensors {
     }
 }
 
-fn control(e: ControlError) -> String {
-    e.to_string()
-}
-
 /// Runs one class through `controller` on a fresh plant.
 pub fn run_class(
     injection: Injection,
@@ -211,7 +208,7 @@ pub fn run_class(
     rig: &Rig,
     controller: &mut dyn Controller,
     seed: u64,
-) -> Result<ClassResult, String> {
+) -> Result<ClassResult, Error> {
     let dt = 1.0 / 2000.0;
     let params = injection.plant(base);
     let mut plant = Plant::new(&params, START_MM, seed)?;
@@ -219,15 +216,13 @@ pub fn run_class(
         injection,
         frozen: None,
     };
-    home_and_enable(controller, &plant, rig).map_err(control)?;
+    home_and_enable(controller, &plant, rig)?;
     let (to_mm, v, a) = injection.motion();
-    controller
-        .command(Command::MoveMotorTo {
-            target_um: (to_mm * 1000.0) as i32,
-            velocity_um_s: (v * 1000.0) as u32,
-            accel_um_s2: (a * 1000.0) as u32,
-        })
-        .map_err(control)?;
+    controller.command(Command::MoveMotorTo {
+        target_um: (to_mm * 1000.0) as i32,
+        velocity_um_s: (v * 1000.0) as u32,
+        accel_um_s2: (a * 1000.0) as u32,
+    })?;
 
     let strike = injection.at_tick();
     let mut detected_at: Option<(u32, Faults)> = None;
@@ -240,14 +235,14 @@ pub fn run_class(
         if !(active && injection == Injection::LinkSilence)
             && (tick as u64).is_multiple_of(KEEPALIVE_TICKS)
         {
-            controller.keepalive().map_err(control)?;
+            controller.keepalive()?;
         }
         if active && injection == Injection::CarriageJammed && tick == strike {
             let x = plant.carriage_mm();
             plant.set_end_stops_mm(-10.0, x + 2.0);
         }
         let sample = sensors.sample(&plant, active, tick == strike);
-        let out = controller.step(sample).map_err(control)?;
+        let out = controller.step(sample)?;
         let tel = out.telemetry;
 
         // The board's enable line cuts the power stage whatever the DAC says.
@@ -268,18 +263,18 @@ pub fn run_class(
             // board reports the miss.
             late_done = true;
             plant.step(i_a, dt);
-            controller.missed_ticks(1).map_err(control)?;
+            controller.missed_ticks(1)?;
         }
         plant.step(i_a, dt);
 
         match detected_at {
             None if !tel.faults.is_clear() => {
                 if !active {
-                    return Err(format!(
-                        "{}: fault {} before the injection (tick {tick})",
-                        injection.name(),
-                        tel.faults
-                    ));
+                    return Err(Error::FaultBeforeInjection {
+                        faults: tel.faults,
+                        tick,
+                    }
+                    .context(injection.name()));
                 }
                 detected_at = Some((tick, tel.faults));
             }
@@ -316,9 +311,13 @@ pub fn run_class(
     match controller.command(Command::Enable) {
         Err(ControlError::Refused(CommandError::NotEnabled)) => {}
         Ok(()) => latched = false,
-        Err(e) => return Err(format!("{}: enable after the fault: {e}", injection.name())),
+        Err(e) => {
+            return Err(Error::Control(e)
+                .context("enable after the fault")
+                .context(injection.name()))
+        }
     }
-    let after = after.ok_or("no tick after detection")?;
+    let after = after.ok_or(Error::NoTickAfterDetection)?;
     Ok(ClassResult {
         injection,
         detected: faults.0 & injection.expected() != 0,
@@ -335,9 +334,9 @@ pub fn run_class_in_process(
     injection: Injection,
     plant: &PlantParams,
     seed: u64,
-) -> Result<ClassResult, String> {
+) -> Result<ClassResult, Error> {
     let cfg = drive_config(&ModelParams::PAPER, ModelKind::None, plant.rig());
-    let drive = Drive::new(&cfg).map_err(|e| format!("drive configuration: {e}"))?;
+    let drive = Drive::new(&cfg).context(|| "drive configuration".into())?;
     run_class(injection, plant, &cfg.rig, &mut InProcess(drive), seed)
 }
 
@@ -346,11 +345,11 @@ pub fn run_class_in_process(
 pub fn false_trips(
     plant: &PlantParams,
     progress: &mut dyn FnMut(&str, f64),
-) -> Result<(usize, usize, Vec<String>), String> {
+) -> Result<(usize, usize, Vec<String>), Error> {
     let mut checked = 0;
     let mut trips = Vec::new();
     for (name, _) in PRESETS {
-        let s = Scenario::load(name).map_err(|e| e.to_string())?;
+        let s = Scenario::load(name)?;
         let label = format!("no injection: {name}");
         match crate::eval::run_in_process(
             &s,
@@ -364,7 +363,7 @@ pub fn false_trips(
             Err(RunError::Fault { faults, t_s }) => {
                 trips.push(format!("{name}: {faults} at t = {t_s:.4} s"))
             }
-            Err(e) => return Err(format!("{name}: {e}")),
+            Err(e) => return Err(Error::Run(e).context(*name)),
         }
         checked += 1;
     }

@@ -4,6 +4,7 @@
 //! held out. Each row also has its floor: the non-repeatable part of `x_LS - x_PE`, the RMS of
 //! the tick-by-tick difference between two noise seeds of the same run, divided by sqrt 2.
 
+use crate::error::{Context, Error};
 use estimator_core::model::{ModelKind, ModelParams};
 
 use crate::params::PlantParams;
@@ -32,10 +33,10 @@ pub const VARIANTS: [(&str, &str); 4] = [
 ];
 
 /// The paper rig and the variants, named.
-pub fn plants() -> Result<Vec<PlantParams>, String> {
+pub fn plants() -> Result<Vec<PlantParams>, Error> {
     let mut out = vec![PlantParams::paper_rig()];
     for (name, text) in VARIANTS {
-        let mut p = PlantParams::from_toml_str(text).map_err(|e| format!("variant {name}: {e}"))?;
+        let mut p = PlantParams::from_toml_str(text).context(|| format!("variant {name}"))?;
         p.source = format!("variant {name}");
         out.push(p);
     }
@@ -81,13 +82,12 @@ pub struct PlantTable {
 }
 
 /// The workloads of the table: every preset and one generated member of every class.
-pub fn workloads(plant: &PlantParams, seed: u64) -> Result<Vec<Scenario>, String> {
+pub fn workloads(plant: &PlantParams, seed: u64) -> Result<Vec<Scenario>, Error> {
     let lim = Limits::of(&drive_setup::drive_limits(plant.rig()));
     let mut out: Vec<Scenario> = PRESETS
         .iter()
         .map(|(n, _)| Scenario::load(n))
-        .collect::<Result<_, _>>()
-        .map_err(|e: crate::scenario::ScenarioError| e.to_string())?;
+        .collect::<Result<_, crate::scenario::ScenarioError>>()?;
     out.extend(
         Class::ALL
             .into_iter()
@@ -102,9 +102,9 @@ pub fn measure(
     plant: &PlantParams,
     scenarios: &[Scenario],
     progress: &mut dyn FnMut(&str, f64),
-) -> Result<PlantTable, String> {
+) -> Result<PlantTable, Error> {
     let cal = eval::calibrate_plant(plant, progress)?;
-    let coeffs = cal.params.build(&plant.rig()).map_err(|e| e.to_string())?;
+    let coeffs = cal.params.build(&plant.rig())?;
     let limits = drive_setup::drive_limits(plant.rig());
     let mut rows = Vec::new();
     for (k, s) in scenarios.iter().enumerate() {
@@ -124,7 +124,7 @@ pub fn measure(
                 seed,
                 &mut |_| {},
             )
-            .map_err(|e| format!("{}: {e}", s.name))
+            .context(|| s.name.clone())
         };
         let (a, b) = (run(1)?, run(2)?);
         let n = a.records.len().min(b.records.len());

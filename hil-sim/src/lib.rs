@@ -10,6 +10,7 @@ pub mod calfile;
 pub mod calibrate;
 pub mod controller;
 pub mod drive_setup;
+pub mod error;
 pub mod eval;
 pub mod faults;
 pub mod fit;

@@ -6,6 +6,7 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 use estimator_core::model::ModelKind;
 use hil_sim::calibrate::Calibration;
+use hil_sim::error::{Context, Error};
 use hil_sim::pil::PilOptions;
 use hil_sim::plant::PlantParams;
 use hil_sim::progress::Progress;
@@ -54,7 +55,7 @@ impl Common {
         params: &estimator_core::model::ModelParams,
         model: ModelKind,
         progress: &mut Progress,
-    ) -> Result<hil_sim::run::Trace, String> {
+    ) -> Result<hil_sim::run::Trace, Error> {
         self.run_as(scenario, plant, params, model, false, progress)
     }
 
@@ -65,7 +66,7 @@ impl Common {
         plant: &PlantParams,
         params: &estimator_core::model::ModelParams,
         progress: &mut Progress,
-    ) -> Result<Vec<hil_sim::placement::Placement>, String> {
+    ) -> Result<Vec<hil_sim::placement::Placement>, Error> {
         hil_sim::placement::compare(scenario, params, &plant.rig(), &mut |model| {
             self.run_as(scenario, plant, params, model, true, progress)
         })
@@ -80,7 +81,7 @@ impl Common {
         model: ModelKind,
         carriage_space: bool,
         progress: &mut Progress,
-    ) -> Result<hil_sim::run::Trace, String> {
+    ) -> Result<hil_sim::run::Trace, Error> {
         let label = format!(
             "{} {}{}",
             if self.pil { "PIL" } else { "run" },
@@ -103,20 +104,16 @@ impl Common {
                 .clone()
                 .unwrap_or_else(|| PilOptions::default_elf(None));
             if !elf.exists() {
-                return Err(format!(
-                    "{}: no firmware ELF; build it with `cargo fw-qemu`",
-                    elf.display()
-                ));
+                return Err(Error::NoFirmware(elf));
             }
             let mut opts = PilOptions::new(elf);
             opts.min_level = hil_sim::pil::qemu::LEVELS
                 .iter()
                 .find(|l| **l == self.log_level)
-                .ok_or_else(|| {
-                    format!(
-                        "--log-level {}: use trace, debug, info, warn or error",
-                        self.log_level
-                    )
+                .ok_or_else(|| Error::Argument {
+                    flag: "--log-level",
+                    value: self.log_level.clone(),
+                    rule: "use trace, debug, info, warn or error".into(),
                 })?;
             eval::run_pil(scenario, plant, params, model, &rc, &opts, &mut p)
         } else if carriage_space {
@@ -125,7 +122,7 @@ impl Common {
             )
         } else {
             eval::run_in_process(scenario, plant, params, model, self.seed, &mut p)
-                .map_err(|e| format!("{}: {e}", scenario.source()))
+                .context(|| scenario.source().to_string())
         }
     }
 }
@@ -245,10 +242,10 @@ enum Cmd {
     },
 }
 
-fn plant_params(path: &Option<PathBuf>) -> Result<PlantParams, String> {
+fn plant_params(path: &Option<PathBuf>) -> Result<PlantParams, Error> {
     match path {
         None => Ok(PlantParams::paper_rig()),
-        Some(p) => PlantParams::load(p).map_err(|e| e.to_string()),
+        Some(p) => Ok(PlantParams::load(p)?),
     }
 }
 
@@ -256,11 +253,11 @@ fn calibration(
     common: &Common,
     plant: &PlantParams,
     progress: &mut Progress,
-) -> Result<Calibration, String> {
+) -> Result<Calibration, Error> {
     match &common.calibration {
         Some(dir) => {
             eprintln!("model parameters: {}", dir.display());
-            calfile::load(dir, &plant.rig()).map_err(|e| e.to_string())
+            Ok(calfile::load(dir, &plant.rig())?)
         }
         None => {
             eprintln!(
@@ -287,16 +284,14 @@ struct Session {
 fn scenario_and_plant(
     scenario: &str,
     plant: &Option<PathBuf>,
-) -> Result<(Scenario, PlantParams), String> {
-    let scenario = Scenario::load(scenario).map_err(|e| e.to_string())?;
+) -> Result<(Scenario, PlantParams), Error> {
+    let scenario = Scenario::load(scenario)?;
     let plant = plant_params(plant)?;
-    scenario
-        .check_against(&drive_setup::drive_limits(plant.rig()), &plant)
-        .map_err(|e| e.to_string())?;
+    scenario.check_against(&drive_setup::drive_limits(plant.rig()), &plant)?;
     Ok((scenario, plant))
 }
 
-fn session(scenario: &str, common: &Common) -> Result<Session, String> {
+fn session(scenario: &str, common: &Common) -> Result<Session, Error> {
     let (scenario, plant) = scenario_and_plant(scenario, &common.plant)?;
     let mut progress = Progress::new();
     let cal = calibration(common, &plant, &mut progress)?;
@@ -316,7 +311,7 @@ fn session(scenario: &str, common: &Common) -> Result<Session, String> {
     })
 }
 
-fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), String> {
+fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), Error> {
     let Session {
         scenario,
         plant,
@@ -324,7 +319,7 @@ fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), String> {
         trace,
         mut progress,
     } = session(scenario, common)?;
-    let coeffs = cal.params.build(&plant.rig()).map_err(|e| e.to_string())?;
+    let coeffs = cal.params.build(&plant.rig())?;
     let est = eval::estimates(&trace, &coeffs);
     let table = eval::table3(&trace, &est);
     // Placement: the scenario again in carriage space, once per compensator the drive has.
@@ -354,8 +349,12 @@ fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), String> {
     Ok(())
 }
 
-fn run_csv(scenario: &str, common: &Common, model: &str, out: &str) -> Result<(), String> {
-    let kind: ModelKind = model.parse().map_err(|e| format!("--model {model}: {e}"))?;
+fn run_csv(scenario: &str, common: &Common, model: &str, out: &str) -> Result<(), Error> {
+    let kind: ModelKind = model.parse().map_err(|e| Error::Argument {
+        flag: "--model",
+        value: model.to_string(),
+        rule: format!("{e}"),
+    })?;
     let (scenario, plant) = scenario_and_plant(scenario, &common.plant)?;
     let mut progress = Progress::new();
     // As documented for every command: the given calibration, or one made now on this plant.
@@ -366,10 +365,10 @@ fn run_csv(scenario: &str, common: &Common, model: &str, out: &str) -> Result<()
         Box::new(std::io::stdout().lock())
     } else {
         Box::new(std::io::BufWriter::new(
-            std::fs::File::create(out).map_err(|e| format!("{out}: {e}"))?,
+            std::fs::File::create(out).map_err(|e| Error::io(out, e))?,
         ))
     };
-    report::write_csv(&mut w, &trace).map_err(|e| format!("{out}: {e}"))
+    report::write_csv(&mut w, &trace).map_err(|e| Error::io(out, e))
 }
 
 fn faults_campaign(
@@ -378,7 +377,7 @@ fn faults_campaign(
     pil: bool,
     elf: &Option<PathBuf>,
     json: bool,
-) -> Result<(), String> {
+) -> Result<(), Error> {
     use hil_sim::faults::{self, Injection};
     let plant = plant_params(plant)?;
     let mut progress = Progress::new();
@@ -391,10 +390,7 @@ fn faults_campaign(
     if pil {
         let elf = elf.clone().unwrap_or_else(|| PilOptions::default_elf(None));
         if !elf.exists() {
-            return Err(format!(
-                "{}: no firmware ELF; build it with `cargo fw-qemu`",
-                elf.display()
-            ));
+            return Err(Error::NoFirmware(elf));
         }
         let applicable: Vec<_> = results
             .iter()
@@ -408,13 +404,12 @@ fn faults_campaign(
             // Configured over the link for the plant's geometry.
             let mut opts = PilOptions::new(&elf).with_rig(plant.rig());
             opts.min_level = "warn";
-            let mut c =
-                hil_sim::pil::PilController::start(&opts).map_err(|e| format!("PIL: {e}"))?;
+            let mut c = hil_sim::pil::PilController::start(&opts).context(|| "PIL".into())?;
             let r = faults::run_class(host.injection, &plant, &plant.rig(), &mut c, seed)
-                .map_err(|e| format!("PIL {}: {e}", host.injection.name()))?;
-            let status = c.shutdown(0).map_err(|e| format!("PIL: {e}"))?;
+                .context(|| format!("PIL {}", host.injection.name()))?;
+            let status = c.shutdown(0).context(|| "PIL".into())?;
             if status != 0 {
-                return Err(format!("PIL: QEMU exited with status {status}"));
+                return Err(Error::QemuExit(status));
             }
             pil_same.push((host.injection, Some(r == **host)));
             if r != **host {
@@ -468,14 +463,11 @@ false trips: {trips} on {checked} scenario presets"
         .collect();
     let differs = pil_same.iter().any(|(_, s)| *s != Some(true));
     if !failed.is_empty() || trips != 0 || differs {
-        return Err(format!(
-            "fault campaign failed: classes {failed:?}, {trips} false trips{}",
-            if differs {
-                ", PIL differs from the host"
-            } else {
-                ""
-            }
-        ));
+        return Err(Error::CampaignFailed {
+            failed,
+            trips,
+            pil_differs: differs,
+        });
     }
     Ok(())
 }
@@ -493,7 +485,7 @@ fn main() -> ExitCode {
             let mut progress = Progress::new();
             let cal = eval::calibrate_plant(&plant, &mut |s, f| progress.stage(s, f))?;
             progress.finish();
-            calfile::save(&out, &cal, &plant.rig()).map_err(|e| e.to_string())?;
+            calfile::save(&out, &cal, &plant.rig())?;
             eprintln!(
                 "reversal dead band: {} counts",
                 cal.params.reversal_deadband_counts
@@ -556,13 +548,14 @@ fn main() -> ExitCode {
             let plant = plant_params(&plant)?;
             let elf = elf.unwrap_or_else(|| PilOptions::default_elf(None));
             if !elf.exists() {
-                return Err(format!(
-                    "{}: no firmware ELF; build it with `cargo fw-qemu`",
-                    elf.display()
-                ));
+                return Err(Error::NoFirmware(elf));
             }
             if !(speed.is_finite() && speed >= 0.0) {
-                return Err(format!("--speed {speed}: must be 0 or more"));
+                return Err(Error::Argument {
+                    flag: "--speed",
+                    value: speed.to_string(),
+                    rule: "must be 0 or more".into(),
+                });
             }
             let mut pil = PilOptions::new(elf);
             pil.storage = Some(storage.clone());
@@ -609,7 +602,7 @@ fn main() -> ExitCode {
                 generalise::plants()?
             };
             for p in &plant {
-                plants.push(PlantParams::load(p).map_err(|e| e.to_string())?);
+                plants.push(PlantParams::load(p)?);
             }
             let mut progress = Progress::new();
             let mut tables = Vec::new();
@@ -664,6 +657,7 @@ fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("hil-sim: {e}");
+            let e = e.to_string();
             if e.contains("No such file") && !e.contains(&preset_names()) {
                 eprintln!("presets: {}", preset_names());
             }

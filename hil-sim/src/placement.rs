@@ -5,6 +5,7 @@
 //! along the planned path; the motor still runs a plain trapezoid, so its velocity and
 //! acceleration stay within the move's limits and never step.
 
+use crate::error::{Context, Error};
 use estimator_core::drive::{Command, Drive};
 use estimator_core::model::{ModelKind, ModelParams};
 use estimator_core::rig::Rig;
@@ -29,12 +30,11 @@ pub fn arrival_errors(
     start_mm: f64,
     moves: &[Move],
     seed: u64,
-) -> Result<Vec<f64>, String> {
+) -> Result<Vec<f64>, Error> {
     let dt = 1.0 / 2000.0;
     let mut plant = Plant::new(plant_params, start_mm, seed)?;
-    let e = |e: crate::controller::ControlError| e.to_string();
-    home_and_enable(controller, &plant, rig).map_err(e)?;
-    controller.command(Command::SelectModel(model)).map_err(e)?;
+    home_and_enable(controller, &plant, rig)?;
+    controller.command(Command::SelectModel(model))?;
     let mut tick: u64 = 0;
     let mut errors = Vec::with_capacity(moves.len());
     for (k, &(to_mm, v, a)) in moves.iter().enumerate() {
@@ -44,16 +44,16 @@ pub fn arrival_errors(
                 velocity_um_s: (v * 1000.0).round() as u32,
                 accel_um_s2: (a * 1000.0).round() as u32,
             })
-            .map_err(|err| format!("move {k}: {err}"))?;
+            .context(|| format!("move {k}"))?;
         let mut rest_ticks = 0u64;
         let settle = (SETTLE_S / dt) as u64;
         loop {
             if tick.is_multiple_of(KEEPALIVE_TICKS) {
-                controller.keepalive().map_err(e)?;
+                controller.keepalive()?;
             }
-            let out = controller.step(sample(&plant)).map_err(e)?;
+            let out = controller.step(sample(&plant))?;
             if !out.telemetry.faults.is_clear() {
-                return Err(format!("move {k}: fault {}", out.telemetry.faults));
+                return Err(Error::Fault(out.telemetry.faults).context(format!("move {k}")));
             }
             plant.step(out.current_a.to_num::<f64>(), dt);
             tick += 1;
@@ -66,7 +66,7 @@ pub fn arrival_errors(
                 break;
             }
             if tick > 10_000_000 {
-                return Err(format!("move {k}: never came to rest"));
+                return Err(Error::NeverAtRest.context(format!("move {k}")));
             }
         }
         let scale_mm = plant.scale_counts() as f64 / plant.scale_counts_per_mm();
@@ -83,9 +83,9 @@ pub fn arrival_errors_in_process(
     start_mm: f64,
     moves: &[Move],
     seed: u64,
-) -> Result<Vec<f64>, String> {
+) -> Result<Vec<f64>, Error> {
     let cfg = drive_config(params, model, plant.rig());
-    let drive = Drive::new(&cfg).map_err(|e| format!("drive configuration: {e}"))?;
+    let drive = Drive::new(&cfg).context(|| "drive configuration".into())?;
     arrival_errors(
         &mut InProcess(drive),
         plant,
@@ -164,11 +164,9 @@ pub fn compare(
     scenario: &crate::scenario::Scenario,
     params: &ModelParams,
     rig: &Rig,
-    run: &mut dyn FnMut(ModelKind) -> Result<crate::run::Trace, String>,
-) -> Result<Vec<Placement>, String> {
-    let coeffs = params
-        .build(rig)
-        .map_err(|e| format!("drive configuration: {e}"))?;
+    run: &mut dyn FnMut(ModelKind) -> Result<crate::run::Trace, Error>,
+) -> Result<Vec<Placement>, Error> {
+    let coeffs = params.build(rig).context(|| "drive configuration".into())?;
     let mut out = Vec::new();
     for model in ModelKind::ALL {
         let t = run(model)?;
@@ -188,7 +186,7 @@ pub fn compare_in_process(
     params: &ModelParams,
     seed: u64,
     progress: &mut dyn FnMut(&str, f64),
-) -> Result<Vec<Placement>, String> {
+) -> Result<Vec<Placement>, Error> {
     compare(scenario, params, &plant.rig(), &mut |model| {
         let label = format!("placement {model}");
         run_carriage_space(scenario, plant, params, model, seed, &mut |f| {
@@ -290,9 +288,9 @@ pub fn run_carriage_space(
     model: ModelKind,
     seed: u64,
     progress: &mut dyn FnMut(f64),
-) -> Result<crate::run::Trace, String> {
+) -> Result<crate::run::Trace, Error> {
     let cfg = drive_config(params, model, plant.rig());
-    let drive = Drive::new(&cfg).map_err(|e| format!("drive configuration: {e}"))?;
+    let drive = Drive::new(&cfg).context(|| "drive configuration".into())?;
     let rc = crate::run::RunConfig {
         seed,
         carriage_space: true,
@@ -306,5 +304,5 @@ pub fn run_carriage_space(
         &rc,
         progress,
     )
-    .map_err(|e| format!("{}: {e}", scenario.source()))
+    .context(|| scenario.source().to_string())
 }

@@ -433,19 +433,21 @@ impl Plant {
     ///
     /// Refused (with the field named) if `params` fails [`PlantParams::validate`] or `start_mm`
     /// is outside the travel.
-    pub fn new(params: &PlantParams, start_mm: f64, seed: u64) -> Result<Plant, String> {
-        params
-            .validate()
-            .map_err(|e| format!("{}: {e}", params.name()))?;
+    pub fn new(
+        params: &PlantParams,
+        start_mm: f64,
+        seed: u64,
+    ) -> Result<Plant, crate::error::Error> {
+        use crate::error::Context;
+        params.validate().context(|| params.name().to_string())?;
         let x = start_mm * 1e-3;
         if !(params.carriage.travel_min_m..=params.carriage.travel_max_m).contains(&x) {
-            return Err(format!(
-                "start at {start_mm} mm is outside the plant's travel {}..={} mm \
-                 (carriage.travel_min_m, carriage.travel_max_m of {})",
-                params.carriage.travel_min_m * 1e3,
-                params.carriage.travel_max_m * 1e3,
-                params.name()
-            ));
+            return Err(crate::error::Error::StartOutsideTravel {
+                start_mm,
+                min_mm: params.carriage.travel_min_m * 1e3,
+                max_mm: params.carriage.travel_max_m * 1e3,
+                plant: params.name().to_string(),
+            });
         }
         let mut draws = Rng::new(seed, 0);
         let c = Coeffs::new(params, &mut draws);

@@ -14,22 +14,25 @@ pub const FONT_PATHS: &[&str] = &[
 ];
 
 /// Registers a font for plot text once; Err says which files were tried.
-pub fn init_fonts() -> Result<(), String> {
-    static DONE: std::sync::OnceLock<Result<(), String>> = std::sync::OnceLock::new();
-    DONE.get_or_init(|| {
+pub fn init_fonts() -> Result<(), crate::error::Error> {
+    use crate::error::Error;
+    // The outcome of the one registration, for every later call (an `Error` is not `Clone`).
+    static DONE: std::sync::OnceLock<Result<(), Option<&'static str>>> = std::sync::OnceLock::new();
+    let done = DONE.get_or_init(|| {
         for p in FONT_PATHS {
             if let Ok(bytes) = std::fs::read(p) {
                 let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
                 return plotters::style::register_font("sans-serif", FontStyle::Normal, bytes)
-                    .map_err(|_| format!("{p}: not a usable TrueType font"));
+                    .map_err(|_| Some(*p));
             }
         }
-        Err(format!(
-            "no font found (tried {}); install fonts-dejavu-core",
-            FONT_PATHS.join(", ")
-        ))
-    })
-    .clone()
+        Err(None)
+    });
+    match *done {
+        Ok(()) => Ok(()),
+        Err(Some(p)) => Err(Error::BadFont(p.to_string())),
+        Err(None) => Err(Error::NoFont(FONT_PATHS.join(", "))),
+    }
 }
 
 type PlotResult = Result<(), Box<dyn std::error::Error>>;

@@ -1,5 +1,6 @@
 //! `hil-sim report`: Table 3 in Markdown, the per-tick CSV, and the paper's figures as PNG.
 
+use crate::error::{Context, Error};
 use std::io::Write;
 use std::path::Path;
 
@@ -138,17 +139,17 @@ pub fn write(
     cal: &Calibration,
     placed: &[crate::placement::Placement],
     progress: &mut Progress,
-) -> Result<(), String> {
+) -> Result<(), Error> {
     let Setting { plant, how, .. } = *setting;
     let paper = eval::paper_setting(setting.scenario, plant);
-    std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
-    let coeffs = cal.params.build(&plant.rig()).map_err(|e| e.to_string())?;
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    let coeffs = cal.params.build(&plant.rig())?;
     let est = eval::estimates(trace, &coeffs);
     let table = eval::table3(trace, &est);
 
     // Fig. 11 from the second of two cycles: a fresh plant starts on the forward band edge, so
     // the first cycle lacks the reverse-to-forward transition; the second shows the whole loop.
-    let rep = Scenario::load("repeatability").map_err(|e| e.to_string())?;
+    let rep = Scenario::load("repeatability")?;
     let cycle = rep.moves.len();
     let twice = Scenario {
         moves: [rep.moves.clone(), rep.moves.clone()].concat(),
@@ -165,7 +166,7 @@ pub fn write(
             2_000 + k,
             &mut |f| progress.stage(&label, f),
         )
-        .map_err(|e| format!("repeatability: {e}"))?;
+        .context(|| "repeatability".into())?;
         let from = t.move_starts.get(cycle).copied().unwrap_or(0);
         t.records.drain(..from);
         t.move_starts = t.move_starts[cycle..].iter().map(|s| s - from).collect();
@@ -304,11 +305,11 @@ pub fn write(
            workloads use seed 11 (`hil-sim generalise`).\n";
     md += &crate::generalise::markdown(&tables);
     let csv = dir.join(format!("{}.csv", trace.scenario));
-    let mut w = std::io::BufWriter::new(
-        std::fs::File::create(&csv).map_err(|e| format!("{}: {e}", csv.display()))?,
-    );
-    write_csv(&mut w, trace).map_err(|e| format!("{}: {e}", csv.display()))?;
-    std::fs::write(dir.join("report.md"), md).map_err(|e| format!("{}: {e}", dir.display()))?;
+    let mut w =
+        std::io::BufWriter::new(std::fs::File::create(&csv).map_err(|e| Error::io(&csv, e))?);
+    write_csv(&mut w, trace).map_err(|e| Error::io(&csv, e))?;
+    let md_path = dir.join("report.md");
+    std::fs::write(&md_path, md).map_err(|e| Error::io(&md_path, e))?;
     for f in &failures {
         eprintln!("hil-sim: figure not drawn: {f}");
     }

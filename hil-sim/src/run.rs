@@ -90,7 +90,9 @@ pub enum RunError {
     /// The scenario did not finish within its time budget.
     Timeout(f64),
     /// The scenario does not fit the drive or the plant (checked before the run).
-    Scenario(String),
+    Scenario(crate::scenario::ScenarioError),
+    /// The plant refused its parameters or the start position.
+    Plant(Box<crate::error::Error>),
 }
 
 impl std::fmt::Display for RunError {
@@ -104,6 +106,7 @@ impl std::fmt::Display for RunError {
                 write!(f, "scenario still moving after {t:.1} s of simulated time")
             }
             RunError::Scenario(e) => write!(f, "{e}"),
+            RunError::Plant(e) => write!(f, "{e}"),
         }
     }
 }
@@ -169,10 +172,10 @@ pub fn run(
         .validate()
         .map_err(|e| e.in_file(scenario.source()))
         .and_then(|_| scenario.check_against(&crate::drive_setup::drive_limits(*rig), plant_params))
-        .map_err(|e| RunError::Scenario(e.to_string()))?;
+        .map_err(RunError::Scenario)?;
     let dt = 1.0 / cfg.rate_hz;
-    let mut plant =
-        Plant::new(plant_params, scenario.start_mm, cfg.seed).map_err(RunError::Scenario)?;
+    let mut plant = Plant::new(plant_params, scenario.start_mm, cfg.seed)
+        .map_err(|e| RunError::Plant(Box::new(e)))?;
     home_and_enable(controller, &plant, rig)?;
 
     let budget = budget_s(scenario);

@@ -65,6 +65,12 @@ fn a_calibration_for_another_geometry_is_refused_naming_both() {
     );
     // The firmware under QEMU is configured for the paper rig: refused before QEMU starts.
     let e = eval::check_pil_geometry(&other_rig()).unwrap_err();
+    assert!(
+        matches!(&e, hil_sim::error::Error::PilGeometry { paper, has, .. }
+            if *paper == estimator_core::rig::Rig::PAPER && *has == other_rig().rig()),
+        "{e:?}"
+    );
+    let e = e.to_string();
     assert!(e.contains("paper rig") && e.contains("15-tooth"), "{e}");
     assert!(eval::check_pil_geometry(&paper).is_ok());
 }

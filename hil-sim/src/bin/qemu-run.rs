@@ -265,10 +265,13 @@ fn run_bench(
 fn check_against(
     measured: &serde_json::Value,
     path: &std::path::Path,
-) -> Result<Vec<String>, String> {
-    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let want: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+) -> Result<Vec<String>, hil_sim::error::Error> {
+    use hil_sim::error::Error;
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let want: serde_json::Value = serde_json::from_str(&text).map_err(|source| Error::Json {
+        path: path.to_path_buf(),
+        source,
+    })?;
     let mut keys: Vec<String> = ["flash_bytes", "static_ram_bytes", "peak_stack_bytes"]
         .iter()
         .map(|k| format!("/{k}"))
@@ -294,12 +297,10 @@ fn check_against(
     if over.is_empty() {
         Ok(notes)
     } else {
-        Err(format!(
-            "{}: the firmware costs more than the checked-in figures ({}); if that is intended, \
-             update the file with the figures of the JSON line below",
-            path.display(),
-            over.join(", ")
-        ))
+        Err(Error::OverBudget {
+            path: path.to_path_buf(),
+            over,
+        })
     }
 }
 

@@ -103,7 +103,8 @@ pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilEr
     };
     let host = Drive::new(&cfg).map_err(|e| PilError::Link(format!("drive config: {e}")))?;
     let fw = PilController::start(opts)?;
-    let plant = Plant::new(&PlantParams::paper_rig(), START_MM, 1).map_err(PilError::Link)?;
+    let plant = Plant::new(&PlantParams::paper_rig(), START_MM, 1)
+        .map_err(|e| PilError::Link(e.to_string()))?;
     let mut ls = Lockstep {
         host,
         fw,
@@ -181,8 +182,9 @@ pub struct Footprint {
 }
 
 /// Reads the footprint of `elf` (32-bit little-endian ELF).
-pub fn footprint(elf: &Path) -> Result<Footprint, String> {
-    let b = std::fs::read(elf).map_err(|e| format!("{}: {e}", elf.display()))?;
+pub fn footprint(elf: &Path) -> Result<Footprint, crate::error::Error> {
+    use crate::error::Error;
+    let b = std::fs::read(elf).map_err(|e| Error::io(elf, e))?;
     let u16_at = |o: usize| {
         b.get(o..o + 2)
             .map(|s| u16::from_le_bytes([s[0], s[1]]) as u64)
@@ -192,9 +194,9 @@ pub fn footprint(elf: &Path) -> Result<Footprint, String> {
             .map(|s| u32::from_le_bytes([s[0], s[1], s[2], s[3]]) as u64)
     };
     if b.get(..5) != Some(&[0x7f, b'E', b'L', b'F', 1][..]) {
-        return Err(format!("{}: not a 32-bit ELF", elf.display()));
+        return Err(Error::NotElf32(elf.to_path_buf()));
     }
-    let bad = || format!("{}: truncated ELF", elf.display());
+    let bad = || Error::TruncatedElf(elf.to_path_buf());
     let shoff = u32_at(0x20).ok_or_else(bad)? as usize;
     let shentsize = u16_at(0x2e).ok_or_else(bad)? as usize;
     let shnum = u16_at(0x30).ok_or_else(bad)? as usize;
@@ -235,7 +237,7 @@ pub struct BenchReport {
 
 /// Runs the bench for every model.
 pub fn bench(opts: &PilOptions) -> Result<BenchReport, PilError> {
-    let footprint = footprint(&opts.elf).map_err(PilError::Link)?;
+    let footprint = footprint(&opts.elf).map_err(|e| PilError::Link(e.to_string()))?;
     let mut runs = Vec::new();
     for model in ModelKind::ALL {
         runs.push(run_model(opts, model)?);

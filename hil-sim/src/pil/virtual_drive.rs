@@ -8,6 +8,7 @@
 //! terminal to the firmware, whole, between two ticks. Plant time is paced to the wall clock
 //! (`speed` 1.0) so the drive's timeouts mean what they mean on a machine.
 
+use crate::error::Error;
 use std::fs::File;
 use std::io::{self, Read, Write};
 use std::os::fd::OwnedFd;
@@ -113,24 +114,22 @@ fn control_rate(pil: &mut PilController) -> Result<f64, PilError> {
 pub fn run(
     opts: &VirtualDriveOptions,
     ready: &mut dyn FnMut(&Path),
-) -> Result<VirtualDriveEnd, String> {
+) -> Result<VirtualDriveEnd, Error> {
     let stop = Arc::new(AtomicBool::new(false));
     for sig in [signal_hook::consts::SIGTERM, signal_hook::consts::SIGINT] {
-        signal_hook::flag::register(sig, Arc::clone(&stop)).map_err(|e| e.to_string())?;
+        signal_hook::flag::register(sig, Arc::clone(&stop)).map_err(Error::Signal)?;
     }
-    let mut plant = Plant::new(&opts.plant, opts.start_mm, opts.seed)
-        .map_err(|e| format!("{}: {e}", opts.plant.name()))?;
+    let mut plant = Plant::new(&opts.plant, opts.start_mm, opts.seed)?;
     let mut pil_opts = opts.pil.clone();
     // The drive boots from its storage, or unconfigured: the host configures it.
     pil_opts.settings = None;
-    let mut pil = PilController::start(&pil_opts).map_err(|e| e.to_string())?;
-    let mut rate_hz = control_rate(&mut pil).map_err(|e| e.to_string())?;
+    let mut pil = PilController::start(&pil_opts)?;
+    let mut rate_hz = control_rate(&mut pil)?;
 
-    let mut pty = open_pty().map_err(|e| format!("pseudo-terminal: {e}"))?;
+    let mut pty = open_pty().map_err(Error::Pty)?;
     if let Some(link) = &opts.link {
         let _ = std::fs::remove_file(link);
-        std::os::unix::fs::symlink(&pty.name, link)
-            .map_err(|e| format!("{}: {e}", link.display()))?;
+        std::os::unix::fs::symlink(&pty.name, link).map_err(|e| Error::io(link, e))?;
     }
     ready(&pty.name);
 
@@ -161,7 +160,7 @@ pub fn run(
         }
         for f in &complete {
             if let Err(e) = pil.send_raw(f) {
-                break 'ticks Err(Some(e.to_string()));
+                break 'ticks Err(Some(e));
             }
         }
         // One control tick.
@@ -181,7 +180,7 @@ pub fn run(
                 if !pil.is_running() {
                     break Err(None);
                 }
-                break Err(Some(e.to_string()));
+                break Err(Some(e));
             }
         };
         let dt = 1.0 / rate_hz;
@@ -205,7 +204,7 @@ pub fn run(
             rate_changed = false;
             match control_rate(&mut pil) {
                 Ok(r) => rate_hz = r,
-                Err(e) => break Err(Some(e.to_string())),
+                Err(e) => break Err(Some(e)),
             }
         }
         // Pace plant time to the wall clock.
@@ -223,13 +222,13 @@ pub fn run(
             exit_code: None,
         }),
         Err(None) => {
-            let code = pil.wait().map_err(|e| e.to_string())?;
+            let code = pil.wait()?;
             Ok(VirtualDriveEnd {
                 ticks,
                 exit_code: Some(code),
             })
         }
-        Err(Some(e)) => Err(e),
+        Err(Some(e)) => Err(e.into()),
     }
 }
 
