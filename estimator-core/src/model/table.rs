@@ -381,43 +381,46 @@ fn build_band(
     if !(2..=MAX_BAND_POINTS).contains(&len) {
         return Err(ConfigError::TableSize(f.len));
     }
-    let mut y_um = [I16F16::ZERO; MAX_BAND_POINTS];
-    let mut prev_counts = None;
-    for (i, y) in y_um.iter_mut().enumerate().take(len) {
+    // The even axis through the first and last points: every point must lie on it.
+    let (first_mm, last_mm) = (src.band_point(dir, 0).0, src.band_point(dir, len - 1).0);
+    let step_mm = (last_mm - first_mm) / (len - 1) as f64;
+    let mut c = BandCoeffs {
+        len: len as u8,
+        x0_counts: 0,
+        points_q32: 0,
+        y_um: [I16F16::ZERO; MAX_BAND_POINTS],
+    };
+    let mut prev_counts = 0;
+    for (i, y) in c.y_um.iter_mut().enumerate().take(len) {
         let (x_mm, v_um) = src.band_point(dir, i);
         let x =
             round_i32(finite(x_mm, f.x)? * counts_per_mm).ok_or(ConfigError::OutOfRange(f.x))?;
-        if prev_counts.is_some_and(|p| x <= p) {
+        if i == 0 {
+            c.x0_counts = x;
+        } else if x <= prev_counts {
             return Err(ConfigError::NotMonotonic(f.x));
         }
-        prev_counts = Some(x);
-        *y = um_q16(v_um, -MAX_ABS_UM, f.y)?;
-    }
-    // The even axis through the first and last points; every point on it.
-    let (first_mm, last_mm) = (src.band_point(dir, 0).0, src.band_point(dir, len - 1).0);
-    let step_mm = (last_mm - first_mm) / (len - 1) as f64;
-    for i in 1..len - 1 {
-        let on_axis = first_mm + i as f64 * step_mm;
-        if (src.band_point(dir, i).0 - on_axis).abs() > UNIFORM_TOLERANCE_MM {
+        prev_counts = x;
+        if (x_mm - (first_mm + i as f64 * step_mm)).abs() > UNIFORM_TOLERANCE_MM {
             return Err(ConfigError::NotUniform(f.x));
         }
+        *y = um_q16(v_um, -MAX_ABS_UM, f.y)?;
     }
-    let step_counts = step_mm * counts_per_mm;
-    if step_counts < 2.0 {
-        return Err(ConfigError::OutOfRange(f.x));
+    c.points_q32 = per_step_q32(step_mm * counts_per_mm, f.x)?;
+    Ok(c)
+}
+
+/// Cells per unit of an even axis in Q0.32 for a step of `step` units: a position times it is
+/// the cell in Q32.32 (one `UMULL`). Steps of at least two units keep it below 2^31; a step
+/// beyond 2^33 units cannot be resolved. `step` is finite (the callers check it first).
+fn per_step_q32(step: f64, field: &'static str) -> Result<u32, ConfigError> {
+    if step < 2.0 {
+        return Err(ConfigError::OutOfRange(field));
     }
-    let points_q32 =
-        round_i32(4_294_967_296.0 / step_counts).ok_or(ConfigError::OutOfRange(f.x))?;
-    if points_q32 < 1 {
-        // A step beyond 2^33 counts cannot be resolved.
-        return Err(ConfigError::OutOfRange(f.x));
+    match round_i32(4_294_967_296.0 / step) {
+        Some(v) if v >= 1 => Ok(v as u32),
+        _ => Err(ConfigError::OutOfRange(field)),
     }
-    Ok(BandCoeffs {
-        len: len as u8,
-        x0_counts: round_i32(first_mm * counts_per_mm).ok_or(ConfigError::OutOfRange(f.x))?,
-        points_q32: points_q32 as u32,
-        y_um,
-    })
 }
 
 /// Linear interpolation of band `dir` of `src` in `f64`, clamped outside the axis.
@@ -462,28 +465,17 @@ fn build_transition(
     if !(2..=MAX_TRANSITION_G0).contains(&n_g0) {
         return Err(ConfigError::TableSize(f.n_g0));
     }
-    // Steps of at least two counts / two Q16.16 units keep the positions' scale below 2^32.
-    let d_step_counts = finite(d_step_mm, f.d_step)? * counts_per_mm;
-    if d_step_counts < 2.0 {
-        return Err(ConfigError::OutOfRange(f.d_step));
-    }
-    let g0_step_bits = finite(g0_step_um, f.g0_step)? * 65536.0;
-    if g0_step_bits < 2.0 || g0_step_um > MAX_ABS_UM {
+    // In counts and in Q16.16 units (see `per_step_q32`).
+    let rows_q32 = per_step_q32(finite(d_step_mm, f.d_step)? * counts_per_mm, f.d_step)?;
+    if finite(g0_step_um, f.g0_step)? > MAX_ABS_UM {
         return Err(ConfigError::OutOfRange(f.g0_step));
     }
-    let inv = |step: f64, field| -> Result<u32, ConfigError> {
-        let v = round_i32(4_294_967_296.0 / step).ok_or(ConfigError::OutOfRange(field))?;
-        if v < 1 {
-            // A step beyond 2^33 units cannot be resolved.
-            return Err(ConfigError::OutOfRange(field));
-        }
-        Ok(v as u32)
-    };
+    let cols_q32 = per_step_q32(g0_step_um * 65536.0, f.g0_step)?;
     let mut c = TransitionCoeffs {
         n_d: n_d as u8,
         n_g0: n_g0 as u8,
-        rows_q32: inv(d_step_counts, f.d_step)?,
-        cols_q32: inv(g0_step_bits, f.g0_step)?,
+        rows_q32,
+        cols_q32,
         gap_um: [[U11F5::ZERO; MAX_TRANSITION_G0]; MAX_TRANSITION_D],
     };
     for i in 0..n_d {
