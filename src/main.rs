@@ -44,9 +44,14 @@ mod app {
         RECORD_BATCH,
     };
     use estimator_core::blob::BlobError;
-    use estimator_core::endpoint::{answer, BlobBuffer, Effect, Endpoint, Event as LinkEvent};
+    use estimator_core::endpoint::{answer, Effect, Endpoint, Event as LinkEvent};
     use estimator_core::fixed::types::I16F16;
     use estimator_core::image;
+    use estimator_core::staging::FlashStaging;
+
+    /// The link's endpoint: calibration images are staged in flash (sector 9; QEMU: the
+    /// `--staging` file), not in RAM.
+    type LinkEndpoint = Endpoint<FlashStaging<hardware::StagingFlash>>;
     use estimator_core::rig::Rig;
     use estimator_core::settings::{self, RawSettings, SettingsError};
     use estimator_core::ConfigError;
@@ -97,7 +102,7 @@ mod app {
         bytes_in: spsc::Producer<'static, u8>,
         bytes_out: spsc::Consumer<'static, u8>,
         receiver: Receiver,
-        endpoint: &'static mut Endpoint<&'static mut BlobBuffer>,
+        endpoint: &'static mut LinkEndpoint,
         persist: Persist,
         /// The previous tick's telemetry (for move start/end and fault events).
         prev: Telemetry,
@@ -106,9 +111,7 @@ mod app {
     }
 
     #[init(local = [
-        // Zero-initialised (`.bss`): no initial image in flash.
-        blob_buffer: BlobBuffer = [0; image::MAX_BYTES],
-        endpoint_storage: MaybeUninit<Endpoint<&'static mut BlobBuffer>> = MaybeUninit::uninit(),
+        endpoint_storage: MaybeUninit<LinkEndpoint> = MaybeUninit::uninit(),
         drive_storage: MaybeUninit<Drive> = MaybeUninit::uninit(),
         event_queue: events::Queue = events::Queue::new(),
         rx_queue: spsc::Queue<u8, RX_QUEUE> = spsc::Queue::new(),
@@ -122,38 +125,34 @@ mod app {
             Ok(s) => s,
             Err(_) => defmt::panic!("built-in settings record refused"),
         };
-        let endpoint = cx
-            .local
-            .endpoint_storage
-            .write(Endpoint::with_buffer(cx.local.blob_buffer, defaults));
+        let endpoint = cx.local.endpoint_storage.write(Endpoint::with_staging(
+            FlashStaging::new(hardware::open_staging()),
+            defaults,
+        ));
         // The stored configuration and calibration, read before the clocks and timers start
         // (the control rate comes from it).
         let mut persist = Persist::open();
         let mut settings_buf = [0u8; settings::STORED_LEN];
-        let boot = persist.load(&mut settings_buf, endpoint.blob_buffer());
+        let boot = persist.load(&mut settings_buf);
         // The paper rig's configuration image, built on the host (build.rs) and checked by the
         // host tests: refused only by a broken build.
         let (paper, _) = match Parts::decode(PAPER_PARTS) {
             Ok(p) => p,
             Err(e) => defmt::panic!("built-in configuration refused: {=str}", e.field()),
         };
-        let (stored, stored_blob, record_crc) = match boot {
-            Boot::Loaded {
-                settings_len,
-                blob_len,
-                crc32,
-                ..
-            } => {
-                match settings::decode_stored(&settings_buf[..settings_len.min(settings_buf.len())])
-                {
-                    Ok(s) => (Some(s), blob_len, crc32),
+        let (stored, stored_record, record_crc) = match boot {
+            Boot::Loaded(r) => {
+                match settings::decode_stored(
+                    &settings_buf[..r.settings_len.min(settings_buf.len())],
+                ) {
+                    Ok(s) => (Some(s), Some(r), r.crc32),
                     Err(e) => {
                         log_settings_error(&e);
-                        (None, 0, 0)
+                        (None, None, 0)
                     }
                 }
             }
-            _ => (None, 0, 0),
+            _ => (None, None, 0),
         };
         let rate_hz = match &stored {
             Some((_, p)) => p.rate_hz(),
@@ -217,10 +216,23 @@ mod app {
             }
         }
         if configured {
-            if stored_blob > 0 {
-                let len = stored_blob.min(endpoint.blob_buffer().len());
-                match drive.load_calibration(&endpoint.blob_buffer()[..len]) {
-                    Ok(()) => {
+            if let Some(r) = stored_record.filter(|r| r.blob_len > 0) {
+                let len = r.blob_len;
+                // Staged (copied into the staging area unless it already holds it), then
+                // read from there like a transferred one.
+                let loaded = persist
+                    .stage_blob(&r, endpoint.staging())
+                    .map_err(|code| {
+                        defmt::error!(
+                            "stored calibration not staged: {=str}; no compensation until one loads",
+                            persist::detail_name(code)
+                        )
+                    })
+                    .ok()
+                    .map(|_| drive.load_calibration_from(&mut endpoint.calibration(len)));
+                match loaded {
+                    None => {}
+                    Some(Ok(())) => {
                         endpoint.boot_calibration(len);
                         // The geometry changed from the paper rig's: the configured model
                         // comes back with its calibration.
@@ -232,7 +244,7 @@ mod app {
                             model.as_str()
                         );
                     }
-                    Err(e) => defmt::error!(
+                    Some(Err(e)) => defmt::error!(
                         "stored calibration refused: {=str}; no compensation until one loads",
                         blob_error_name(e)
                     ),
@@ -588,9 +600,10 @@ mod app {
                         // Checked here, outside the drive's lock; the lock is held only while
                         // the checked image is read into the coefficients (no staging copy).
                         let rig = drive.lock(|d| *d.rig());
-                        let bytes = endpoint.calibration(len);
-                        let result = image::check(bytes, &rig)
-                            .and_then(|()| drive.lock(|d| d.load_checked_calibration(bytes)));
+                        let mut staged = endpoint.calibration(len);
+                        let result = image::check_from(&mut staged, &rig).and_then(|()| {
+                            drive.lock(|d| d.load_checked_calibration_from(&mut staged))
+                        });
                         let (reply, event) = endpoint.calibration_done(len, result);
                         log_event(&event);
                         reply
@@ -633,8 +646,10 @@ mod app {
                         let result = match endpoint.active_parts() {
                             Some(parts) => {
                                 let buf = settings::encode_stored(endpoint.active(), parts);
-                                let blob = endpoint.installed_calibration().unwrap_or(&[]);
-                                persist.save(&buf, blob)
+                                match endpoint.installed_calibration() {
+                                    Some(mut blob) => persist.save(&buf, &mut blob),
+                                    None => persist.save(&buf, &mut &[][..]),
+                                }
                             }
                             // Refused by the endpoint before: nothing applied to save.
                             None => Err(persist::detail::ENCODE),
@@ -856,6 +871,7 @@ mod app {
             BlobError::Invalid(_) => "a value failed the model checks",
             BlobError::Busy => "drive moving",
             BlobError::BufferTooSmall | BlobError::Unrepresentable(_) => "encoder error",
+            BlobError::Unreadable => "staging flash unreadable",
         }
     }
 

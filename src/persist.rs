@@ -3,7 +3,8 @@
 //! does not model the flash controller). The record format, the A/B slots and the power-cut
 //! safety are `estimator_core::storage`'s, tested on the host.
 
-use estimator_core::storage::{self, StorageError};
+use estimator_core::staging::{Source, Staging};
+use estimator_core::storage::{self, RecordInfo, StorageError};
 
 use crate::hardware::{self, StorageFlash};
 
@@ -24,6 +25,7 @@ pub fn detail_name(code: u8) -> &'static str {
         4 | 5 => "buffer too small",
         6 => "the record read back differs",
         7 => "the record changed while read",
+        8 => "the calibration staging area failed",
         detail::ENCODE => "settings did not encode",
         e::NO_STORAGE => "no storage on this build (QEMU: start with --storage FILE)",
         e::CALIBRATION_BYTES_GONE => {
@@ -43,19 +45,9 @@ pub enum Boot {
     Nothing,
     /// The storage could not be read, or its newest record does not fit the buffers.
     Failed(u8),
-    /// The newest valid record.
-    Loaded {
-        /// Which slot.
-        slot: storage::Slot,
-        /// Its sequence number.
-        seq: u32,
-        /// Its CRC-32.
-        crc32: u32,
-        /// Bytes of settings copied.
-        settings_len: usize,
-        /// Bytes of calibration blob copied.
-        blob_len: usize,
-    },
+    /// The newest valid record (its settings copied; its blob left in place until
+    /// [`Persist::stage_blob`]).
+    Loaded(RecordInfo),
 }
 
 /// Logs what the boot found.
@@ -64,19 +56,13 @@ pub fn log_boot(b: &Boot) {
         Boot::NoStorage => defmt::warn!("storage: none on this build"),
         Boot::Nothing => defmt::warn!("storage: no valid record"),
         Boot::Failed(code) => defmt::error!("storage: unreadable: {=str}", detail_name(code)),
-        Boot::Loaded {
-            slot,
-            seq,
-            crc32,
-            settings_len,
-            blob_len,
-        } => defmt::info!(
+        Boot::Loaded(r) => defmt::info!(
             "storage: record {=u32} in slot {=str}, crc {=u32:#010x}, {=usize} B settings, {=usize} B calibration",
-            seq,
-            slot.name(),
-            crc32,
-            settings_len,
-            blob_len
+            r.seq,
+            r.slot.name(),
+            r.crc32,
+            r.settings_len,
+            r.blob_len
         ),
     }
 }
@@ -94,32 +80,39 @@ impl Persist {
         }
     }
 
-    /// Loads the newest valid record into the buffers.
-    pub fn load(&mut self, settings_buf: &mut [u8], blob_buf: &mut [u8]) -> Boot {
+    /// Loads the newest valid record's settings into `settings_buf`.
+    pub fn load(&mut self, settings_buf: &mut [u8]) -> Boot {
         let Some(flash) = &mut self.flash else {
             return Boot::NoStorage;
         };
-        match storage::load(flash, settings_buf, blob_buf) {
-            Ok(Some(r)) => Boot::Loaded {
-                slot: r.slot,
-                seq: r.seq,
-                crc32: r.crc32,
-                settings_len: r.settings_len,
-                blob_len: r.blob_len,
-            },
+        match storage::load_settings(flash, settings_buf) {
+            Ok(Some(r)) => Boot::Loaded(r),
             Ok(None) => Boot::Nothing,
             Err(e) => Boot::Failed(e.code()),
         }
     }
 
-    /// Saves a new record (the drive is disabled: the erase stalls the CPU for up to 2 s on the
-    /// board, with the watchdog lengthened meanwhile). Returns its sequence number and CRC, or
-    /// the detail code of the failure.
-    pub fn save(&mut self, settings: &[u8], blob: &[u8]) -> Result<(u32, u32), u8> {
+    /// Puts record `r`'s calibration into `staging` (erasing it only when it holds other
+    /// bytes, with the watchdog lengthened); the storage detail code on failure.
+    pub fn stage_blob(
+        &mut self,
+        r: &RecordInfo,
+        staging: &mut impl Staging,
+    ) -> Result<storage::Staged, u8> {
         let Some(flash) = &mut self.flash else {
             return Err(estimator_core::endpoint::storage_detail::NO_STORAGE);
         };
-        let r = hardware::during_save(|| storage::save(flash, settings, blob))
+        storage::stage_blob(flash, r, staging).map_err(|e| e.code())
+    }
+
+    /// Saves a new record (the drive is disabled: the erase stalls the CPU for up to 2 s on the
+    /// board, with the watchdog lengthened meanwhile). Returns its sequence number and CRC, or
+    /// the detail code of the failure.
+    pub fn save(&mut self, settings: &[u8], blob: &mut dyn Source) -> Result<(u32, u32), u8> {
+        let Some(flash) = &mut self.flash else {
+            return Err(estimator_core::endpoint::storage_detail::NO_STORAGE);
+        };
+        let r = hardware::during_save(|| storage::save_from(flash, settings, blob))
             .map_err(|e: StorageError<_>| e.code())?;
         Ok((r.seq, r.crc32))
     }

@@ -11,7 +11,7 @@ fn main() {}
 use belt_drive as _;
 
 #[cfg(target_os = "none")]
-use belt_drive::hardware::qemu_storage::FileFlash;
+use belt_drive::hardware::qemu_storage::{FileFlash, CAPACITY};
 #[cfg(target_os = "none")]
 use core::ffi::CStr;
 
@@ -27,11 +27,15 @@ fn path() -> &'static CStr {
     p
 }
 
+/// The staging file of the staging test.
+#[cfg(target_os = "none")]
+const STAGING: &str = concat!(env!("CARGO_TARGET_TMPDIR"), "/qemu-staging-test.bin\0");
+
 /// A new, empty file (created by `open`).
 #[cfg(target_os = "none")]
 fn fresh() -> FileFlash {
     let _ = semihosting::sys::arm_compat::sys_remove(path());
-    let Some(f) = FileFlash::open(path()) else {
+    let Some(f) = FileFlash::open(path(), CAPACITY) else {
         defmt::panic!("cannot create {=str}", PATH)
     };
     f
@@ -40,7 +44,7 @@ fn fresh() -> FileFlash {
 #[cfg(target_os = "none")]
 #[defmt_test::tests]
 mod tests {
-    use super::{fresh, path};
+    use super::{fresh, path, STAGING};
     use belt_drive::hardware::qemu_storage::{FileFlash, FileFlashError, CAPACITY, SECTOR_BYTES};
     use embedded_storage::nor_flash::{NorFlash, ReadNorFlash};
     use estimator_core::storage::{self, Slot, SlotState};
@@ -98,7 +102,7 @@ mod tests {
         drop(f);
 
         // Reopened: nothing truncated, both records there, the newest loads.
-        let Some(mut f) = FileFlash::open(path()) else {
+        let Some(mut f) = FileFlash::open(path(), CAPACITY) else {
             defmt::panic!("cannot reopen")
         };
         let states = storage::inspect(&mut f).unwrap();
@@ -115,6 +119,46 @@ mod tests {
         defmt::assert!(third.slot == Slot::A && third.seq == 3);
         let states = storage::inspect(&mut f).unwrap();
         defmt::assert!(states == [SlotState::Valid(third), SlotState::Valid(second)]);
+        let _ = sys_remove(path());
+    }
+
+    /// The staging area on a QEMU file (sector 9's stand-in): a transferred image written as
+    /// it arrives, read back, saved from there, and staged again from the record after a
+    /// reboot found another image there.
+    #[test]
+    fn staging_on_a_file_saves_and_restages_a_calibration() {
+        use core::ffi::CStr;
+        use estimator_core::staging::{FlashStaging, Staged, Staging};
+        let Ok(sp) = CStr::from_bytes_with_nul(STAGING.as_bytes()) else {
+            defmt::panic!("bad path")
+        };
+        let _ = sys_remove(sp);
+        let mut st = FlashStaging::new(FileFlash::open(sp, SECTOR_BYTES));
+        defmt::assert!(st.is_present());
+        let mut image = [0u8; 1500];
+        for (i, b) in image.iter_mut().enumerate() {
+            *b = (i * 13 + 5) as u8;
+        }
+        st.erase().unwrap();
+        for (i, piece) in image.chunks(60).enumerate() {
+            st.write(i * 60, piece).unwrap();
+        }
+        let mut f = fresh();
+        let saved = storage::save_from(&mut f, b"settings", &mut Staged::new(&mut st, image.len()))
+            .unwrap();
+        // Another transfer overwrites the staging area; the record's image comes back.
+        st.erase().unwrap();
+        st.write(0, &[0u8; 64]).unwrap();
+        let r = storage::load_settings(&mut f, &mut [0u8; 64])
+            .unwrap()
+            .unwrap();
+        defmt::assert!(r == saved);
+        defmt::assert!(storage::stage_blob(&mut f, &r, &mut st) == Ok(storage::Staged::Copied));
+        defmt::assert!(storage::stage_blob(&mut f, &r, &mut st) == Ok(storage::Staged::Already));
+        let mut back = [0u8; 1500];
+        st.read(0, &mut back).unwrap();
+        defmt::assert_eq!(back, image);
+        let _ = sys_remove(sp);
         let _ = sys_remove(path());
     }
 }

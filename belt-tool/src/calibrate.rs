@@ -288,7 +288,10 @@ pub fn upload(link: &mut Link, blob: &[u8]) -> Result<(), ToolError> {
                     detail,
                     ..
                 },
-            ) if detail & cal_error::REJECTED == 0 && detail != cal_error::TOO_LONG => {
+            ) if detail & cal_error::REJECTED == 0
+                && detail != cal_error::TOO_LONG
+                && detail != cal_error::ENABLED =>
+            {
                 last = Some(e)
             }
             Err(e @ (ToolError::Timeout { .. } | ToolError::Damaged { .. })) => last = Some(e),
@@ -441,6 +444,13 @@ pub fn run(link: &mut Link, opts: &Options, progress: &mut Progress) -> Result<O
     let image = estimator_core::image::of_params(&cal.params, &rig)
         .map_err(|e| ToolError::Drive(format!("calibration image: {e}")))?;
     let blob = &image[..];
+    // The drive stages the image in flash, whose erase stalls its CPU: it takes a transfer
+    // only while disabled (the carriage stays homed).
+    link.command(Command::Disable)?;
+    progress.println(
+        "beltctl: disabled the drive to upload the calibration (the drive stages it in flash); \
+         enable it to move again",
+    );
     progress.stage("upload calibration", 0.0);
     upload(link, blob)?;
     progress.stage("verify calibration", 0.5);
@@ -454,10 +464,7 @@ pub fn run(link: &mut Link, opts: &Options, progress: &mut Progress) -> Result<O
     progress.finish();
     link.command(Command::SelectModel(opts.model))?;
     let saved_crc = if opts.save {
-        // The drive saves only while disabled.
-        link.command(Command::Disable)?;
-        progress
-            .println("beltctl: disabled the drive to save (the drive saves only while disabled)");
+        // Disabled since the upload: the drive saves only while disabled.
         Some(save(link)?.1)
     } else {
         None
@@ -695,6 +702,25 @@ mod tests {
         let mut link = endpoint_drive(|_| false);
         let e = upload(&mut link, &blob).unwrap_err().to_string();
         assert!(e.contains("bad magic"), "{e}");
+    }
+
+    #[test]
+    fn an_upload_to_an_enabled_drive_is_refused_by_name_once() {
+        let blob = paper_image();
+        let begins = std::sync::Arc::new(std::sync::atomic::AtomicU32::new(0));
+        let seen = std::sync::Arc::clone(&begins);
+        let mut link = endpoint_drive(move |req| {
+            if matches!(req, Request::CalBegin { .. }) {
+                seen.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            }
+            false
+        });
+        link.command(Command::Enable).unwrap();
+        let e = upload(&mut link, &blob).unwrap_err().to_string();
+        assert!(e.contains("needs the drive disabled"), "{e}");
+        assert_eq!(begins.load(std::sync::atomic::Ordering::Relaxed), 1);
+        link.command(Command::Disable).unwrap();
+        upload(&mut link, &blob).unwrap();
     }
 
     #[test]

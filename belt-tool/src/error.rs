@@ -205,7 +205,7 @@ pub fn is_damage(e: LinkError) -> bool {
 
 /// Names of the drive's calibration-blob refusals (the low bits of a
 /// [`cal_error::REJECTED`] detail, `endpoint::blob_error_code`).
-const BLOB_ERRORS: [(u8, &str); 11] = [
+const BLOB_ERRORS: [(u8, &str); 12] = [
     (1, "the blob is truncated"),
     (2, "the blob is too long"),
     (3, "not a calibration blob (bad magic)"),
@@ -223,6 +223,7 @@ const BLOB_ERRORS: [(u8, &str); 11] = [
         11,
         "a parameter cannot be represented in the drive's fixed-point formats",
     ),
+    (12, "the drive could not read its staging flash back"),
 ];
 
 /// Storage failures by code (`storage::StorageError::code`).
@@ -290,6 +291,14 @@ pub fn refusal(reason: LinkError, detail: u8) -> String {
             cal_error::TOO_LONG => "the calibration is longer than the drive accepts".into(),
             cal_error::INCOMPLETE => "committed before every byte arrived".into(),
             cal_error::CRC => "the received bytes do not match the announced CRC".into(),
+            cal_error::ENABLED => {
+                "a calibration transfer needs the drive disabled (it erases flash): disable it first"
+                    .into()
+            }
+            cal_error::STAGING => {
+                "the drive's staging flash failed (or this build has none: QEMU needs --staging)"
+                    .into()
+            }
             d if d & cal_error::REJECTED != 0 => {
                 let code = d & !cal_error::REJECTED;
                 match BLOB_ERRORS.iter().find(|(c, _)| *c == code) {

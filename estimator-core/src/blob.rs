@@ -93,6 +93,8 @@ pub enum BlobError {
     BufferTooSmall,
     /// A value does not fit the blob's fixed-point format (encoding only).
     Unrepresentable(&'static str),
+    /// The stored bytes could not be read (the staging flash failed).
+    Unreadable,
 }
 
 impl core::fmt::Display for BlobError {
@@ -113,6 +115,7 @@ impl core::fmt::Display for BlobError {
             BlobError::Busy => f.write_str("calibration refused: the drive is moving"),
             BlobError::BufferTooSmall => f.write_str("output buffer too small for the blob"),
             BlobError::Unrepresentable(x) => write!(f, "{x} does not fit the blob format"),
+            BlobError::Unreadable => f.write_str("the staged calibration could not be read"),
         }
     }
 }

@@ -17,6 +17,7 @@ pub use crate::fault::Faults;
 use crate::model::{self, ModelCoeffs, ModelKind, ModelParams, ModelState};
 use crate::rig::Rig;
 pub use crate::settings::HomingConfig;
+use crate::staging::Source;
 use crate::trajectory::{self, Trajectory};
 use crate::units::{MotorCounts, ScaleCounts};
 use crate::BuildContext;
@@ -628,11 +629,16 @@ impl Drive {
     /// Checks and loads a calibration image (see [`crate::image`]). Refused while a move is in
     /// progress; a refused image changes nothing.
     pub fn load_calibration(&mut self, image: &[u8]) -> Result<(), BlobError> {
+        self.load_calibration_from(&mut { image })
+    }
+
+    /// [`Drive::load_calibration`] from an image read in small windows (the staging flash).
+    pub fn load_calibration_from(&mut self, image: &mut dyn Source) -> Result<(), BlobError> {
         if !self.trajectory.is_done() {
             return Err(BlobError::Busy);
         }
-        crate::image::check(image, &self.rig)?;
-        self.load_checked_calibration(image)
+        crate::image::check_from(image, &self.rig)?;
+        self.load_checked_calibration_from(image)
     }
 
     /// Loads an image that [`crate::image::check`] accepted for this drive's geometry, reading
@@ -641,10 +647,18 @@ impl Drive {
     /// rest). Refused while a move is in progress. Should the bytes fail after all, the drive
     /// is left with no compensation (every table empty, model `None`), never with a mix.
     pub fn load_checked_calibration(&mut self, image: &[u8]) -> Result<(), BlobError> {
+        self.load_checked_calibration_from(&mut { image })
+    }
+
+    /// [`Drive::load_checked_calibration`] from an image read in small windows.
+    pub fn load_checked_calibration_from(
+        &mut self,
+        image: &mut dyn Source,
+    ) -> Result<(), BlobError> {
         if !self.trajectory.is_done() {
             return Err(BlobError::Busy);
         }
-        if let Err(e) = crate::image::decode_into(image, &self.rig, &mut self.models) {
+        if let Err(e) = crate::image::decode_from(image, &self.rig, &mut self.models) {
             self.models = ModelCoeffs::ZERO;
             self.models_valid = false;
             self.model = ModelKind::None;

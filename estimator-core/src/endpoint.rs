@@ -2,8 +2,6 @@
 //! calibration transfer, status, the PIL tick), kept beside the drive. The protocol itself
 //! (wire types, codec, framing) is the `belt-link` crate, which knows nothing of the drive.
 
-use core::borrow::BorrowMut;
-
 use belt_link::{
     kind, status_flags, Command, CommandError, Crc32, LinkError, Message, ModelKind, Receiver,
     Reply, Request, WireStatus, WireTelemetry,
@@ -16,6 +14,8 @@ use crate::drive::{
 };
 use crate::image;
 use crate::settings::{self, RawSettings, Settings};
+pub use crate::staging::BlobBuffer;
+use crate::staging::{Staged, Staging};
 use crate::units::{MotorCounts, ScaleCounts};
 use crate::ConfigError;
 
@@ -31,6 +31,10 @@ pub mod cal_error {
     pub const INCOMPLETE: u8 = 4;
     /// The received bytes do not match the announced CRC.
     pub const CRC: u8 = 5;
+    /// A transfer needs the drive disabled: it erases the staging flash, which stalls the CPU.
+    pub const ENABLED: u8 = 6;
+    /// The staging flash failed to erase, write or read, or this build has none.
+    pub const STAGING: u8 = 7;
     /// The drive rejected the blob's contents: this bit plus [`super::blob_error_code`].
     pub const REJECTED: u8 = 0x10;
 }
@@ -71,6 +75,7 @@ pub fn blob_error_code(e: BlobError) -> u8 {
         BlobError::Busy => 9,
         BlobError::BufferTooSmall => 10,
         BlobError::Unrepresentable(_) => 11,
+        BlobError::Unreadable => 12,
     }
 }
 
@@ -245,19 +250,18 @@ pub fn config_parts_requests(image: &PartsImage) -> impl Iterator<Item = Request
     })
 }
 
-/// The calibration blob's buffer: owned on hosts, a `&'static mut` into zero-initialised RAM
-/// on the firmware (so that the 5 KiB buffer costs no flash for an initial image in `.data`).
-pub type BlobBuffer = [u8; image::MAX_BYTES];
-
 /// The drive's end of the link: turns requests into drive commands, assembles calibration
-/// blobs, and says what to answer. Frame decoding stays in [`Receiver`].
+/// images in its [`Staging`] area, and says what to answer. Frame decoding stays in
+/// [`Receiver`].
 pub struct Endpoint<B = BlobBuffer> {
-    blob: B,
+    /// Where a calibration image is written as it arrives and read from (the firmware's flash
+    /// sector: no RAM copy; a RAM buffer on hosts).
+    staging: B,
     /// Transfer in progress: announced length and CRC, bytes received, running CRC.
     transfer: Option<(usize, u32, usize, Crc32)>,
-    /// Length and CRC of the installed calibration while its bytes are in `blob` (a new
-    /// transfer overwrites them).
-    installed: Option<(usize, u32)>,
+    /// Length of the installed calibration while its bytes are in `staging` (a new transfer
+    /// overwrites them).
+    installed: Option<usize>,
     calibrated: bool,
     streaming: bool,
     /// The configuration in force and the one being edited over the link, as bits (the drive
@@ -285,16 +289,16 @@ impl Endpoint {
     /// A fresh endpoint owning its blob buffer (drive disabled, nothing loaded, the paper rig's
     /// values staged).
     pub fn new() -> Self {
-        Self::with_buffer([0; image::MAX_BYTES], RawSettings::of(&Settings::PAPER))
+        Self::with_staging([0; image::MAX_BYTES], RawSettings::of(&Settings::PAPER))
     }
 }
 
-impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
-    /// A fresh endpoint assembling calibrations in `blob` (drive disabled, nothing loaded),
+impl<B: Staging> Endpoint<B> {
+    /// A fresh endpoint assembling calibrations in `staging` (drive disabled, nothing loaded),
     /// with `defaults` active and staged until a configuration is applied or booted.
-    pub fn with_buffer(blob: B, defaults: RawSettings) -> Self {
+    pub fn with_staging(staging: B, defaults: RawSettings) -> Self {
         Endpoint {
-            blob,
+            staging,
             transfer: None,
             installed: None,
             calibrated: false,
@@ -340,21 +344,16 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
         Ok(parts)
     }
 
-    /// Boot: a stored calibration of `len` bytes was copied into [`Endpoint::blob_buffer`] and
-    /// installed.
+    /// Boot: a stored calibration of `len` bytes was staged (see
+    /// [`crate::storage::stage_blob`]) and installed.
     pub fn boot_calibration(&mut self, len: usize) {
-        let len = len.min(image::MAX_BYTES);
-        self.installed = Some((len, belt_link::crc32(&self.bytes()[..len])));
+        self.installed = Some(len.min(image::MAX_BYTES));
         self.calibrated = true;
     }
 
-    /// The buffer a stored calibration is loaded into at boot.
-    pub fn blob_buffer(&mut self) -> &mut [u8] {
-        self.blob.borrow_mut()
-    }
-
-    fn bytes(&self) -> &BlobBuffer {
-        self.blob.borrow()
+    /// The staging area (where a stored calibration is staged at boot).
+    pub fn staging(&mut self) -> &mut B {
+        &mut self.staging
     }
 
     /// The configuration in force.
@@ -367,12 +366,18 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
         &self.staged
     }
 
-    /// The installed calibration's bytes, if still held (empty: none loaded), or `None` if a
-    /// later transfer overwrote them.
-    pub fn installed_calibration(&self) -> Option<&[u8]> {
+    /// The installed calibration's bytes, if still staged (empty: none loaded), or `None` if
+    /// a later transfer overwrote them.
+    pub fn installed_calibration(&mut self) -> Option<Staged<'_, B>> {
+        let len = self.installed_len()?;
+        Some(Staged::new(&mut self.staging, len))
+    }
+
+    /// The installed calibration's length, if still staged (0: none loaded).
+    pub fn installed_len(&self) -> Option<usize> {
         match self.installed {
-            Some((len, _)) => self.bytes().get(..len),
-            None if !self.calibrated => Some(&[]),
+            Some(len) => Some(len),
+            None if !self.calibrated => Some(0),
             None => None,
         }
     }
@@ -432,9 +437,10 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
         }
     }
 
-    /// The assembled calibration blob of an [`Effect::Calibrate`] (`len` bytes).
-    pub fn calibration(&self, len: usize) -> &[u8] {
-        &self.bytes()[..len.min(image::MAX_BYTES)]
+    /// The assembled calibration image of an [`Effect::Calibrate`] (`len` bytes), read from
+    /// the staging area.
+    pub fn calibration(&mut self, len: usize) -> Staged<'_, B> {
+        Staged::new(&mut self.staging, len)
     }
 
     /// Reports the outcome of installing a calibration of `len` bytes.
@@ -447,7 +453,7 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
             Ok(()) => {
                 self.calibrated = true;
                 let len = len.min(image::MAX_BYTES);
-                self.installed = Some((len, belt_link::crc32(&self.bytes()[..len])));
+                self.installed = Some(len);
                 (
                     Reply::Ack {
                         of: kind::CAL_COMMIT,
@@ -471,7 +477,7 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
     pub fn handle_inline(&mut self, req: &Request, drive: &mut Drive) -> (Effect, Event) {
         match self.handle(req, drive) {
             (Effect::Calibrate(len), _) => {
-                let result = drive.load_calibration(self.calibration(len));
+                let result = drive.load_calibration_from(&mut self.calibration(len));
                 let (reply, event) = self.calibration_done(len, result);
                 (Effect::Reply(reply), event)
             }
@@ -562,7 +568,7 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
                     let d = storage_detail::CONFIG_BYTES_GONE;
                     return (refuse(LinkError::Storage, d), Event::SaveFailed(d));
                 }
-                if self.installed_calibration().is_none() {
+                if self.installed_len().is_none() {
                     let d = storage_detail::CALIBRATION_BYTES_GONE;
                     return (refuse(LinkError::Storage, d), Event::SaveFailed(d));
                 }
@@ -592,19 +598,22 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
                 }
             }
             Request::CalRead { offset } => {
-                let Some(bytes) = self.installed_calibration() else {
+                let Some(total) = self.installed_len() else {
                     let d = cal_error::NOT_STARTED;
                     return (refuse(LinkError::Calibration, d), Event::None);
                 };
-                let start = (offset as usize).min(bytes.len());
-                let piece = &bytes[start..(start + belt_link::CHUNK_MAX).min(bytes.len())];
+                let start = (offset as usize).min(total);
+                let n = (total - start).min(belt_link::CHUNK_MAX);
                 let mut data = [0u8; belt_link::CHUNK_MAX];
-                data[..piece.len()].copy_from_slice(piece);
+                if self.staging.read(start, &mut data[..n]).is_err() {
+                    let d = cal_error::STAGING;
+                    return (refuse(LinkError::Calibration, d), Event::None);
+                }
                 (
                     Effect::Reply(Reply::CalData {
                         offset,
-                        total_len: bytes.len() as u32,
-                        len: piece.len() as u8,
+                        total_len: total as u32,
+                        len: n as u8,
                         data,
                     }),
                     Event::None,
@@ -619,9 +628,26 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
                         Event::CalibrationRefused(d),
                     );
                 }
-                self.transfer = Some((total_len as usize, crc32, 0, Crc32::new()));
-                // The buffer is about to be overwritten.
+                // Erasing stalls a single-bank MCU for up to 2 s: never under a live motor.
+                if drive.is_enabled() {
+                    self.transfer = None;
+                    let d = cal_error::ENABLED;
+                    return (
+                        refuse(LinkError::Calibration, d),
+                        Event::CalibrationRefused(d),
+                    );
+                }
+                // The staged bytes are about to be overwritten.
                 self.installed = None;
+                if self.staging.erase().is_err() {
+                    self.transfer = None;
+                    let d = cal_error::STAGING;
+                    return (
+                        refuse(LinkError::Calibration, d),
+                        Event::CalibrationRefused(d),
+                    );
+                }
+                self.transfer = Some((total_len as usize, crc32, 0, Crc32::new()));
                 (ack, Event::CalibrationBegun { total_len })
             }
             Request::CalChunk {
@@ -635,17 +661,17 @@ impl<B: BorrowMut<BlobBuffer>> Endpoint<B> {
                     Some((total, _, got, _)) if *got + len as usize > *total => cal_error::TOO_LONG,
                     Some((_, _, got, crc)) => {
                         let piece = &data[..(len as usize).min(belt_link::CHUNK_MAX)];
-                        let buffer: &mut BlobBuffer = self.blob.borrow_mut();
-                        match buffer.get_mut(*got..*got + piece.len()) {
-                            Some(dst) => {
-                                dst.copy_from_slice(piece);
+                        match self.staging.write(*got, piece) {
+                            Ok(()) => {
                                 crc.update(piece);
                                 *got += piece.len();
                                 return (ack, Event::None);
                             }
-                            // `got + len <= total <= MAX_BYTES`: cannot happen; a refusal,
-                            // not a panic path, all the same.
-                            None => cal_error::TOO_LONG,
+                            // A failed write leaves the area unknown: the transfer starts over.
+                            Err(_) => {
+                                self.transfer = None;
+                                cal_error::STAGING
+                            }
                         }
                     }
                 };
@@ -993,8 +1019,111 @@ mod tests {
             ));
         }
         assert_eq!(ep.handle(commit, &mut d).0, Effect::Calibrate(blob.len()));
-        assert_eq!(ep.calibration(blob.len()), &blob[..]);
+        assert_eq!(
+            crate::staging::read_all(&mut ep.calibration(blob.len())).unwrap(),
+            blob
+        );
         assert_eq!(d.models(), &before);
+    }
+
+    /// Staging that fails its writes after `ok_writes` of them (and can fail erases).
+    struct Flaky {
+        buf: BlobBuffer,
+        ok_writes: usize,
+        erase_ok: bool,
+    }
+
+    impl Staging for Flaky {
+        fn erase(&mut self) -> Result<(), crate::staging::StagingError> {
+            if !self.erase_ok {
+                return Err(crate::staging::StagingError::Flash);
+            }
+            self.buf.erase()
+        }
+        fn write(
+            &mut self,
+            offset: usize,
+            data: &[u8],
+        ) -> Result<(), crate::staging::StagingError> {
+            if self.ok_writes == 0 {
+                return Err(crate::staging::StagingError::Flash);
+            }
+            self.ok_writes -= 1;
+            self.buf.write(offset, data)
+        }
+        fn read(
+            &mut self,
+            offset: usize,
+            buf: &mut [u8],
+        ) -> Result<(), crate::staging::StagingError> {
+            self.buf.read(offset, buf)
+        }
+    }
+
+    #[test]
+    fn calibration_transfer_needs_the_drive_disabled_and_a_working_staging_area() {
+        let blob = paper_image();
+        let cal = |d: u8| Some((LinkError::Calibration, d));
+        let begin = Request::CalBegin {
+            total_len: blob.len() as u32,
+            crc32: crc32(&blob),
+        };
+        // Enabled: refused before anything is erased; the installed calibration stays.
+        let mut d = drive();
+        let mut ep = Endpoint::new();
+        for req in calibration_requests(&blob) {
+            assert!(matches!(
+                ep.handle_inline(&req, &mut d).0,
+                Effect::Reply(Reply::Ack { .. })
+            ));
+        }
+        assert!(ack(&ep
+            .handle_inline(&Request::Command(Command::Enable), &mut d)
+            .0));
+        let (e, ev) = ep.handle_inline(&begin, &mut d);
+        assert_eq!(refused(e), cal(cal_error::ENABLED));
+        assert_eq!(ev, Event::CalibrationRefused(cal_error::ENABLED));
+        assert_eq!(ep.installed_len(), Some(blob.len()));
+        assert_eq!(
+            refused(ep.handle_inline(&chunk(0, &blob[..8]), &mut d).0),
+            cal(cal_error::NOT_STARTED)
+        );
+
+        // An erase that fails: refused by name, no transfer.
+        let mut d = drive();
+        let flaky = Flaky {
+            buf: [0; image::MAX_BYTES],
+            ok_writes: 3,
+            erase_ok: false,
+        };
+        let mut ep = Endpoint::with_staging(flaky, RawSettings::of(&Settings::PAPER));
+        assert_eq!(
+            refused(ep.handle_inline(&begin, &mut d).0),
+            cal(cal_error::STAGING)
+        );
+        assert_eq!(
+            refused(ep.handle_inline(&chunk(0, &blob[..8]), &mut d).0),
+            cal(cal_error::NOT_STARTED)
+        );
+        // A write that fails on the fourth chunk: refused, and the transfer must start over.
+        ep.staging().erase_ok = true;
+        assert!(ack(&ep.handle_inline(&begin, &mut d).0));
+        for (i, piece) in blob.chunks(CHUNK_MAX).take(3).enumerate() {
+            assert!(ack(&ep
+                .handle_inline(&chunk(i * CHUNK_MAX, piece), &mut d)
+                .0));
+        }
+        let fourth = chunk(3 * CHUNK_MAX, &blob[3 * CHUNK_MAX..4 * CHUNK_MAX]);
+        assert_eq!(
+            refused(ep.handle_inline(&fourth, &mut d).0),
+            cal(cal_error::STAGING)
+        );
+        assert_eq!(
+            refused(ep.handle_inline(&Request::CalCommit, &mut d).0),
+            cal(cal_error::NOT_STARTED)
+        );
+        // Nothing was installed: the drive still runs without a calibration of this link.
+        assert_eq!(ep.installed_len(), Some(0));
     }
 
     // ---- the configuration: values staged, the host's image applied ----

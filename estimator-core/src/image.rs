@@ -41,7 +41,7 @@
 
 use fixed::types::{I13F3, I16F16, I1F31, U11F5};
 
-use crate::blob::{check_header_of, BlobError};
+use crate::blob::BlobError;
 use crate::model::fixmath::{Recip, Scale, MAX_SHIFT};
 use crate::model::operator::{weight_total, N_KNOTS, N_OPS};
 use crate::model::LinearBand;
@@ -51,8 +51,8 @@ use crate::model::{
     MAX_TRANSITION_D, MAX_TRANSITION_G0,
 };
 use crate::rig::Rig;
+use crate::staging::{crc32_from, Source, Stream};
 use crate::ConfigError;
-use belt_link::bytes::Reader;
 
 /// First four bytes of every image.
 pub const MAGIC: [u8; 4] = *b"BDCI";
@@ -78,7 +78,7 @@ pub const MAX_BYTES: usize = HEADER
     + 4 * 6;
 
 /// Micrometres in Q16.16 within `[min_um, MAX_ABS_UM]`, as the builders accept them.
-fn um(r: &mut Reader, min_um: i32, field: &'static str) -> Result<I16F16, BlobError> {
+fn um(r: &mut Stream, min_um: i32, field: &'static str) -> Result<I16F16, BlobError> {
     let bits = r.i32()?;
     let max = (MAX_ABS_UM as i32) << 16;
     if bits < min_um.saturating_mul(1 << 16) || bits > max {
@@ -95,7 +95,7 @@ fn out_of_range(field: &'static str) -> BlobError {
 const ANY: i32 = -(MAX_ABS_UM as i32);
 
 /// A band line: any Q1.31 slope, the offset within the range, a height of zero or more.
-fn read_band(r: &mut Reader, [c, h]: [&'static str; 2]) -> Result<LinearBand, BlobError> {
+fn read_band(r: &mut Stream, [c, h]: [&'static str; 2]) -> Result<LinearBand, BlobError> {
     Ok(LinearBand {
         m_um_per_count: I1F31::from_bits(r.i32()?),
         offset_um: um(r, ANY, c)?,
@@ -103,7 +103,7 @@ fn read_band(r: &mut Reader, [c, h]: [&'static str; 2]) -> Result<LinearBand, Bl
     })
 }
 
-fn read_model1(r: &mut Reader) -> Result<Model1Coeffs, BlobError> {
+fn read_model1(r: &mut Stream) -> Result<Model1Coeffs, BlobError> {
     let band = read_band(r, ["model1.offset_mm", "model1.h_mm"])?;
     let h_g_um = um(r, 0, "model1.h_g_mm")?;
     let mut slope = |field| -> Result<I1F31, BlobError> {
@@ -123,7 +123,7 @@ fn read_model1(r: &mut Reader) -> Result<Model1Coeffs, BlobError> {
     })
 }
 
-fn read_scale(r: &mut Reader, field: &'static str) -> Result<Scale, BlobError> {
+fn read_scale(r: &mut Stream, field: &'static str) -> Result<Scale, BlobError> {
     let mant = r.u32()?;
     let shift = r.u16()?;
     r.u16()?;
@@ -136,7 +136,7 @@ fn read_scale(r: &mut Reader, field: &'static str) -> Result<Scale, BlobError> {
     })
 }
 
-fn read_model2(r: &mut Reader) -> Result<Model2Coeffs, BlobError> {
+fn read_model2(r: &mut Stream) -> Result<Model2Coeffs, BlobError> {
     let band = read_band(r, ["model2.offset_mm", "model2.h_mm"])?;
     Ok(Model2Coeffs {
         band,
@@ -154,7 +154,7 @@ fn read_model2(r: &mut Reader) -> Result<Model2Coeffs, BlobError> {
 // built by value and moved would put kilobytes on the stack for each copy.
 
 fn read_band_table(
-    r: &mut Reader,
+    r: &mut Stream,
     mut out: Option<&mut BandCoeffs>,
     [len_f, x_f, y_f]: [&'static str; 3],
 ) -> Result<(), BlobError> {
@@ -189,7 +189,7 @@ fn read_band_table(
 }
 
 fn read_transition(
-    r: &mut Reader,
+    r: &mut Stream,
     mut out: Option<&mut TransitionCoeffs>,
     [nd_f, ng_f, d_f, g_f]: [&'static str; 4],
 ) -> Result<(), BlobError> {
@@ -231,7 +231,7 @@ fn read_transition(
     Ok(())
 }
 
-fn read_model3(r: &mut Reader, mut m: Option<&mut Model3Coeffs>) -> Result<(), BlobError> {
+fn read_model3(r: &mut Stream, mut m: Option<&mut Model3Coeffs>) -> Result<(), BlobError> {
     read_band_table(
         r,
         m.as_deref_mut().map(|m| &mut m.forward_band),
@@ -272,7 +272,7 @@ fn read_model3(r: &mut Reader, mut m: Option<&mut Model3Coeffs>) -> Result<(), B
     )
 }
 
-fn read_bidir(r: &mut Reader, mut out: Option<&mut BidirCoeffs>) -> Result<(), BlobError> {
+fn read_bidir(r: &mut Stream, mut out: Option<&mut BidirCoeffs>) -> Result<(), BlobError> {
     let rows = r.u16()? as usize;
     r.u16()?;
     if !(2..=MAX_BIDIR_ROWS).contains(&rows) {
@@ -311,7 +311,7 @@ fn read_bidir(r: &mut Reader, mut out: Option<&mut BidirCoeffs>) -> Result<(), B
     Ok(())
 }
 
-fn read_model4(r: &mut Reader) -> Result<Model4Coeffs, BlobError> {
+fn read_model4(r: &mut Stream) -> Result<Model4Coeffs, BlobError> {
     let mut widths_counts = [0i32; N_OPS];
     let mut narrower = 0;
     for w in widths_counts.iter_mut() {
@@ -356,7 +356,7 @@ fn read_model4(r: &mut Reader) -> Result<Model4Coeffs, BlobError> {
         *k = um(r, ANY, "model4.knot_um")?;
     }
     // Periods of 16 counts to 2^31 counts.
-    let rate = |r: &mut Reader, field| -> Result<u32, BlobError> {
+    let rate = |r: &mut Stream, field| -> Result<u32, BlobError> {
         let v = r.u32()?;
         if (2..=1 << 28).contains(&v) {
             Ok(v)
@@ -399,7 +399,7 @@ fn read_model4(r: &mut Reader) -> Result<Model4Coeffs, BlobError> {
 
 /// Closing distances as the image carries them: I16F16 mm, -1 for never.
 #[cfg(feature = "std")]
-fn read_closing(r: &mut Reader) -> Result<crate::model::Closing, BlobError> {
+fn read_closing(r: &mut Stream) -> Result<crate::model::Closing, BlobError> {
     let mut one = || -> Result<Option<I16F16>, BlobError> {
         let bits = r.i32()?;
         Ok((bits >= 0).then_some(I16F16::from_bits(bits)))
@@ -410,34 +410,98 @@ fn read_closing(r: &mut Reader) -> Result<crate::model::Closing, BlobError> {
     })
 }
 
+/// The header of an image in `src`: magic, version, length and CRC over the whole source.
+fn check_header(src: &mut dyn Source) -> Result<(), BlobError> {
+    let len = src.len();
+    if len < HEADER {
+        return Err(BlobError::Truncated);
+    }
+    if len > MAX_BYTES {
+        return Err(BlobError::TooLong);
+    }
+    let mut head = [0u8; HEADER];
+    src.read_at(0, &mut head)
+        .map_err(|_| BlobError::Unreadable)?;
+    let mut r: &[u8] = &head;
+    let mut s = Stream::new(&mut r, 0);
+    if s.take::<4>()? != MAGIC {
+        return Err(BlobError::BadMagic);
+    }
+    let found = s.u16()?;
+    s.u16()?;
+    let payload_len = s.u32()? as usize;
+    let crc = s.u32()?;
+    if found != VERSION {
+        return Err(BlobError::UnsupportedVersion(found));
+    }
+    let total = HEADER.saturating_add(payload_len);
+    if len < total {
+        return Err(BlobError::Truncated);
+    }
+    if len > total {
+        return Err(BlobError::TooLong);
+    }
+    let mut sum = belt_link::Crc32::new();
+    sum.update(&head[..12]);
+    crc32_from(src, HEADER, &mut sum).map_err(|_| BlobError::Unreadable)?;
+    if sum.finish() != crc {
+        return Err(BlobError::BadChecksum);
+    }
+    Ok(())
+}
+
+/// The geometry an image was built for (as [`crate::blob`] lays it out).
+fn read_rig(r: &mut Stream) -> Result<Rig, BlobError> {
+    Ok(Rig {
+        encoder_lines: r.u32()?,
+        pulley_teeth: r.u32()?,
+        gear_ratio: f64::from_bits(r.u64()?),
+        belt_pitch_mm: f64::from_bits(r.u64()?),
+    })
+}
+
 /// Checks an image for a drive on `rig` and, if `out` is given, reads its coefficients into it.
-fn read_image(image: &[u8], rig: &Rig, mut out: Option<&mut ModelCoeffs>) -> Result<(), BlobError> {
-    check_header_of(image, MAGIC, VERSION, MAX_BYTES)?;
-    let mut r = Reader::new(&image[HEADER..]);
+fn read_image(
+    src: &mut dyn Source,
+    rig: &Rig,
+    out: Option<&mut ModelCoeffs>,
+) -> Result<(), BlobError> {
+    check_header(src)?;
+    let mut r = Stream::new(src, HEADER);
+    let result = read_fields(&mut r, rig, out);
+    // A source that failed to read is not a short image.
+    match result {
+        Err(BlobError::Truncated) if r.failed() => Err(BlobError::Unreadable),
+        other => other,
+    }
+}
+
+fn read_fields(
+    r: &mut Stream,
+    rig: &Rig,
+    mut out: Option<&mut ModelCoeffs>,
+) -> Result<(), BlobError> {
+    let r = &mut *r;
     // Bit for bit: the geometry must be the drive's exactly, and no float compare is needed.
-    let made_for = crate::blob::read_rig(&mut r)?;
+    let made_for = read_rig(r)?;
     if !made_for.same_bits(rig) {
         return Err(BlobError::RigMismatch);
     }
     let deadband_counts = r.u32()?;
-    let model1 = read_model1(&mut r)?;
-    let model2 = read_model2(&mut r)?;
-    read_model3(&mut r, out.as_deref_mut().map(|c| &mut c.model3))?;
+    let model1 = read_model1(r)?;
+    let model2 = read_model2(r)?;
+    read_model3(r, out.as_deref_mut().map(|c| &mut c.model3))?;
     // Offset -+ half the backlash: each up to 1.5 MAX_ABS_UM, any I16F16 serves the tick.
     let backlash = BacklashCoeffs {
         forward_um: I16F16::from_bits(r.i32()?),
         reverse_um: I16F16::from_bits(r.i32()?),
     };
-    read_bidir(&mut r, out.as_deref_mut().map(|c| &mut c.bidir))?;
-    let model4 = read_model4(&mut r)?;
+    read_bidir(r, out.as_deref_mut().map(|c| &mut c.bidir))?;
+    let model4 = read_model4(r)?;
     #[cfg(feature = "std")]
-    let closing = [
-        read_closing(&mut r)?,
-        read_closing(&mut r)?,
-        read_closing(&mut r)?,
-    ];
+    let closing = [read_closing(r)?, read_closing(r)?, read_closing(r)?];
     #[cfg(not(feature = "std"))]
-    r.slice(4 * 6)?;
+    r.skip(4 * 6)?;
     if r.remaining() != 0 {
         return Err(BlobError::TooLong);
     }
@@ -460,14 +524,28 @@ fn read_image(image: &[u8], rig: &Rig, mut out: Option<&mut ModelCoeffs>) -> Res
 /// Checks an image for a drive on `rig` without keeping anything. Integer-only: lengths and the
 /// checksum first, then every field against its range; a refusal names the field.
 pub fn check(image: &[u8], rig: &Rig) -> Result<(), BlobError> {
-    read_image(image, rig, None)
+    read_image(&mut { image }, rig, None)
+}
+
+/// [`check`] an image read from `src` (the drive's staging flash) in small windows.
+pub fn check_from(src: &mut dyn Source, rig: &Rig) -> Result<(), BlobError> {
+    read_image(src, rig, None)
 }
 
 /// Reads an image's coefficients into `out`, checking it as [`check`] does. On a refusal `out`
 /// holds part of the image: read into a staging copy, or [`check`] first (the drive does, and
 /// then reads straight into its own coefficients without a 5 KiB copy).
 pub fn decode_into(image: &[u8], rig: &Rig, out: &mut ModelCoeffs) -> Result<(), BlobError> {
-    read_image(image, rig, Some(out))
+    read_image(&mut { image }, rig, Some(out))
+}
+
+/// [`decode_into`] from an image read from `src` in small windows.
+pub fn decode_from(
+    src: &mut dyn Source,
+    rig: &Rig,
+    out: &mut ModelCoeffs,
+) -> Result<(), BlobError> {
+    read_image(src, rig, Some(out))
 }
 
 /// [`decode_into`] a fresh set of coefficients: the refusal changes nothing.

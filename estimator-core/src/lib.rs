@@ -28,6 +28,7 @@ pub mod settings;
 
 pub mod endpoint;
 
+pub mod staging;
 pub mod storage;
 
 #[cfg(feature = "vectors")]

@@ -27,6 +27,8 @@ use belt_link::bytes::{Reader, Writer};
 use belt_link::Crc32;
 use embedded_storage::nor_flash::{NorFlash, NorFlashError};
 
+use crate::staging::{Source, Staging, StagingError};
+
 /// First four bytes of every record.
 pub const MAGIC: [u8; 4] = *b"BDST";
 /// The record layout this code writes and reads.
@@ -207,11 +209,13 @@ pub enum StorageError<E> {
     Verify,
     /// The record read differently when copied than when checked (unstable flash).
     Changed,
+    /// The staging area failed (reading the blob to save, or staging a stored one).
+    Staging(StagingError),
 }
 
 impl<E> StorageError<E> {
     /// A one-byte code for the link's error detail: 1 flash, 2 geometry, 3 too large,
-    /// 4 settings buffer, 5 blob buffer, 6 verify, 7 changed.
+    /// 4 settings buffer, 5 blob buffer, 6 verify, 7 changed, 8 staging.
     pub fn code(&self) -> u8 {
         match self {
             StorageError::Flash(_) => 1,
@@ -221,6 +225,7 @@ impl<E> StorageError<E> {
             StorageError::BlobBufferTooSmall { .. } => 5,
             StorageError::Verify => 6,
             StorageError::Changed => 7,
+            StorageError::Staging(_) => 8,
         }
     }
 }
@@ -249,6 +254,7 @@ impl<E: NorFlashError> core::fmt::Display for StorageError<E> {
                 f.write_str("the record read back differs from the one written")
             }
             StorageError::Changed => f.write_str("the record changed while it was being read"),
+            StorageError::Staging(e) => write!(f, "staging area: {e}"),
         }
     }
 }
@@ -287,6 +293,15 @@ pub fn save<F: NorFlash>(
     settings: &[u8],
     blob: &[u8],
 ) -> Result<RecordInfo, StorageError<F::Error>> {
+    save_from(flash, settings, &mut { blob })
+}
+
+/// [`save`] with the blob read from `blob` (the drive's staging flash) in small pieces.
+pub fn save_from<F: NorFlash>(
+    flash: &mut F,
+    settings: &[u8],
+    blob: &mut dyn Source,
+) -> Result<RecordInfo, StorageError<F::Error>> {
     let g = Geometry::of(flash)?;
     let room = g.room();
     let needed = settings.len().saturating_add(blob.len());
@@ -308,15 +323,35 @@ pub fn load<F: NorFlash>(
     settings_buf: &mut [u8],
     blob_buf: &mut [u8],
 ) -> Result<Option<RecordInfo>, StorageError<F::Error>> {
+    load_with(flash, settings_buf, Some(blob_buf))
+}
+
+/// [`load`] without copying the blob (its bytes still pass the CRC): the drive stages it with
+/// [`stage_blob`] instead.
+pub fn load_settings<F: NorFlash>(
+    flash: &mut F,
+    settings_buf: &mut [u8],
+) -> Result<Option<RecordInfo>, StorageError<F::Error>> {
+    load_with(flash, settings_buf, None)
+}
+
+fn load_with<F: NorFlash>(
+    flash: &mut F,
+    settings_buf: &mut [u8],
+    blob_buf: Option<&mut [u8]>,
+) -> Result<Option<RecordInfo>, StorageError<F::Error>> {
     let g = Geometry::of(flash)?;
     let states = scan(flash, &g).map_err(StorageError::Flash)?;
     let Some(r) = newest(&states) else {
         return Ok(None);
     };
-    let (Some(settings_out), Some(blob_out)) = (
-        settings_buf.get_mut(..r.settings_len),
-        blob_buf.get_mut(..r.blob_len),
-    ) else {
+    let blob_have = blob_buf.as_ref().map_or(0, |b| b.len());
+    let blob_out = match blob_buf {
+        Some(buf) => buf.get_mut(..r.blob_len).map(Some),
+        None => Some(None),
+    };
+    let (Some(settings_out), Some(blob_out)) = (settings_buf.get_mut(..r.settings_len), blob_out)
+    else {
         return Err(if r.settings_len > settings_buf.len() {
             StorageError::SettingsBufferTooSmall {
                 needed: r.settings_len,
@@ -325,7 +360,7 @@ pub fn load<F: NorFlash>(
         } else {
             StorageError::BlobBufferTooSmall {
                 needed: r.blob_len,
-                have: blob_buf.len(),
+                have: blob_have,
             }
         });
     };
@@ -338,8 +373,14 @@ pub fn load<F: NorFlash>(
     let at = base + g.payload_at;
     read_exact(flash, at, settings_out).map_err(StorageError::Flash)?;
     crc.update(settings_out);
-    read_exact(flash, at + r.settings_len as u32, blob_out).map_err(StorageError::Flash)?;
-    crc.update(blob_out);
+    let blob_at = at + r.settings_len as u32;
+    match blob_out {
+        Some(out) => {
+            read_exact(flash, blob_at, out).map_err(StorageError::Flash)?;
+            crc.update(out);
+        }
+        None => crc_over(flash, blob_at, r.blob_len, &mut crc).map_err(StorageError::Flash)?,
+    }
     let same_header = Header::parse(&head).is_some_and(|h| {
         h.seq == r.seq
             && h.settings_len as usize == r.settings_len
@@ -360,7 +401,7 @@ fn write_record<F: NorFlash>(
     slot: Slot,
     seq: u32,
     settings: &[u8],
-    blob: &[u8],
+    blob: &mut dyn Source,
 ) -> Result<RecordInfo, StorageError<F::Error>> {
     let needed = settings.len().saturating_add(blob.len());
     if needed > g.room() {
@@ -380,7 +421,7 @@ fn write_record<F: NorFlash>(
     let mut crc = Crc32::new();
     crc.update(&head[..CRC_COVERS]);
     crc.update(settings);
-    crc.update(blob);
+    crate::staging::crc32_from(blob, 0, &mut crc).map_err(StorageError::Staging)?;
     let crc32 = crc.finish();
     head[CRC_COVERS..].copy_from_slice(&crc32.to_le_bytes());
 
@@ -389,7 +430,16 @@ fn write_record<F: NorFlash>(
     flash.erase(base, base + g.slot_len).map_err(flash_err)?;
     let mut payload = Program::new(flash, base + g.payload_at);
     payload.push(settings).map_err(flash_err)?;
-    payload.push(blob).map_err(flash_err)?;
+    // The blob again, piece by piece: a source that changed since its CRC fails the read-back.
+    let mut piece = [0u8; CHUNK];
+    let mut at = 0;
+    while at < blob.len() {
+        let n = (blob.len() - at).min(CHUNK);
+        blob.read_at(at, &mut piece[..n])
+            .map_err(StorageError::Staging)?;
+        payload.push(&piece[..n]).map_err(flash_err)?;
+        at += n;
+    }
     payload.finish().map_err(flash_err)?;
     // The header last: the record exists only once this lands.
     let mut header = Program::new(flash, base);
@@ -407,6 +457,73 @@ fn write_record<F: NorFlash>(
         SlotState::Valid(r) if r == info => Ok(info),
         _ => Err(StorageError::Verify),
     }
+}
+
+/// True when `staging` holds the `len` bytes at `blob_at` (false also when they do not fit it).
+fn same_blob<F: NorFlash, S: Staging + ?Sized>(
+    flash: &mut F,
+    blob_at: u32,
+    len: usize,
+    staging: &mut S,
+) -> Result<bool, StorageError<F::Error>> {
+    let (mut stored, mut staged) = ([0u8; CHUNK], [0u8; CHUNK]);
+    let mut at = 0;
+    while at < len {
+        let n = (len - at).min(CHUNK);
+        read_exact(flash, blob_at + at as u32, &mut stored[..n]).map_err(StorageError::Flash)?;
+        match staging.read(at, &mut staged[..n]) {
+            Ok(()) if stored[..n] == staged[..n] => at += n,
+            Ok(()) | Err(StagingError::OutOfBounds) => return Ok(false),
+            Err(e) => return Err(StorageError::Staging(e)),
+        }
+    }
+    Ok(true)
+}
+
+/// Whether [`stage_blob`] found the record's blob already staged or copied it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Staged {
+    /// The staging area already held these bytes (no erase).
+    Already,
+    /// The staging area was erased and the blob copied and read back.
+    Copied,
+}
+
+/// Makes `staging` hold the blob of record `r` (from [`load_settings`]) at offset 0, erasing
+/// and copying only when it holds other bytes. The record must still pass its CRC while it is
+/// read ([`StorageError::Changed`] otherwise), and the copy must read back equal
+/// ([`StorageError::Verify`]).
+pub fn stage_blob<F: NorFlash, S: Staging + ?Sized>(
+    flash: &mut F,
+    r: &RecordInfo,
+    staging: &mut S,
+) -> Result<Staged, StorageError<F::Error>> {
+    let g = Geometry::of(flash)?;
+    let base = g.base(r.slot);
+    let blob_at = base + g.payload_at + r.settings_len as u32;
+    // The record as a whole first: what is staged must be what the CRC vouches for.
+    match check_slot(flash, &g, r.slot).map_err(StorageError::Flash)? {
+        SlotState::Valid(now) if now == *r => {}
+        _ => return Err(StorageError::Changed),
+    }
+    if same_blob(flash, blob_at, r.blob_len, staging)? {
+        return Ok(Staged::Already);
+    }
+    staging.erase().map_err(StorageError::Staging)?;
+    let mut piece = [0u8; CHUNK];
+    let mut at = 0;
+    while at < r.blob_len {
+        let n = (r.blob_len - at).min(CHUNK);
+        read_exact(flash, blob_at + at as u32, &mut piece[..n]).map_err(StorageError::Flash)?;
+        staging
+            .write(at, &piece[..n])
+            .map_err(StorageError::Staging)?;
+        at += n;
+    }
+    if !same_blob(flash, blob_at, r.blob_len, staging)? {
+        return Err(StorageError::Verify);
+    }
+    Ok(Staged::Copied)
 }
 
 /// Where the slots and the payload are on this flash.
@@ -525,9 +642,7 @@ fn check_slot<F: NorFlash>(flash: &mut F, g: &Geometry, slot: Slot) -> Result<Sl
     }
     let mut crc = Crc32::new();
     crc.update(&head[..CRC_COVERS]);
-    stream(flash, base + g.payload_at, total as usize, |bytes| {
-        crc.update(bytes)
-    })?;
+    crc_over(flash, base + g.payload_at, total as usize, &mut crc)?;
     if crc.finish() != h.crc32 {
         return Ok(SlotState::Corrupt(Corruption::BadCrc));
     }
@@ -563,6 +678,16 @@ fn stream<F: NorFlash>(
         at += n;
     }
     Ok(())
+}
+
+/// Feeds `len` bytes from `start` to `crc` (see [`stream`]).
+fn crc_over<F: NorFlash>(
+    flash: &mut F,
+    start: u32,
+    len: usize,
+    crc: &mut Crc32,
+) -> Result<(), F::Error> {
+    stream(flash, start, len, |bytes| crc.update(bytes))
 }
 
 /// Fills `out` from `start` (see [`stream`]).

@@ -33,7 +33,9 @@ pub use qemu::*;
 #[cfg(feature = "qemu")]
 pub mod qemu_storage;
 #[cfg(feature = "qemu")]
-pub use qemu_storage::{during_save, open_storage, FileFlash as StorageFlash};
+pub use qemu_storage::{
+    during_save, open_staging, open_storage, FileFlash as StorageFlash, FileFlash as StagingFlash,
+};
 
 use stm32f4xx_hal::pac;
 

@@ -257,7 +257,7 @@ impl IdleIo {
 
 /// The pipe's paths from QEMU's semihosting command line (`... --pipe IN OUT`), opened.
 fn open_pipe() -> Option<(OwnedFd, OwnedFd)> {
-    let mut line = [core::mem::MaybeUninit::<u8>::uninit(); 256];
+    let mut line = [core::mem::MaybeUninit::<u8>::uninit(); 768];
     let line = sys_get_cmdline_uninit(&mut line).ok()?;
     let mut words = line.split(|&b| b == b' ').filter(|w| !w.is_empty());
     words.find(|w| *w == b"--pipe")?;

@@ -1,7 +1,8 @@
-//! The configuration storage under QEMU: a host file standing in for flash sectors 10-11, read
-//! and written through semihosting (QEMU does not model the flash controller).
+//! The configuration storage and the calibration staging area under QEMU: host files standing
+//! in for flash sectors 10-11 and sector 9, read and written through semihosting (QEMU does not
+//! model the flash controller).
 //!
-//! `--storage PATH` on QEMU's semihosting command line names the file. [`FileFlash`] behaves as
+//! `--storage PATH` and `--staging PATH` on QEMU's semihosting command line name the files. [`FileFlash`] behaves as
 //! the board's NOR flash, so `estimator_core::storage` runs on it unchanged: two 128 KiB erase
 //! units (256 KiB), an erase writes 0xFF, a write ANDs with what is there (read-modify-write:
 //! bits only clear, as in flash). A file shorter than 256 KiB (new or empty) reads as 0xFF past
@@ -63,6 +64,8 @@ pub struct FileFlash {
     fd: OwnedFd,
     /// The file's length: bytes at and past it read as 0xFF.
     len: usize,
+    /// The flash it stands for: bytes.
+    capacity: usize,
 }
 
 impl FileFlash {
@@ -70,7 +73,7 @@ impl FileFlash {
     /// semihosting open modes: "r+b" (O_RDWR) keeps an existing file; "w+b" creates but also
     /// truncates, so it is used only when the file is not there; "a+b" would force every write
     /// to the end.
-    pub fn open(path: &CStr) -> Option<FileFlash> {
+    pub fn open(path: &CStr, capacity: usize) -> Option<FileFlash> {
         let fd = match sys_open(path, OpenMode::RDWR_BINARY) {
             Ok(fd) => fd,
             Err(e) if e.kind() == ErrorKind::NotFound => {
@@ -79,7 +82,7 @@ impl FileFlash {
             Err(_) => return None,
         };
         let len = sys_flen(fd.as_fd()).ok()?;
-        Some(FileFlash { fd, len })
+        Some(FileFlash { fd, len, capacity })
     }
 
     /// Moves the file position to `at`, at most the file's length.
@@ -150,7 +153,7 @@ impl ReadNorFlash for FileFlash {
     }
 
     fn capacity(&self) -> usize {
-        CAPACITY
+        self.capacity
     }
 }
 
@@ -198,32 +201,35 @@ pub fn during_save<R>(f: impl FnOnce() -> R) -> R {
 /// created if missing). `None` without `--storage`; also `None`, with an error logged, when the
 /// path is missing, too long or cannot be opened.
 pub fn open_storage() -> Option<FileFlash> {
-    // The whole command line (`belt-drive --pipe IN OUT --storage PATH`): QEMU refuses to
-    // return a line longer than the buffer.
-    let mut line = [MaybeUninit::<u8>::uninit(); 512];
+    open_named(b"--storage", CAPACITY, "no persistent storage")
+}
+
+/// The calibration staging file named by `--staging PATH` (one 128 KiB sector, as sector 9 on
+/// the board). `None` without it: calibration transfers are then refused by name.
+pub fn open_staging() -> Option<FileFlash> {
+    open_named(b"--staging", SECTOR_BYTES, "no calibration staging")
+}
+
+/// The file after `flag` on the semihosting command line, as a flash of `capacity` bytes.
+fn open_named(flag: &[u8], capacity: usize, without: &str) -> Option<FileFlash> {
+    // The whole command line (`belt-drive --pipe IN OUT --storage PATH --staging PATH`): QEMU
+    // refuses to return a line longer than the buffer.
+    let mut line = [MaybeUninit::<u8>::uninit(); 768];
     let line = sys_get_cmdline_uninit(&mut line).ok()?;
     let mut words = line.split(|&b| b == b' ').filter(|w| !w.is_empty());
-    words.find(|w| *w == b"--storage")?;
-    let Some(path) = words.next() else {
-        defmt::error!("--storage needs a path: no persistent storage");
-        return None;
-    };
-    let mut z = [0u8; 256];
-    if path.len() >= z.len() {
-        defmt::error!(
-            "--storage path longer than {=usize} bytes: no persistent storage",
-            z.len() - 1
-        );
-        return None;
-    }
-    z[..path.len()].copy_from_slice(path);
-    let opened = CStr::from_bytes_until_nul(&z)
-        .ok()
-        .and_then(FileFlash::open);
+    words.find(|w| *w == flag)?;
+    let opened = words.next().and_then(|path| {
+        let mut z = [0u8; 256];
+        z.get_mut(..path.len())?.copy_from_slice(path);
+        CStr::from_bytes_until_nul(&z)
+            .ok()
+            .and_then(|p| FileFlash::open(p, capacity))
+    });
     if opened.is_none() {
         defmt::error!(
-            "--storage {=[u8]:a}: cannot open or create the file: no persistent storage",
-            path
+            "{=[u8]:a}: no path, a path of 256 bytes or more, or a file that cannot be opened or created: {=str}",
+            flag,
+            without
         );
     }
     opened

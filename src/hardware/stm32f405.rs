@@ -23,7 +23,11 @@
 mod clocks;
 /// The configuration storage: flash sectors 10-11.
 pub mod flash;
-pub use flash::{open_storage, with_long_watchdog as during_save, BoardFlash as StorageFlash};
+pub use flash::{
+    open_staging, open_storage, with_long_watchdog as during_save, BoardFlash as StorageFlash,
+};
+/// The calibration staging area: sector 9, erased with the watchdog lengthened.
+pub type StagingFlash = flash::LongErase<flash::BoardFlash>;
 
 use core::sync::atomic::{AtomicBool, Ordering};
 

@@ -242,9 +242,9 @@ impl Default for ModelParams {
     }
 }
 
-/// Fixed-point coefficients of every model and baseline; immutable per tick. 4968 bytes on the
-/// drive (5016 on the host, with the closing distances), of which Model 3's tables take 2608
-/// and the bidirectional table 2 KiB.
+/// Fixed-point coefficients of every model and baseline; immutable per tick. 3448 bytes on the
+/// drive (3496 on the host, with the closing distances), of which Model 3's tables take 2112
+/// and the bidirectional table 1 KiB.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct ModelCoeffs {
     pub(crate) model1: Model1Coeffs,

@@ -274,7 +274,7 @@ fn save_rec<F: NorFlash>(flash: &mut F, settings: &[u8], blob: &[u8]) -> Rec {
 /// A record with a chosen sequence number in a chosen slot.
 fn put<F: NorFlash>(flash: &mut F, slot: Slot, seq: u32, settings: &[u8], blob: &[u8]) -> Rec {
     let g = Geometry::of::<F, F::Error>(flash).expect("geometry");
-    write_record(flash, &g, slot, seq, settings, blob).expect("write_record");
+    write_record(flash, &g, slot, seq, settings, &mut { blob }).expect("write_record");
     Rec {
         seq,
         settings: settings.to_vec(),
@@ -647,7 +647,7 @@ fn storage_refuses_flash_geometries_it_cannot_split() {
 #[test]
 fn storage_errors_have_distinct_codes_and_say_what_went_wrong() {
     type E = StorageError<MockError>;
-    let all: [E; 7] = [
+    let all: [E; 8] = [
         StorageError::Flash(MockError::PowerCut),
         StorageError::Geometry,
         StorageError::TooLarge {
@@ -664,9 +664,11 @@ fn storage_errors_have_distinct_codes_and_say_what_went_wrong() {
         },
         StorageError::Verify,
         StorageError::Changed,
+        StorageError::Staging(StagingError::Flash),
     ];
     let codes: Vec<u8> = all.iter().map(|e| e.code()).collect();
-    assert_eq!(codes, [1, 2, 3, 4, 5, 6, 7]);
+    assert_eq!(codes, [1, 2, 3, 4, 5, 6, 7, 8]);
+    assert_eq!(all[7].to_string(), "staging area: staging flash failed");
     assert!(all[0].to_string().starts_with("flash error"));
     assert_eq!(
         all[2].to_string(),
@@ -774,4 +776,123 @@ proptest! {
         }
         let _ = load_rec(&mut f);
     }
+}
+
+// The staging area on flash, and a stored blob staged at boot.
+
+use crate::staging::{FlashStaging, Staged as StagedBytes};
+
+/// A staging sector: byte writes, one erase unit holding the largest image.
+type StagingFlash = Mock<4096, 1, 1>;
+
+fn staging_flash() -> FlashStaging<StagingFlash> {
+    FlashStaging::new(Some(StagingFlash::blank(4096)))
+}
+
+#[test]
+fn staging_on_flash_erases_writes_in_order_and_reads_back() {
+    let mut st = staging_flash();
+    assert!(st.is_present());
+    st.erase().unwrap();
+    st.write(0, b"abc").unwrap();
+    st.write(3, b"def").unwrap();
+    let mut six = [0u8; 6];
+    st.read(0, &mut six).unwrap();
+    assert_eq!(&six, b"abcdef");
+    // Past the largest image: refused, not a panic.
+    assert_eq!(
+        st.write(crate::image::MAX_BYTES, b"x"),
+        Err(StagingError::OutOfBounds)
+    );
+    // A second transfer erases first (the mock refuses a write twice without one).
+    st.erase().unwrap();
+    st.write(0, b"xyz").unwrap();
+    st.read(0, &mut six[..3]).unwrap();
+    assert_eq!(&six[..3], b"xyz");
+}
+
+#[test]
+fn staging_refuses_missing_small_or_word_written_flash_by_name() {
+    let mut none = FlashStaging::<StagingFlash>::new(None);
+    assert!(!none.is_present());
+    assert_eq!(none.erase(), Err(StagingError::Missing));
+    assert_eq!(none.write(0, b"x"), Err(StagingError::Missing));
+    assert_eq!(none.read(0, &mut [0]), Err(StagingError::Missing));
+    // Smaller than the largest image.
+    let small = FlashStaging::new(Some(Mock::<1024, 1, 1>::blank(2048)));
+    assert!(!small.is_present());
+    // Word writes: a chunk of odd length could not be programmed in place.
+    let words = FlashStaging::new(Some(Mock::<4096, 4, 4>::blank(4096)));
+    assert!(!words.is_present());
+    // A dead flash fails by name.
+    let mut dead = StagingFlash::blank(4096);
+    dead.off = true;
+    let mut dead = FlashStaging::new(Some(dead));
+    assert_eq!(dead.erase(), Err(StagingError::Flash));
+}
+
+#[test]
+fn a_blob_saved_from_staging_is_the_staged_bytes() {
+    let (settings, blob) = contents(3, 100, 900);
+    let mut st = staging_flash();
+    st.erase().unwrap();
+    st.write(0, &blob).unwrap();
+    let mut f = Small::blank(SMALL);
+    let r = save_from(
+        &mut f,
+        &settings,
+        &mut StagedBytes::new(&mut st, blob.len()),
+    )
+    .unwrap();
+    assert_eq!(r.blob_len, 900);
+    assert_eq!(
+        load_rec(&mut f),
+        Some(Rec {
+            seq: 1,
+            settings,
+            blob
+        })
+    );
+}
+
+#[test]
+fn a_stored_blob_is_staged_once_and_then_found_in_place() {
+    let (settings, blob) = contents(4, 120, 1500);
+    let mut f = Small::blank(SMALL);
+    save(&mut f, &settings, &blob).unwrap();
+    let mut buf = [0u8; 256];
+    let r = load_settings(&mut f, &mut buf).unwrap().unwrap();
+    assert_eq!(&buf[..r.settings_len], &settings[..]);
+    let mut st = staging_flash();
+    // Blank staging: copied (an erase), and the bytes are the blob's.
+    assert_eq!(stage_blob(&mut f, &r, &mut st), Ok(Staged::Copied));
+    let staged = crate::staging::read_all(&mut StagedBytes::new(&mut st, r.blob_len)).unwrap();
+    assert_eq!(staged, blob);
+    // Already there: no erase (the mock would refuse the rewrite anyway).
+    assert_eq!(stage_blob(&mut f, &r, &mut st), Ok(Staged::Already));
+    // Another image staged since (an unsaved transfer): copied back.
+    st.erase().unwrap();
+    st.write(0, &[0u8; 10]).unwrap();
+    assert_eq!(stage_blob(&mut f, &r, &mut st), Ok(Staged::Copied));
+}
+
+#[test]
+fn staging_a_changed_record_or_into_a_dead_area_is_refused() {
+    let (settings, blob) = contents(5, 50, 700);
+    let mut f = Small::blank(SMALL);
+    save(&mut f, &settings, &blob).unwrap();
+    let r = load_settings(&mut f, &mut [0u8; 64]).unwrap().unwrap();
+    // A flipped blob byte after the load: the record no longer passes its CRC.
+    let mut flipped = f.reboot();
+    let at = HEADER_BYTES + 50 + 3;
+    flipped.mem[at] ^= 0x10;
+    assert_eq!(
+        stage_blob(&mut flipped, &r, &mut staging_flash()),
+        Err(StorageError::Changed)
+    );
+    let mut none = FlashStaging::<StagingFlash>::new(None);
+    assert_eq!(
+        stage_blob(&mut f, &r, &mut none),
+        Err(StorageError::Staging(StagingError::Missing))
+    );
 }

@@ -271,8 +271,8 @@ impl PilController {
                         dir.display()
                     )));
                 }
-                // The firmware reads its command line (`belt-drive --pipe IN OUT`) into 256
-                // bytes and each path into 128.
+                // The firmware reads its command line (`belt-drive --pipe IN OUT --staging
+                // FILE ...`) into 768 bytes and each pipe path into 128.
                 let path_len = dir.join("from-firmware").as_os_str().len();
                 if path_len > 110 {
                     return Err(link_err(format!(

@@ -45,6 +45,9 @@ pub struct QemuOptions {
     /// The drive's persistent storage: a host file standing in for the flash sectors
     /// (`--storage FILE` on the semihosting command line).
     pub storage: Option<PathBuf>,
+    /// The drive's calibration staging area: a host file standing in for flash sector 9
+    /// (`--staging FILE`). `None`: [`Qemu::spawn`] makes a temporary one and removes it after.
+    pub staging: Option<PathBuf>,
     /// Wall-clock limit for the whole run.
     pub timeout: Duration,
     /// Where the decoded log goes.
@@ -64,6 +67,7 @@ impl QemuOptions {
             usart2_socket: None,
             pipe: None,
             storage: None,
+            staging: None,
             timeout: Duration::from_secs(60),
             log: LogSink::Stderr,
             min_level: "info",
@@ -114,7 +118,11 @@ pub struct Qemu {
     log_thread: Option<JoinHandle<()>>,
     lines: Arc<Mutex<Vec<String>>>,
     status: Option<i32>,
+    /// The temporary staging file made for this run (removed on drop).
+    staging_tmp: Option<PathBuf>,
 }
+
+static STAGING_SERIAL: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
 
 /// The QEMU command line for `opts` (exposed for logs and tests).
 pub fn command_line(opts: &QemuOptions) -> Vec<String> {
@@ -126,7 +134,7 @@ pub fn command_line(opts: &QemuOptions) -> Vec<String> {
     let mut semihosting = String::from("enable=on,target=native");
     // QEMU's option syntax doubles a comma inside a value.
     let arg = |p: &PathBuf| p.display().to_string().replace(',', ",,");
-    if opts.pipe.is_some() || opts.storage.is_some() {
+    if opts.pipe.is_some() || opts.storage.is_some() || opts.staging.is_some() {
         semihosting += ",arg=belt-drive";
     }
     if let Some((input, output)) = &opts.pipe {
@@ -134,6 +142,9 @@ pub fn command_line(opts: &QemuOptions) -> Vec<String> {
     }
     if let Some(path) = &opts.storage {
         semihosting += &format!(",arg=--storage,arg={}", arg(path));
+    }
+    if let Some(path) = &opts.staging {
+        semihosting += &format!(",arg=--staging,arg={}", arg(path));
     }
     args.push(semihosting);
     args.push("-kernel".into());
@@ -172,6 +183,23 @@ impl Qemu {
             .ok_or_else(|| QemuError::Elf(format!("{}: no .defmt table", opts.elf.display())))?;
         let locations = table.get_locations(&elf).unwrap_or_default();
 
+        // Every run gets a staging area (calibration transfers need one): a fresh file when
+        // the caller names none. The firmware splits its command line at spaces.
+        let mut opts = opts.clone();
+        let mut staging_tmp = None;
+        if opts.staging.is_none() {
+            let path = std::env::temp_dir().join(format!(
+                "belt-drive-staging-{}-{}.bin",
+                std::process::id(),
+                STAGING_SERIAL.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+            ));
+            if !path.to_string_lossy().contains(char::is_whitespace) {
+                let _ = std::fs::remove_file(&path);
+                opts.staging = Some(path.clone());
+                staging_tmp = Some(path);
+            }
+        }
+        let opts = &opts;
         let mut child = Command::new("qemu-system-arm")
             .args(command_line(opts))
             .stdin(Stdio::null())
@@ -220,6 +248,7 @@ impl Qemu {
             log_thread: Some(log_thread),
             lines,
             status: None,
+            staging_tmp,
         })
     }
 
@@ -276,6 +305,9 @@ impl Drop for Qemu {
     fn drop(&mut self) {
         if self.status.is_none() {
             self.kill();
+        }
+        if let Some(path) = self.staging_tmp.take() {
+            let _ = std::fs::remove_file(path);
         }
     }
 }

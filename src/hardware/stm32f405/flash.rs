@@ -1,6 +1,8 @@
-//! The configuration storage on the board: flash sectors 10 and 11 (0x080C_0000..0x0810_0000,
-//! two 128 KiB sectors), the A and B slots of `estimator_core::storage`. `memory.x` ends the
-//! firmware image before sector 10.
+//! The board's flash beyond the firmware: sectors 10 and 11 (0x080C_0000..0x0810_0000, two
+//! 128 KiB sectors) are the configuration storage, the A and B slots of
+//! `estimator_core::storage`; sector 9 (0x080A_0000) is the calibration staging area
+//! (`estimator_core::staging`), where a transferred image is written as it arrives instead of
+//! in RAM. `memory.x` ends the firmware image before sector 9.
 //!
 //! The F405 has one flash bank: while a sector erases or a byte programs, every instruction
 //! fetch and vector fetch from flash waits, interrupts included. The HAL erases with 8-bit
@@ -18,8 +20,8 @@ use super::{IWDG_KEY_FEED, IWDG_KEY_UNLOCK, IWDG_PRESCALER, IWDG_RELOAD};
 
 /// Address of sector 10, slot A.
 pub const START: u32 = 0x080C_0000;
-/// Sector 10's offset from the start of flash (what the HAL's `NorFlash` takes).
-const START_OFFSET: u32 = START - 0x0800_0000;
+/// Address of sector 9, the staging area.
+pub const STAGING_START: u32 = 0x080A_0000;
 /// One slot: a 128 KiB sector.
 pub const SECTOR_BYTES: usize = 128 * 1024;
 /// Sectors 10 and 11.
@@ -28,7 +30,7 @@ pub const CAPACITY: usize = 2 * SECTOR_BYTES;
 /// Why a board flash operation failed.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, defmt::Format)]
 pub enum BoardFlashError {
-    /// Outside sectors 10-11 (or the chip has less than 1 MiB of flash).
+    /// Outside the window (or the chip has less than 1 MiB of flash).
     OutOfBounds,
     /// An erase not on sector boundaries.
     NotAligned,
@@ -77,17 +79,25 @@ impl From<HalError> for BoardFlashError {
     }
 }
 
-/// Sectors 10 and 11 as one 256 KiB NOR flash (offsets from 0x080C_0000; anything outside is
-/// refused): byte writes, 128 KiB erases, through stm32f4xx-hal's `UnlockedFlash`, unlocked
-/// for each operation and locked again after it.
+/// A window of whole 128 KiB sectors as one NOR flash (offsets from its start; anything
+/// outside is refused): byte writes, 128 KiB erases, through stm32f4xx-hal's `UnlockedFlash`,
+/// unlocked for each operation and locked again after it.
 pub struct BoardFlash {
     flash: pac::FLASH,
+    /// The window's offset from the start of flash (what the HAL's `NorFlash` takes).
+    start_offset: u32,
+    capacity: usize,
 }
 
 impl BoardFlash {
-    /// Takes the flash interface (after the clocks have set its wait states).
-    pub fn new(flash: pac::FLASH) -> Self {
-        BoardFlash { flash }
+    /// Takes the flash interface (after the clocks have set its wait states) for the window of
+    /// `capacity` bytes at address `start`.
+    pub fn new(flash: pac::FLASH, start: u32, capacity: usize) -> Self {
+        BoardFlash {
+            flash,
+            start_offset: start - 0x0800_0000,
+            capacity,
+        }
     }
 
     /// Gives the flash interface back.
@@ -137,7 +147,7 @@ impl ReadNorFlash for BoardFlash {
 
     fn read(&mut self, offset: u32, bytes: &mut [u8]) -> Result<(), BoardFlashError> {
         check_read(self, offset, bytes.len())?;
-        let from = (START_OFFSET + offset) as usize;
+        let from = (self.start_offset + offset) as usize;
         let stored = FlashExt::read(&self.flash)
             .get(from..from + bytes.len())
             .ok_or(BoardFlashError::OutOfBounds)?;
@@ -146,7 +156,7 @@ impl ReadNorFlash for BoardFlash {
     }
 
     fn capacity(&self) -> usize {
-        CAPACITY
+        self.capacity
     }
 }
 
@@ -164,8 +174,8 @@ impl NorFlash for BoardFlash {
         self.clear_errors();
         let erased = NorFlash::erase(
             &mut self.flash.unlocked(),
-            START_OFFSET + from,
-            START_OFFSET + to,
+            self.start_offset + from,
+            self.start_offset + to,
         );
         self.flush_data_cache();
         Ok(erased?)
@@ -178,7 +188,11 @@ impl NorFlash for BoardFlash {
             return Ok(());
         }
         self.clear_errors();
-        let written = NorFlash::write(&mut self.flash.unlocked(), START_OFFSET + offset, bytes);
+        let written = NorFlash::write(
+            &mut self.flash.unlocked(),
+            self.start_offset + offset,
+            bytes,
+        );
         self.flush_data_cache();
         Ok(written?)
     }
@@ -190,7 +204,57 @@ impl NorFlash for BoardFlash {
 /// user. Call it once.
 pub fn open_storage() -> Option<BoardFlash> {
     // SAFETY: see above; the clocks' one-time ACR set-up never overlaps a flash operation.
-    Some(BoardFlash::new(unsafe { pac::FLASH::steal() }))
+    Some(BoardFlash::new(
+        unsafe { pac::FLASH::steal() },
+        START,
+        CAPACITY,
+    ))
+}
+
+/// The calibration staging area, sector 9, always present: its erase runs with the watchdog
+/// lengthened ([`LongErase`]). A second handle on FLASH: the link task owns both and uses
+/// one at a time, so their operations never interleave.
+pub fn open_staging() -> Option<LongErase<BoardFlash>> {
+    // SAFETY: as `open_storage`; the link task is the only user of either handle.
+    let flash = unsafe { pac::FLASH::steal() };
+    Some(LongErase(BoardFlash::new(
+        flash,
+        STAGING_START,
+        SECTOR_BYTES,
+    )))
+}
+
+/// A flash whose erases and writes run inside [`with_long_watchdog`]: the CPU stalls for the
+/// whole erase (the drive is disabled: a transfer is refused otherwise).
+pub struct LongErase<F>(pub F);
+
+impl<F: ErrorType> ErrorType for LongErase<F> {
+    type Error = F::Error;
+}
+
+impl<F: ReadNorFlash> ReadNorFlash for LongErase<F> {
+    const READ_SIZE: usize = F::READ_SIZE;
+
+    fn read(&mut self, offset: u32, bytes: &mut [u8]) -> Result<(), F::Error> {
+        self.0.read(offset, bytes)
+    }
+
+    fn capacity(&self) -> usize {
+        self.0.capacity()
+    }
+}
+
+impl<F: NorFlash> NorFlash for LongErase<F> {
+    const WRITE_SIZE: usize = F::WRITE_SIZE;
+    const ERASE_SIZE: usize = F::ERASE_SIZE;
+
+    fn erase(&mut self, from: u32, to: u32) -> Result<(), F::Error> {
+        with_long_watchdog(|| self.0.erase(from, to))
+    }
+
+    fn write(&mut self, offset: u32, bytes: &[u8]) -> Result<(), F::Error> {
+        self.0.write(offset, bytes)
+    }
 }
 
 /// The long timeout: LSI / 256 (PR = 6) and 4095 counts, 33 s at the nominal 32 kHz, 22-62 s
