@@ -25,34 +25,48 @@ impl<'a> Reader<'a> {
         self.at = end;
         Ok(s)
     }
-    /// The next `N` bytes as an array.
-    pub fn take<const N: usize>(&mut self) -> Result<[u8; N], Short> {
-        let mut a = [0u8; N];
-        a.copy_from_slice(self.slice(N)?);
-        Ok(a)
-    }
     /// Bytes not read yet.
     pub fn remaining(&self) -> usize {
         self.buf.len().saturating_sub(self.at)
     }
+}
+
+impl Fields for Reader<'_> {
+    fn fill(&mut self, out: &mut [u8]) -> Result<(), Short> {
+        out.copy_from_slice(self.slice(out.len())?);
+        Ok(())
+    }
+}
+
+/// Little-endian fields read front to back from anything that can fill a buffer with its next
+/// bytes: a [`Reader`] over a slice, or a windowed reader over flash.
+pub trait Fields {
+    /// Fills `out` with the next `out.len()` bytes, or fails with [`Short`].
+    fn fill(&mut self, out: &mut [u8]) -> Result<(), Short>;
+    /// The next `N` bytes as an array.
+    fn take<const N: usize>(&mut self) -> Result<[u8; N], Short> {
+        let mut a = [0u8; N];
+        self.fill(&mut a)?;
+        Ok(a)
+    }
     /// An unsigned byte.
-    pub fn u8(&mut self) -> Result<u8, Short> {
+    fn u8(&mut self) -> Result<u8, Short> {
         Ok(self.take::<1>()?[0])
     }
     /// A little-endian `u16`.
-    pub fn u16(&mut self) -> Result<u16, Short> {
+    fn u16(&mut self) -> Result<u16, Short> {
         Ok(u16::from_le_bytes(self.take()?))
     }
     /// A little-endian `u32`.
-    pub fn u32(&mut self) -> Result<u32, Short> {
+    fn u32(&mut self) -> Result<u32, Short> {
         Ok(u32::from_le_bytes(self.take()?))
     }
     /// A little-endian `i32`.
-    pub fn i32(&mut self) -> Result<i32, Short> {
+    fn i32(&mut self) -> Result<i32, Short> {
         Ok(i32::from_le_bytes(self.take()?))
     }
     /// A little-endian `u64`.
-    pub fn u64(&mut self) -> Result<u64, Short> {
+    fn u64(&mut self) -> Result<u64, Short> {
         Ok(u64::from_le_bytes(self.take()?))
     }
 }

@@ -1,6 +1,6 @@
 //! The messages: kinds, [`Request`], [`Reply`], their fixed-size payloads and the hand codec.
 
-use crate::bytes::{Reader, Short, Writer};
+use crate::bytes::{Fields, Reader, Short, Writer};
 use crate::command::{Command, ModelKind};
 
 /// Largest payload of any message (a calibration read-back: offset, total length and

@@ -39,8 +39,9 @@ use crate::model::{
     MAX_TRANSITION_D, MAX_TRANSITION_G0,
 };
 use crate::rig::Rig;
+use crate::staging::Source;
 use crate::ConfigError;
-use belt_link::bytes::{Reader, Short, Writer};
+use belt_link::bytes::{Fields, Reader, Short, Writer};
 use belt_link::Crc32;
 
 /// First four bytes of every blob.
@@ -140,7 +141,7 @@ pub(crate) fn write_rig(w: &mut Writer, rig: &Rig) {
     w.u64(rig.belt_pitch_mm.to_bits());
 }
 
-pub(crate) fn read_rig(r: &mut Reader) -> Result<Rig, BlobError> {
+pub(crate) fn read_rig(r: &mut impl Fields) -> Result<Rig, BlobError> {
     Ok(Rig {
         encoder_lines: r.u32()?,
         pulley_teeth: r.u32()?,
@@ -377,13 +378,28 @@ pub(crate) fn check_header_of(
     version: u16,
     max: usize,
 ) -> Result<(), BlobError> {
-    if blob.len() < HEADER {
+    check_header_from(&mut { blob }, magic, version, max)
+}
+
+/// [`check_header_of`] for bytes read from `src` in small pieces (the drive's staging flash);
+/// a source that cannot be read is [`BlobError::Unreadable`].
+pub(crate) fn check_header_from(
+    src: &mut dyn Source,
+    magic: [u8; 4],
+    version: u16,
+    max: usize,
+) -> Result<(), BlobError> {
+    let len = src.len();
+    if len < HEADER {
         return Err(BlobError::Truncated);
     }
-    if blob.len() > max {
+    if len > max {
         return Err(BlobError::TooLong);
     }
-    let mut r = Reader::new(blob);
+    let mut head = [0u8; HEADER];
+    src.read_at(0, &mut head)
+        .map_err(|_| BlobError::Unreadable)?;
+    let mut r = Reader::new(&head);
     if r.take::<4>()? != magic {
         return Err(BlobError::BadMagic);
     }
@@ -395,13 +411,16 @@ pub(crate) fn check_header_of(
         return Err(BlobError::UnsupportedVersion(found));
     }
     let total = HEADER.saturating_add(payload_len);
-    if blob.len() < total {
+    if len < total {
         return Err(BlobError::Truncated);
     }
-    if blob.len() > total {
+    if len > total {
         return Err(BlobError::TooLong);
     }
-    if crc32(&[&blob[..12], &blob[HEADER..]]) != crc {
+    let mut sum = Crc32::new();
+    sum.update(&head[..12]);
+    crate::staging::crc32_from(src, HEADER, &mut sum).map_err(|_| BlobError::Unreadable)?;
+    if sum.finish() != crc {
         return Err(BlobError::BadChecksum);
     }
     Ok(())

@@ -41,7 +41,7 @@
 
 use fixed::types::{I13F3, I16F16, I1F31, U11F5};
 
-use crate::blob::BlobError;
+use crate::blob::{check_header_from, BlobError};
 use crate::model::fixmath::{Recip, Scale, MAX_SHIFT};
 use crate::model::operator::{weight_total, N_KNOTS, N_OPS};
 use crate::model::LinearBand;
@@ -51,8 +51,9 @@ use crate::model::{
     MAX_TRANSITION_D, MAX_TRANSITION_G0,
 };
 use crate::rig::Rig;
-use crate::staging::{crc32_from, Source, Stream};
+use crate::staging::{Source, Stream};
 use crate::ConfigError;
+use belt_link::bytes::Fields;
 
 /// First four bytes of every image.
 pub const MAGIC: [u8; 4] = *b"BDCI";
@@ -410,63 +411,13 @@ fn read_closing(r: &mut Stream) -> Result<crate::model::Closing, BlobError> {
     })
 }
 
-/// The header of an image in `src`: magic, version, length and CRC over the whole source.
-fn check_header(src: &mut dyn Source) -> Result<(), BlobError> {
-    let len = src.len();
-    if len < HEADER {
-        return Err(BlobError::Truncated);
-    }
-    if len > MAX_BYTES {
-        return Err(BlobError::TooLong);
-    }
-    let mut head = [0u8; HEADER];
-    src.read_at(0, &mut head)
-        .map_err(|_| BlobError::Unreadable)?;
-    let mut r: &[u8] = &head;
-    let mut s = Stream::new(&mut r, 0);
-    if s.take::<4>()? != MAGIC {
-        return Err(BlobError::BadMagic);
-    }
-    let found = s.u16()?;
-    s.u16()?;
-    let payload_len = s.u32()? as usize;
-    let crc = s.u32()?;
-    if found != VERSION {
-        return Err(BlobError::UnsupportedVersion(found));
-    }
-    let total = HEADER.saturating_add(payload_len);
-    if len < total {
-        return Err(BlobError::Truncated);
-    }
-    if len > total {
-        return Err(BlobError::TooLong);
-    }
-    let mut sum = belt_link::Crc32::new();
-    sum.update(&head[..12]);
-    crc32_from(src, HEADER, &mut sum).map_err(|_| BlobError::Unreadable)?;
-    if sum.finish() != crc {
-        return Err(BlobError::BadChecksum);
-    }
-    Ok(())
-}
-
-/// The geometry an image was built for (as [`crate::blob`] lays it out).
-fn read_rig(r: &mut Stream) -> Result<Rig, BlobError> {
-    Ok(Rig {
-        encoder_lines: r.u32()?,
-        pulley_teeth: r.u32()?,
-        gear_ratio: f64::from_bits(r.u64()?),
-        belt_pitch_mm: f64::from_bits(r.u64()?),
-    })
-}
-
 /// Checks an image for a drive on `rig` and, if `out` is given, reads its coefficients into it.
 fn read_image(
     src: &mut dyn Source,
     rig: &Rig,
     out: Option<&mut ModelCoeffs>,
 ) -> Result<(), BlobError> {
-    check_header(src)?;
+    check_header_from(src, MAGIC, VERSION, MAX_BYTES)?;
     let mut r = Stream::new(src, HEADER);
     let result = read_fields(&mut r, rig, out);
     // A source that failed to read is not a short image.
@@ -483,7 +434,7 @@ fn read_fields(
 ) -> Result<(), BlobError> {
     let r = &mut *r;
     // Bit for bit: the geometry must be the drive's exactly, and no float compare is needed.
-    let made_for = read_rig(r)?;
+    let made_for = crate::blob::read_rig(r)?;
     if !made_for.same_bits(rig) {
         return Err(BlobError::RigMismatch);
     }

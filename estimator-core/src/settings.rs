@@ -6,7 +6,7 @@
 //! The model parameters are not here: they come with the calibration blob, which records the
 //! geometry it was made for.
 
-use belt_link::bytes::{Reader, Short, Writer};
+use belt_link::bytes::{Fields, Reader, Short, Writer};
 use belt_link::ModelKind;
 
 use crate::drive::{

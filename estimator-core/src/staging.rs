@@ -4,15 +4,15 @@
 //! install, read back over the link and save it.
 //!
 //! - [`Source`]: bytes read by offset (a slice, a flash region, the staged image).
-//! - [`Stream`]: the little-endian fields of a [`Source`], front to back, through a 64-byte
-//!   window on the stack.
+//! - [`Stream`]: the little-endian fields of a [`Source`], front to back ([`Fields`]), through a
+//!   64-byte window on the stack.
 //! - [`Staging`]: the area a transfer writes (erase, write in order, read); [`FlashStaging`] on
 //!   any byte-writable NOR flash (the board's sector 9, QEMU's `--staging` file), a
 //!   [`BlobBuffer`] on hosts and in tests.
 //!
 //! Nothing here panics: a read outside the bytes or a flash failure is an error.
 
-use belt_link::bytes::Short;
+use belt_link::bytes::{Fields, Short};
 use embedded_storage::nor_flash::NorFlash;
 
 use crate::image;
@@ -119,14 +119,9 @@ impl<'s> Stream<'s> {
         self.at += n;
         Ok(())
     }
+}
 
-    /// The next `N` bytes (at most 64) as an array.
-    pub fn take<const N: usize>(&mut self) -> Result<[u8; N], Short> {
-        let mut out = [0u8; N];
-        self.fill(&mut out)?;
-        Ok(out)
-    }
-
+impl Fields for Stream<'_> {
     /// Fills `out` (at most [`WINDOW`] bytes) with the next bytes: one body for every field
     /// size (the image reader calls it a few hundred times; flash, not speed, is what counts).
     #[inline(never)]
@@ -153,26 +148,6 @@ impl<'s> Stream<'s> {
         out.copy_from_slice(bytes);
         self.at += n;
         Ok(())
-    }
-
-    /// A little-endian `u16`.
-    pub fn u16(&mut self) -> Result<u16, Short> {
-        Ok(u16::from_le_bytes(self.take()?))
-    }
-
-    /// A little-endian `u32`.
-    pub fn u32(&mut self) -> Result<u32, Short> {
-        Ok(u32::from_le_bytes(self.take()?))
-    }
-
-    /// A little-endian `i32`.
-    pub fn i32(&mut self) -> Result<i32, Short> {
-        Ok(i32::from_le_bytes(self.take()?))
-    }
-
-    /// A little-endian `u64`.
-    pub fn u64(&mut self) -> Result<u64, Short> {
-        Ok(u64::from_le_bytes(self.take()?))
     }
 }
 
@@ -234,20 +209,6 @@ impl Staging for BlobBuffer {
 
     fn read(&mut self, offset: usize, buf: &mut [u8]) -> Result<(), StagingError> {
         (&self[..]).read_at(offset, buf)
-    }
-}
-
-impl<T: Staging + ?Sized> Staging for &mut T {
-    fn erase(&mut self) -> Result<(), StagingError> {
-        (**self).erase()
-    }
-
-    fn write(&mut self, offset: usize, data: &[u8]) -> Result<(), StagingError> {
-        (**self).write(offset, data)
-    }
-
-    fn read(&mut self, offset: usize, buf: &mut [u8]) -> Result<(), StagingError> {
-        (**self).read(offset, buf)
     }
 }
 

@@ -23,7 +23,7 @@
 //! `READ_SIZE` / `WRITE_SIZE` (padding written as 0xFF); the CRC is computed while streaming.
 //! Nothing here panics, whatever the flash holds.
 
-use belt_link::bytes::{Reader, Writer};
+use belt_link::bytes::{Fields, Reader, Writer};
 use belt_link::Crc32;
 use embedded_storage::nor_flash::{NorFlash, NorFlashError};
 

@@ -8,7 +8,7 @@
 //! move scale, the loop gains, the fault thresholds, polarity, homing, the status scale, the
 //! initial model, then the CRC-32 of everything before it.
 
-use belt_link::bytes::{Reader, Short, Writer};
+use belt_link::bytes::{Fields, Reader, Short, Writer};
 use belt_link::ModelKind;
 use fixed::types::{I16F16, I40F24};
 
