@@ -5,25 +5,22 @@
 
 use estimator_core::drive::{Command, CommandError, Drive, Output, Sample};
 
+use crate::pil::PilError;
+
 /// Why a controller call failed.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
 pub enum ControlError {
     /// The drive refused the command; nothing changed.
+    #[error("command refused: {0}")]
     Refused(CommandError),
     /// The link to the firmware failed (QEMU exited, timed out, or sent garbage).
-    Link(String),
+    #[error("link to the firmware failed: {0}")]
+    Pil(PilError),
+    /// The controller cannot do this (e.g. inject late ticks where the plant paces the
+    /// firmware).
+    #[error("{0}")]
+    Unsupported(&'static str),
 }
-
-impl std::fmt::Display for ControlError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            ControlError::Refused(e) => write!(f, "command refused: {e}"),
-            ControlError::Link(e) => write!(f, "link to the firmware failed: {e}"),
-        }
-    }
-}
-
-impl std::error::Error for ControlError {}
 
 /// A drive controller the simulator can close the loop through.
 pub trait Controller {
@@ -39,8 +36,8 @@ pub trait Controller {
     /// Reports `n` control ticks that ran late (fault injection); only where the runner owns
     /// the tick timing.
     fn missed_ticks(&mut self, _n: u32) -> Result<(), ControlError> {
-        Err(ControlError::Link(
-            "late ticks cannot be injected here: the plant paces the firmware".into(),
+        Err(ControlError::Unsupported(
+            "late ticks cannot be injected here: the plant paces the firmware",
         ))
     }
 }

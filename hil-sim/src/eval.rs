@@ -59,11 +59,7 @@ pub fn run_in_process(
     progress: &mut dyn FnMut(f64),
 ) -> Result<Trace, RunError> {
     let cfg = drive_config(params, model, plant.rig());
-    let drive = Drive::new(&cfg).map_err(|e| {
-        RunError::Control(crate::controller::ControlError::Link(format!(
-            "drive configuration: {e}"
-        )))
-    })?;
+    let drive = Drive::new(&cfg).map_err(RunError::Drive)?;
     let mut c = InProcess(drive);
     run_with(scenario, plant, &cfg.rig, &mut c, seed, progress)
 }

@@ -93,6 +93,8 @@ pub enum RunError {
     Scenario(crate::scenario::ScenarioError),
     /// The plant refused its parameters or the start position.
     Plant(Box<crate::error::Error>),
+    /// The core refused the drive configuration (the field is named).
+    Drive(estimator_core::ConfigError),
 }
 
 impl std::fmt::Display for RunError {
@@ -107,6 +109,7 @@ impl std::fmt::Display for RunError {
             }
             RunError::Scenario(e) => write!(f, "{e}"),
             RunError::Plant(e) => write!(f, "{e}"),
+            RunError::Drive(e) => write!(f, "drive configuration: {e}"),
         }
     }
 }

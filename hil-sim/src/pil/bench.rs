@@ -47,8 +47,10 @@ pub struct RunReport {
 /// sampled from Model 1), built exactly as for a calibration `hil-sim calibrate` writes.
 pub fn paper_image() -> Result<Vec<u8>, PilError> {
     let cfg = DriveConfig::paper_rig();
-    estimator_core::image::of_params(&ModelParams::PAPER, &cfg.rig)
-        .map_err(|e| PilError::Link(format!("building the calibration image: {e}")))
+    Ok(estimator_core::image::of_params(
+        &ModelParams::PAPER,
+        &cfg.rig,
+    )?)
 }
 
 /// The in-process core, the firmware and the plant, stepped together.
@@ -84,10 +86,17 @@ impl Lockstep {
     fn command(&mut self, c: Command) -> Result<(), PilError> {
         match (self.host.command(c), self.fw.send_command(c)) {
             (Ok(()), Ok(())) => Ok(()),
-            (_, Err(PilError::Link(l))) => Err(PilError::Link(l)),
-            (a, b) => Err(PilError::Link(format!(
-                "command {c:?}: core {a:?}, firmware {b:?}"
-            ))),
+            (core, Err(PilError::Refused(e))) => Err(PilError::Disagree {
+                command: c,
+                core,
+                firmware: Err(e),
+            }),
+            (_, Err(e)) => Err(e),
+            (core, Ok(())) => Err(PilError::Disagree {
+                command: c,
+                core,
+                firmware: Ok(()),
+            }),
         }
     }
 }
@@ -101,10 +110,10 @@ pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilEr
         model: estimator_core::drive::Models::Image(&boot_image),
         ..DriveConfig::paper_rig()
     };
-    let host = Drive::new(&cfg).map_err(|e| PilError::Link(format!("drive config: {e}")))?;
+    let host = Drive::new(&cfg)?;
     let fw = PilController::start(opts)?;
     let plant = Plant::new(&PlantParams::paper_rig(), START_MM, 1)
-        .map_err(|e| PilError::Link(e.to_string()))?;
+        .map_err(|e| PilError::Sim(Box::new(e)))?;
     let mut ls = Lockstep {
         host,
         fw,
@@ -123,9 +132,7 @@ pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilEr
     })?;
     if model == ModelKind::Table {
         let image = paper_image()?;
-        ls.host
-            .load_calibration(&image)
-            .map_err(|e| PilError::Link(format!("core refused the image: {e}")))?;
+        ls.host.load_calibration(&image)?;
         ls.fw.load_calibration(&image)?;
     }
     ls.command(Command::SelectModel(model))?;
@@ -141,10 +148,7 @@ pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilEr
         for _ in 0..40_000 {
             let out = ls.step()?;
             if !out.telemetry.faults.is_clear() {
-                return Err(PilError::Link(format!(
-                    "drive fault {}",
-                    out.telemetry.faults
-                )));
+                return Err(PilError::Fault(out.telemetry.faults));
             }
             if ls.first_mismatch.is_some() {
                 break 'moves;
@@ -237,7 +241,7 @@ pub struct BenchReport {
 
 /// Runs the bench for every model.
 pub fn bench(opts: &PilOptions) -> Result<BenchReport, PilError> {
-    let footprint = footprint(&opts.elf).map_err(|e| PilError::Link(e.to_string()))?;
+    let footprint = footprint(&opts.elf).map_err(|e| PilError::Sim(Box::new(e)))?;
     let mut runs = Vec::new();
     for model in ModelKind::ALL {
         runs.push(run_model(opts, model)?);

@@ -36,7 +36,7 @@ pub fn run(opts: &PilOptions, n: u32) -> Result<FuzzReport, PilError> {
         model: estimator_core::drive::Models::Image(&boot_image),
         ..DriveConfig::paper_rig()
     };
-    let mut host = Drive::new(&cfg).map_err(|e| PilError::Link(e.to_string()))?;
+    let mut host = Drive::new(&cfg)?;
     let mut fw = PilController::start(opts)?;
     let rest = Sample {
         motor_counter: 1234,

@@ -35,27 +35,136 @@ use estimator_core::endpoint::output_of;
 use estimator_core::settings::{self, Settings};
 
 use crate::controller::{ControlError, Controller};
-use qemu::{LogSink, Qemu, QemuOptions};
+use qemu::{LogSink, Qemu, QemuError, QemuOptions};
 
-/// Why a PIL call failed.
-#[derive(Debug)]
+/// Why a PIL call failed. Request kinds are the link's (`belt_link::kind`).
+#[derive(Debug, thiserror::Error)]
 pub enum PilError {
     /// The drive refused the command; nothing changed.
+    #[error("command refused: {0}")]
     Refused(CommandError),
-    /// The link or QEMU failed (exited, timed out, garbage, unexpected reply).
-    Link(String),
+    /// The temporary directory's path cannot go on QEMU's command line.
+    #[error(
+        "the temporary directory {} has a space: the PIL pipe cannot be named on QEMU's \
+         command line (set TMPDIR)",
+        .0.display()
+    )]
+    TempDirSpace(PathBuf),
+    /// The pipes' paths would not fit the firmware's command-line buffers.
+    #[error(
+        "the temporary directory {} is too long for the PIL pipe's paths on QEMU's \
+         semihosting command line ({len} of at most {max} bytes): set TMPDIR to a shorter path",
+        dir.display()
+    )]
+    TempDirTooLong {
+        /// The temporary directory.
+        dir: PathBuf,
+        /// Length of the longer pipe path, bytes.
+        len: usize,
+        /// What the firmware takes.
+        max: usize,
+    },
+    /// Setting up the link (pipes, socket) failed.
+    #[error("{doing} {}: {source}", path.display())]
+    Setup {
+        /// What was being done.
+        doing: &'static str,
+        /// The file, pipe or socket.
+        path: PathBuf,
+        /// What the system said.
+        source: io::Error,
+    },
+    /// Reading or writing the link failed.
+    #[error("PIL link: {0}")]
+    Link(io::Error),
+    /// QEMU could not be started, or ended badly.
+    #[error(transparent)]
+    Qemu(#[from] QemuError),
+    /// QEMU closed the link while a reply was awaited.
+    #[error("QEMU closed the link while waiting for a reply of kind {kind:#04x}")]
+    Closed {
+        /// The kind of reply awaited (the request's).
+        kind: u8,
+    },
+    /// QEMU exited while a reply was awaited.
+    #[error("QEMU exited while waiting for a reply of kind {kind:#04x}")]
+    Exited {
+        /// The kind of reply awaited (the request's).
+        kind: u8,
+    },
+    /// No reply within the reply time-out.
+    #[error("no reply of kind {kind:#04x} within {:.1} s", waited.as_secs_f64())]
+    NoReply {
+        /// The kind of reply awaited (the request's).
+        kind: u8,
+        /// How long this side waited.
+        waited: Duration,
+    },
+    /// A reply of another type than the request asks for.
+    #[error("unexpected reply to request kind {kind:#04x}: {reply:?}")]
+    UnexpectedReply {
+        /// The request's kind.
+        kind: u8,
+        /// What came.
+        reply: Box<Reply>,
+    },
+    /// The drive refused with a code this side does not know.
+    #[error("request kind {kind:#04x} refused with unknown code {detail}")]
+    UnknownRefusal {
+        /// The request's kind.
+        kind: u8,
+        /// The refusal code.
+        detail: u8,
+    },
+    /// The drive refused a configuration value or the configuration as a whole.
+    #[error("configuration refused by the drive: {field}")]
+    ConfigRefused {
+        /// The field the drive named.
+        field: &'static str,
+    },
+    /// The drive rejected a request at the link level.
+    #[error("request kind {kind:#04x} rejected: {reason:?} (detail {detail})")]
+    Rejected {
+        /// The request's kind.
+        kind: u8,
+        /// The link's reason.
+        reason: LinkError,
+        /// Reason-specific detail.
+        detail: u8,
+    },
+    /// Setting one configuration field failed.
+    #[error("{field} = {value}: {source}")]
+    ConfigSet {
+        /// The field's name.
+        field: &'static str,
+        /// The value sent.
+        value: f64,
+        /// Why it failed.
+        source: Box<PilError>,
+    },
+    /// This side's core refused a configuration (the field is named).
+    #[error("configuration refused: {0}")]
+    Config(#[from] estimator_core::ConfigError),
+    /// This side's core refused a calibration image, or it could not be built.
+    #[error("calibration image: {0}")]
+    Image(#[from] estimator_core::blob::BlobError),
+    /// The bench's plant, or its footprint reading (the ELF).
+    #[error("{0}")]
+    Sim(Box<crate::error::Error>),
+    /// The core and the firmware answered a command differently.
+    #[error("command {command:?}: core {core:?}, firmware {firmware:?}")]
+    Disagree {
+        /// The command.
+        command: Command,
+        /// The core's answer.
+        core: Result<(), CommandError>,
+        /// The firmware's answer.
+        firmware: Result<(), CommandError>,
+    },
+    /// The drive latched a fault during a bench run.
+    #[error("drive fault {0}")]
+    Fault(estimator_core::fault::Faults),
 }
-
-impl std::fmt::Display for PilError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            PilError::Refused(e) => write!(f, "command refused: {e}"),
-            PilError::Link(e) => write!(f, "PIL link: {e}"),
-        }
-    }
-}
-
-impl std::error::Error for PilError {}
 
 /// How to start a PIL session.
 #[derive(Clone, Debug)]
@@ -242,9 +351,9 @@ pub struct PilController {
 
 static LINK_SERIAL: AtomicU32 = AtomicU32::new(0);
 
-fn link_err(e: impl std::fmt::Display) -> PilError {
-    PilError::Link(e.to_string())
-}
+/// The longest pipe path the firmware takes: it reads its command line into 768 bytes and each
+/// pipe path into 128 (`src/hardware/qemu.rs`).
+const MAX_PIPE_PATH: usize = 110;
 
 impl PilController {
     /// Starts QEMU on the firmware and connects to its link.
@@ -262,38 +371,26 @@ impl PilController {
         q.storage = opts.storage.clone();
         let link = match opts.transport {
             Transport::Pipe => {
-                let dir = std::env::temp_dir().join(name);
-                // The firmware splits its command line at spaces.
-                if dir.to_string_lossy().contains(char::is_whitespace) {
-                    return Err(link_err(format!(
-                        "the temporary directory {} has a space: the PIL pipe cannot be named on \
-                         QEMU's command line (set TMPDIR)",
-                        dir.display()
-                    )));
-                }
-                // The firmware reads its command line (`belt-drive --pipe IN OUT --staging
-                // FILE ...`) into 768 bytes and each pipe path into 128.
-                let path_len = dir.join("from-firmware").as_os_str().len();
-                if path_len > 110 {
-                    return Err(link_err(format!(
-                        "the temporary directory {} is too long for the PIL pipe's paths on \
-                         QEMU's semihosting command line ({path_len} of at most 110 bytes): set \
-                         TMPDIR to a shorter path",
-                        std::env::temp_dir().display()
-                    )));
-                }
+                let dir = pipe_dir(&std::env::temp_dir(), &name)?;
                 let _ = std::fs::remove_dir_all(&dir);
-                std::fs::create_dir(&dir)
-                    .map_err(|e| link_err(format!("{}: {e}", dir.display())))?;
+                std::fs::create_dir(&dir).map_err(|source| PilError::Setup {
+                    doing: "creating the PIL pipe directory",
+                    path: dir.clone(),
+                    source,
+                })?;
                 let (input, output) = (dir.join("to-firmware"), dir.join("from-firmware"));
                 let fifos = mkfifo(&input)
                     .and_then(|_| mkfifo(&output))
                     .and_then(|_| Ok((open_fifo(&input)?, open_fifo(&output)?)));
                 let (to_fw, from_fw) = match fifos {
                     Ok(f) => f,
-                    Err(e) => {
+                    Err(source) => {
                         let _ = std::fs::remove_dir_all(&dir);
-                        return Err(link_err(format!("PIL pipe in {}: {e}", dir.display())));
+                        return Err(PilError::Setup {
+                            doing: "making the PIL pipes in",
+                            path: dir,
+                            source,
+                        });
                     }
                 };
                 q.pipe = Some((input, output));
@@ -302,23 +399,25 @@ impl PilController {
                     from_fw,
                     dir,
                 };
-                let qemu = Qemu::spawn(&q).map_err(link_err)?;
+                let qemu = Qemu::spawn(&q)?;
                 (qemu, link)
             }
             Transport::Usart => {
                 let socket = std::env::temp_dir().join(format!("{name}.sock"));
                 let _ = std::fs::remove_file(&socket);
                 q.usart2_socket = Some(socket.clone());
-                let mut qemu = Qemu::spawn(&q).map_err(link_err)?;
+                let mut qemu = Qemu::spawn(&q)?;
                 // QEMU creates the socket and waits (wait=on) for us before the CPU starts.
                 let deadline = Instant::now() + Duration::from_secs(20).min(opts.timeout);
                 let link = loop {
                     match UnixStream::connect(&socket) {
                         Ok(s) => break s,
-                        Err(e) if Instant::now() >= deadline || !qemu.is_running() => {
-                            return Err(link_err(format!(
-                                "connecting to QEMU's USART2 socket: {e}"
-                            )));
+                        Err(source) if Instant::now() >= deadline || !qemu.is_running() => {
+                            return Err(PilError::Setup {
+                                doing: "connecting to QEMU's USART2 socket",
+                                path: socket,
+                                source,
+                            });
                         }
                         Err(_) => std::thread::sleep(Duration::from_millis(10)),
                     }
@@ -342,6 +441,7 @@ impl PilController {
         pil.wait_for(
             |r| matches!(r, Reply::Status(_)),
             0,
+            kind::STATUS,
             Duration::from_secs(20),
         )?;
         if let Some(s) = &opts.settings {
@@ -358,12 +458,14 @@ impl PilController {
                 key: f.key,
                 value_bits: value.to_bits(),
             })
-            .map_err(|e| link_err(format!("{} = {value}: {e}", f.name)))?;
+            .map_err(|e| PilError::ConfigSet {
+                field: f.name,
+                value,
+                source: Box::new(e),
+            })?;
         }
         // The drive converts no units: the image is built here, from the very same values.
-        let image = s
-            .parts_image()
-            .map_err(|e| link_err(format!("configuration refused: {e}")))?;
+        let image = s.parts_image()?;
         for req in estimator_core::endpoint::config_parts_requests(&image) {
             self.expect_ack(&req)?;
         }
@@ -375,9 +477,10 @@ impl PilController {
         &mut self,
         want: impl Fn(&Reply) -> bool,
         seq: u8,
+        kind: u8,
         limit: Duration,
     ) -> Result<Reply, PilError> {
-        self.wait_passing(want, seq, limit, &mut |_| {})
+        self.wait_passing(want, seq, kind, limit, &mut |_| {})
     }
 
     /// [`PilController::wait_for`]; every other valid frame goes to `other`.
@@ -385,6 +488,7 @@ impl PilController {
         &mut self,
         want: impl Fn(&Reply) -> bool,
         seq: u8,
+        kind: u8,
         limit: Duration,
         other: &mut dyn FnMut(belt_link::Frame<Reply>),
     ) -> Result<Reply, PilError> {
@@ -392,7 +496,7 @@ impl PilController {
         let mut buf = [0u8; 256];
         loop {
             let n = match self.link.read(&mut buf, Duration::from_millis(50)) {
-                Ok(0) => return Err(link_err("QEMU closed the link")),
+                Ok(0) => return Err(PilError::Closed { kind }),
                 Ok(n) => n,
                 Err(e)
                     if matches!(
@@ -401,17 +505,17 @@ impl PilController {
                     ) =>
                 {
                     if Instant::now() >= deadline {
-                        return Err(link_err(format!(
-                            "no reply within {:.1} s",
-                            limit.as_secs_f64()
-                        )));
+                        return Err(PilError::NoReply {
+                            kind,
+                            waited: limit,
+                        });
                     }
                     if !self.qemu.is_running() {
-                        return Err(link_err("QEMU exited"));
+                        return Err(PilError::Exited { kind });
                     }
                     continue;
                 }
-                Err(e) => return Err(link_err(e)),
+                Err(e) => return Err(PilError::Link(e)),
             };
             let mut found = None;
             for &b in &buf[..n] {
@@ -431,12 +535,12 @@ impl PilController {
     fn send(&mut self, seq: u8, req: &Request) -> Result<(), PilError> {
         let mut buf = [0u8; MAX_FRAME];
         let n = encode(seq, req, &mut buf);
-        self.link.write_all(&buf[..n]).map_err(link_err)
+        self.link.write_all(&buf[..n]).map_err(PilError::Link)
     }
 
     /// Writes raw bytes to the firmware's link (fuzzing).
     pub fn send_raw(&mut self, bytes: &[u8]) -> Result<(), PilError> {
-        self.link.write_all(bytes).map_err(link_err)
+        self.link.write_all(bytes).map_err(PilError::Link)
     }
 
     /// Sends `req` and waits for its reply (same sequence number and request kind); streamed
@@ -448,15 +552,17 @@ impl PilController {
         let seq = self.seq;
         self.send(seq, req)?;
         let k = req.kind();
-        self.wait_for(|r| answers(r, k), seq, self.reply_timeout)
-            .map_err(|e| link_err(format!("request kind {k:#04x}: {e}")))
+        self.wait_for(|r| answers(r, k), seq, k, self.reply_timeout)
     }
 
     /// The firmware's status (tick, faults, link counters, stack high-water mark).
     pub fn status(&mut self) -> Result<WireStatus, PilError> {
         match self.call(&Request::Status)? {
             Reply::Status(s) => Ok(s),
-            other => Err(link_err(format!("unexpected reply to status: {other:?}"))),
+            other => Err(PilError::UnexpectedReply {
+                kind: kind::STATUS,
+                reply: Box::new(other),
+            }),
         }
     }
 
@@ -469,6 +575,7 @@ impl PilController {
     }
 
     fn expect_ack(&mut self, req: &Request) -> Result<(), PilError> {
+        let kind = req.kind();
         match self.call(req)? {
             Reply::Ack { .. } => Ok(()),
             Reply::Error {
@@ -477,21 +584,24 @@ impl PilController {
                 ..
             } => match CommandError::from_code(detail) {
                 Some(e) => Err(PilError::Refused(e)),
-                None => Err(link_err(format!("refused with unknown code {detail}"))),
+                None => Err(PilError::UnknownRefusal { kind, detail }),
             },
             Reply::Error {
                 reason: LinkError::Config,
                 detail,
                 ..
-            } => Err(link_err(format!(
-                "configuration refused: {}",
-                settings::field(detail).map_or("unknown field", |f| f.name)
-            ))),
-            Reply::Error { reason, detail, .. } => Err(link_err(format!(
-                "{:?} refused: {reason:?} (detail {detail})",
-                req.kind()
-            ))),
-            other => Err(link_err(format!("unexpected reply: {other:?}"))),
+            } => Err(PilError::ConfigRefused {
+                field: settings::field(detail).map_or("unknown field", |f| f.name),
+            }),
+            Reply::Error { reason, detail, .. } => Err(PilError::Rejected {
+                kind,
+                reason,
+                detail,
+            }),
+            other => Err(PilError::UnexpectedReply {
+                kind,
+                reply: Box::new(other),
+            }),
         }
     }
 
@@ -499,7 +609,7 @@ impl PilController {
     pub fn shutdown(mut self, code: u8) -> Result<i32, PilError> {
         // The firmware exits right after queueing the ack; it may or may not get out.
         self.send(0, &Request::Shutdown { code })?;
-        self.qemu.wait().map_err(link_err)
+        Ok(self.qemu.wait()?)
     }
 
     /// Sends a drive command; `Ok` once the firmware acknowledged it.
@@ -514,8 +624,10 @@ impl PilController {
             scale_counter: sample.scale_counter,
         };
         let reply = self.call(&req)?;
-        let (out, instructions) = output_of(&reply)
-            .ok_or_else(|| link_err(format!("unexpected reply to a sample: {reply:?}")))?;
+        let (out, instructions) = output_of(&reply).ok_or(PilError::UnexpectedReply {
+            kind: kind::SAMPLE,
+            reply: Box::new(reply),
+        })?;
         self.counts.add(instructions);
         Ok(out)
     }
@@ -540,6 +652,7 @@ impl PilController {
         let reply = self.wait_passing(
             |r| matches!(r, Reply::Answer { .. }),
             seq,
+            kind::SAMPLE,
             self.reply_timeout,
             &mut |f| {
                 let mut out = [0u8; MAX_FRAME];
@@ -547,8 +660,10 @@ impl PilController {
                 forward(&out[..len]);
             },
         )?;
-        let (out, instructions) =
-            output_of(&reply).ok_or_else(|| link_err(format!("invalid answer: {reply:?}")))?;
+        let (out, instructions) = output_of(&reply).ok_or(PilError::UnexpectedReply {
+            kind: kind::SAMPLE,
+            reply: Box::new(reply),
+        })?;
         self.counts.add(instructions);
         Ok(out)
     }
@@ -560,13 +675,31 @@ impl PilController {
 
     /// Waits for QEMU to end (after a host's `Shutdown`) and returns its exit status.
     pub fn wait(mut self) -> Result<i32, PilError> {
-        self.qemu.wait().map_err(link_err)
+        Ok(self.qemu.wait()?)
     }
 
     /// The decoded defmt lines kept so far.
     pub fn log_lines(&self) -> Vec<String> {
         self.qemu.log_lines()
     }
+}
+
+/// The directory for the PIL pipes, `name` in `tmp`, if its paths fit QEMU's command line.
+fn pipe_dir(tmp: &Path, name: &str) -> Result<PathBuf, PilError> {
+    let dir = tmp.join(name);
+    // The firmware splits its command line at spaces.
+    if dir.to_string_lossy().contains(char::is_whitespace) {
+        return Err(PilError::TempDirSpace(tmp.to_path_buf()));
+    }
+    let len = dir.join("from-firmware").as_os_str().len();
+    if len > MAX_PIPE_PATH {
+        return Err(PilError::TempDirTooLong {
+            dir: tmp.to_path_buf(),
+            len,
+            max: MAX_PIPE_PATH,
+        });
+    }
+    Ok(dir)
 }
 
 /// True when `reply` is an answer to a request of kind `k`.
@@ -586,7 +719,7 @@ impl From<PilError> for ControlError {
     fn from(e: PilError) -> Self {
         match e {
             PilError::Refused(r) => ControlError::Refused(r),
-            PilError::Link(l) => ControlError::Link(l),
+            other => ControlError::Pil(other),
         }
     }
 }
@@ -598,5 +731,50 @@ impl Controller for PilController {
 
     fn step(&mut self, sample: Sample) -> Result<Output, ControlError> {
         Ok(self.step_sample(sample)?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pipe_paths_that_do_not_fit_the_command_line_are_named() {
+        let ok = pipe_dir(Path::new("/tmp"), "belt-drive-pil-1-0").expect("short path");
+        assert_eq!(ok, Path::new("/tmp/belt-drive-pil-1-0"));
+        let spaced = pipe_dir(Path::new("/tmp/my dir"), "p").unwrap_err();
+        assert!(matches!(&spaced, PilError::TempDirSpace(d) if d == Path::new("/tmp/my dir")));
+        assert!(
+            spaced.to_string().contains("/tmp/my dir has a space"),
+            "{spaced}"
+        );
+        let deep = format!("/{}", "d".repeat(100));
+        let long = pipe_dir(Path::new(&deep), "belt-drive-pil-1-0").unwrap_err();
+        match &long {
+            PilError::TempDirTooLong { dir, len, max } => {
+                assert_eq!(dir, Path::new(&deep));
+                assert_eq!((*len, *max), (deep.len() + 33, MAX_PIPE_PATH));
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(long.to_string().contains("set TMPDIR"), "{long}");
+    }
+
+    #[test]
+    fn a_refusal_stays_a_refusal_for_the_scenario_runner() {
+        let e = ControlError::from(PilError::Refused(CommandError::NotEnabled));
+        assert!(matches!(e, ControlError::Refused(CommandError::NotEnabled)));
+        let e = ControlError::from(PilError::NoReply {
+            kind: kind::SAMPLE,
+            waited: Duration::from_millis(1500),
+        });
+        assert!(matches!(&e, ControlError::Pil(PilError::NoReply { .. })));
+        assert_eq!(
+            e.to_string(),
+            format!(
+                "link to the firmware failed: no reply of kind {:#04x} within 1.5 s",
+                kind::SAMPLE
+            )
+        );
     }
 }

@@ -103,9 +103,10 @@ fn control_rate(pil: &mut PilController) -> Result<f64, PilError> {
     let key = settings::field_named("drive.rate_hz").map_or(4, |f| f.key);
     match pil.call(&Request::ConfigGet { key })? {
         Reply::ConfigValue { active_bits, .. } => Ok(f64::from_bits(active_bits)),
-        other => Err(PilError::Link(format!(
-            "unexpected reply to the rate query: {other:?}"
-        ))),
+        other => Err(PilError::UnexpectedReply {
+            kind: belt_link::kind::CONFIG_GET,
+            reply: Box::new(other),
+        }),
     }
 }
 
