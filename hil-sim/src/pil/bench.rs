@@ -82,22 +82,22 @@ impl Lockstep {
         Ok(b)
     }
 
-    /// The same command to both; they must agree on accepting or refusing it.
+    /// The same command to both; the bench needs both to accept it.
     fn command(&mut self, c: Command) -> Result<(), PilError> {
-        match (self.host.command(c), self.fw.send_command(c)) {
-            (Ok(()), Ok(())) => Ok(()),
-            (core, Err(PilError::Refused(e))) => Err(PilError::Disagree {
-                command: c,
-                core,
-                firmware: Err(e),
-            }),
-            (_, Err(e)) => Err(e),
-            (core, Ok(())) => Err(PilError::Disagree {
-                command: c,
-                core,
-                firmware: Ok(()),
-            }),
+        let core = self.host.command(c);
+        let firmware = match self.fw.send_command(c) {
+            Ok(()) => Ok(()),
+            Err(PilError::Refused(e)) => Err(e),
+            Err(link) => return Err(link),
+        };
+        if core.is_ok() && firmware.is_ok() {
+            return Ok(());
         }
+        Err(PilError::NotAccepted {
+            command: c,
+            core,
+            firmware,
+        })
     }
 }
 

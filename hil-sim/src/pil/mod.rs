@@ -151,9 +151,9 @@ pub enum PilError {
     /// The bench's plant, or its footprint reading (the ELF).
     #[error("{0}")]
     Sim(Box<crate::error::Error>),
-    /// The core and the firmware answered a command differently.
-    #[error("command {command:?}: core {core:?}, firmware {firmware:?}")]
-    Disagree {
+    /// A bench command that the core and the firmware did not both accept.
+    #[error("command {command:?} not accepted by both: core {core:?}, firmware {firmware:?}")]
+    NotAccepted {
         /// The command.
         command: Command,
         /// The core's answer.
