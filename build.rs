@@ -3,10 +3,11 @@
 //! the Cortex-M4 and compares bit for bit, so any host/target divergence in the integer and
 //! fixed-point core fails `cargo test-target`.
 //!
-//! It also writes the Table 2 parameters as a calibration blob (for the on-target blob test) and
-//! as the calibration image built from it (`paper_image.bin`), which the firmware embeds as its
-//! default calibration, and the paper rig's configuration image (`paper_parts.bin`): built
-//! here, so the firmware needs no `f64` to boot.
+//! It also writes the Table 2 parameters as a calibration blob and as the calibration image
+//! built from it (for the on-target image tests), and the paper rig's configuration image
+//! (`paper_parts.bin`) and settings record (`paper_settings.bin`), which the firmware embeds:
+//! built here, so the firmware needs no `f64` to boot. No calibration is embedded: the drive
+//! runs uncompensated until its own loads.
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -113,7 +114,7 @@ fn blob_vectors(out: &mut String) {
     let image = estimator_core::image::from_blob(&buf[..n]).unwrap();
     writeln!(
         out,
-        "/// `image::from_blob(&PAPER_BLOB)` on the host: the coefficients the firmware boots from."
+        "/// `image::from_blob(&PAPER_BLOB)` on the host: the coefficients a Table 2 upload installs."
     )
     .unwrap();
     writeln!(
@@ -124,7 +125,6 @@ fn blob_vectors(out: &mut String) {
     )
     .unwrap();
     let out_dir = PathBuf::from(std::env::var_os("OUT_DIR").unwrap());
-    std::fs::write(out_dir.join("paper_image.bin"), &image).unwrap();
     // The paper rig's configuration image: the drive the firmware assembles at boot before any
     // stored configuration, with no unit conversion on the MCU.
     let parts = estimator_core::settings::Settings::PAPER

@@ -52,7 +52,6 @@ mod app {
     /// The link's endpoint: calibration images are staged in flash (sector 9; QEMU: the
     /// `--staging` file), not in RAM.
     type LinkEndpoint = Endpoint<FlashStaging<hardware::StagingFlash>>;
-    use estimator_core::rig::Rig;
     use estimator_core::settings::{self, RawSettings, SettingsError};
     use estimator_core::ConfigError;
 
@@ -68,9 +67,6 @@ mod app {
     static RECORD_EVERY: AtomicU16 = AtomicU16::new(0);
     /// A recording (re)started: the control task restarts its batch and sequence.
     static RECORD_RESTART: AtomicBool = AtomicBool::new(false);
-    /// Table 2 as an embedded calibration image (built by build.rs): the paper rig's models when
-    /// no calibration is stored.
-    static PAPER_IMAGE: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/paper_image.bin"));
     /// The paper rig's configuration image (built by build.rs): the drive before any stored
     /// configuration.
     static PAPER_PARTS: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/paper_parts.bin"));
@@ -181,7 +177,9 @@ mod app {
         // Assembled from the paper rig's image first, then the stored one installed over it
         // with the link's own checks.
         let mut current_limit = paper.max_current_a();
-        let drive = match Drive::from_parts_in(cx.local.drive_storage, paper, PAPER_IMAGE) {
+        // No calibration built in: a calibration belongs to one machine (the paper's Table 2
+        // fits no other), so the drive runs uncompensated until its own loads (2.5 KB of flash).
+        let drive = match Drive::from_parts_in(cx.local.drive_storage, paper, &[]) {
             Ok(_) => {
                 // SAFETY: `from_parts_in` returned Ok, so it wrote the drive into the slot.
                 // Taken from the static itself, not from the returned reference: the control
@@ -189,7 +187,8 @@ mod app {
                 // measured).
                 unsafe { cx.local.drive_storage.assume_init_mut() }
             }
-            Err(e) => defmt::panic!("built-in calibration refused: {=str}", blob_error_name(e)),
+            // Cannot happen: an empty image is no calibration, not a bad one.
+            Err(e) => defmt::panic!("drive not assembled: {=str}", blob_error_name(e)),
         };
         let mut configured = false;
         let mut initial_model = ModelKind::None;
@@ -250,7 +249,6 @@ mod app {
                     ),
                 }
             }
-            install_default_models(drive);
             defmt::info!(
                 "configured from storage (record crc {=u32:#010x}): {=u32} encoder lines, gear {=f64}:1, {=u32}-tooth pulley, {=f64} mm pitch",
                 record_crc,
@@ -625,13 +623,7 @@ mod app {
                             .map_err(Ok)
                             .and_then(|p| {
                                 let limit = p.max_current_a();
-                                drive
-                                    .lock(|d| {
-                                        d.reconfigure(p)?;
-                                        install_default_models(d);
-                                        Ok(())
-                                    })
-                                    .map_err(Err)?;
+                                drive.lock(|d| d.reconfigure(p)).map_err(Err)?;
                                 Ok(limit)
                             });
                         if let Ok(limit) = result {
@@ -732,15 +724,6 @@ mod app {
             SettingsError::UnsupportedVersion(v) => {
                 defmt::error!("stored configuration refused: settings version {=u16}", v)
             }
-        }
-    }
-
-    /// The paper rig without a calibration runs on the paper's Table 2 (embedded); any other
-    /// geometry runs uncompensated until its calibration loads.
-    fn install_default_models(d: &mut Drive) {
-        if !d.is_calibrated() && d.rig().same_bits(&Rig::PAPER) {
-            // Built on the host and checked by the tests: refused only by a broken build.
-            let _ = d.load_calibration(PAPER_IMAGE);
         }
     }
 

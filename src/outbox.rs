@@ -33,16 +33,19 @@ impl Outbox {
     /// Queues one frame whole, or drops it whole (and counts it) if it does not fit.
     pub fn send<M: Message>(&mut self, seq: u8, msg: &M) -> bool {
         let mut frame = [0u8; MAX_FRAME];
+        // `encode` returns at most `MAX_FRAME`; `get` keeps the slice panic (and `core::fmt`)
+        // out of the image.
         let n = encode(seq, msg, &mut frame);
+        let bytes = frame.get(..n).unwrap_or_default();
         // A link that takes whole frames (QEMU's PIL pipe) gets it at once, in order.
-        if self.len == 0 && self.tx.write_frame(&frame[..n]) {
+        if self.len == 0 && self.tx.write_frame(bytes) {
             return true;
         }
         if CAPACITY - self.len < n {
             self.dropped = self.dropped.wrapping_add(1);
             return false;
         }
-        for &b in &frame[..n] {
+        for &b in bytes {
             self.ring[(self.head + self.len) % CAPACITY] = b;
             self.len += 1;
         }

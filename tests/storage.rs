@@ -50,6 +50,36 @@ mod tests {
     use estimator_core::storage::{self, Slot, SlotState};
     use semihosting::sys::arm_compat::sys_remove;
 
+    /// What a panic, a HardFault or a stray interrupt leaves in `.uninit` RAM reads back once,
+    /// by kind; the path keeps its last bytes.
+    #[test]
+    fn the_post_mortem_record_reads_back_once() {
+        use belt_drive::postmortem::{self, Ended, FILE_BYTES};
+        let long = "estimator-core/src/a/path/longer/than/the/record/keeps/drive.rs";
+        postmortem::record_panic(long, 1234);
+        let ended = postmortem::take();
+        defmt::assert!(matches!(ended, Some(Ended::Panic { line: 1234, .. })));
+        let ended = ended.unwrap();
+        let file = ended.file();
+        defmt::assert_eq!(file.len(), FILE_BYTES);
+        defmt::assert!(long.as_bytes().ends_with(file));
+        defmt::assert!(postmortem::take().is_none(), "read twice");
+
+        postmortem::record_panic("lib.rs", 7);
+        defmt::assert_eq!(postmortem::take().unwrap().file(), b"lib.rs");
+        postmortem::record_hardfault(0x0800_1235);
+        defmt::assert_eq!(
+            postmortem::take(),
+            Some(Ended::HardFault { pc: 0x0800_1235 })
+        );
+        postmortem::record_interrupt(-3);
+        defmt::assert_eq!(
+            postmortem::take(),
+            Some(Ended::UnexpectedInterrupt { irqn: 0xFFFD })
+        );
+        defmt::assert!(postmortem::take().is_none());
+    }
+
     #[test]
     fn a_new_file_reads_erased_and_programs_like_nor() {
         let mut f = fresh();

@@ -84,8 +84,8 @@ pub enum Models<'a> {
     /// `f64` parameters (presets, host tools).
     Params(&'a ModelParams),
     /// A calibration image (see [`crate::image`]): coefficients the host built, read and
-    /// checked in integers. The firmware boots from an embedded image and carries no `f64` on
-    /// its calibration path.
+    /// checked in integers; the firmware carries no `f64` on its calibration path. Empty: no
+    /// calibration, uncompensated until one loads (the firmware's boot).
     Image(&'a [u8]),
 }
 
@@ -277,6 +277,8 @@ fn finite(v: f64, field: &'static str) -> Result<f64, ConfigError> {
 /// Micrometres with `frac_bits` fractional bits to counts at `counts_per_um_q32` (Q32.32),
 /// rounded to nearest, saturating: |um| * 2^33 can exceed i64, and a target out of range is then
 /// refused by its range check.
+// Not inlined: commands only, and one copy of the 64-bit saturating arithmetic (flash).
+#[inline(never)]
 fn um_to_counts_q32(um: i32, frac_bits: u32, counts_per_um_q32: i64) -> i32 {
     let shift = 32 + frac_bits;
     let q = (um as i64)
@@ -497,20 +499,26 @@ impl Drive {
         let rig = parts.rig;
         let drive = slot.write(Drive::assemble(parts));
         if calibration.is_empty() {
-            // No calibration: uncompensated until one loads.
-            drive.models_valid = false;
-            drive.model = ModelKind::None;
-            drive.last.model = ModelKind::None;
+            drive.uncalibrated();
         } else {
             crate::image::decode_into(calibration, &rig, &mut drive.models)?;
         }
         Ok(drive)
     }
 
-    /// The models of `cfg`, into the drive's coefficients in place.
+    /// No calibration: uncompensated (`ModelKind::None`) until one loads.
+    fn uncalibrated(&mut self) {
+        self.models_valid = false;
+        self.model = ModelKind::None;
+        self.last.model = ModelKind::None;
+    }
+
+    /// The models of `cfg`, into the drive's coefficients in place (an empty image: none, as
+    /// the firmware boots).
     fn install_models(&mut self, cfg: &DriveConfig) -> Result<(), ConfigError> {
         match cfg.model {
             Models::Params(p) => self.models = p.build(&cfg.rig)?,
+            Models::Image([]) => self.uncalibrated(),
             Models::Image(b) => {
                 crate::image::decode_into(b, &cfg.rig, &mut self.models).map_err(|e| match e {
                     BlobError::Invalid(e) => e,

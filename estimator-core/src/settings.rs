@@ -255,7 +255,7 @@ impl RawSettings {
     pub fn crc32(&self) -> u32 {
         let mut buf = [0u8; ENCODED_LEN];
         match self.encode(&mut buf) {
-            Ok(n) => belt_link::crc32(&buf[..n]),
+            Ok(n) => belt_link::crc32(buf.get(..n).unwrap_or(&buf)),
             // Cannot happen: the buffer holds a record.
             Err(Short) => 0,
         }

@@ -674,7 +674,11 @@ fn stream<F: NorFlash>(
         flash.read(at, &mut buf[..n as usize])?;
         let lo = start.saturating_sub(at) as usize;
         let hi = (end.min(at + n) - at) as usize;
-        each(&buf[lo..hi]);
+        // `get`, not indexing: `lo <= hi` holds, and no slice panic (with its `core::fmt`,
+        // ~1 KB of flash) is linked for it.
+        if let Some(bytes) = buf.get(lo..hi) {
+            each(bytes);
+        }
         at += n;
     }
     Ok(())
@@ -723,9 +727,13 @@ impl<'f, F: NorFlash> Program<'f, F> {
     fn push(&mut self, mut bytes: &[u8]) -> Result<(), F::Error> {
         while !bytes.is_empty() {
             let n = (CHUNK - self.fill).min(bytes.len());
-            self.buf[self.fill..self.fill + n].copy_from_slice(&bytes[..n]);
+            let (head, rest) = bytes.split_at(n);
+            // `fill + n <= CHUNK`; `get_mut` keeps the slice panic (and `core::fmt`) out.
+            if let Some(dst) = self.buf.get_mut(self.fill..self.fill + n) {
+                dst.copy_from_slice(head);
+            }
             self.fill += n;
-            bytes = &bytes[n..];
+            bytes = rest;
             if self.fill == CHUNK {
                 self.flush()?;
             }
@@ -737,9 +745,12 @@ impl<'f, F: NorFlash> Program<'f, F> {
     fn flush(&mut self) -> Result<(), F::Error> {
         let align = F::WRITE_SIZE.max(1);
         let n = self.fill.div_ceil(align) * align;
-        self.buf[self.fill..n].fill(0xFF);
-        if n > 0 {
-            self.flash.write(self.at, &self.buf[..n])?;
+        // `n <= CHUNK`: `CHUNK` is a multiple of `WRITE_SIZE`.
+        if let Some(pad) = self.buf.get_mut(self.fill..n) {
+            pad.fill(0xFF);
+        }
+        if let Some(staged) = self.buf.get(..n).filter(|s| !s.is_empty()) {
+            self.flash.write(self.at, staged)?;
         }
         self.at += n as u32;
         self.fill = 0;

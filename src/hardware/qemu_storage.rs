@@ -111,7 +111,9 @@ impl FileFlash {
             }
         }
         // The file shrank under us: what is missing reads as erased.
-        head[done..].fill(0xFF);
+        if let Some(missing) = head.get_mut(done..) {
+            missing.fill(0xFF);
+        }
         Ok(())
     }
 

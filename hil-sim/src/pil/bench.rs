@@ -43,8 +43,8 @@ pub struct RunReport {
     pub final_mm: f64,
 }
 
-/// The calibration image both sides load before a Model 3 run: the paper's parameters (Model 3
-/// sampled from Model 1), built exactly as for a calibration `hil-sim calibrate` writes.
+/// The calibration image both sides load before a run with a model: the paper's parameters
+/// (Model 3 sampled from Model 1), built exactly as for a calibration `hil-sim calibrate` writes.
 pub fn paper_image() -> Result<Vec<u8>, PilError> {
     let cfg = DriveConfig::paper_rig();
     Ok(estimator_core::image::of_params(
@@ -104,10 +104,9 @@ impl Lockstep {
 /// Runs the bench moves with `model`, in lockstep: in-process core and firmware side by side on
 /// one plant (driven by the firmware's current). Stops at the first mismatch.
 pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilError> {
-    // The firmware boots from the Table 2 image; so does its host twin.
-    let boot_image = paper_image()?;
+    // The firmware boots uncalibrated; so does its host twin.
     let cfg = DriveConfig {
-        model: estimator_core::drive::Models::Image(&boot_image),
+        model: estimator_core::drive::Models::Image(&[]),
         ..DriveConfig::paper_rig()
     };
     let host = Drive::new(&cfg)?;
@@ -130,7 +129,7 @@ pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilEr
         position_um: start_um,
         scale_um,
     })?;
-    if model == ModelKind::Table {
+    if model != ModelKind::None {
         let image = paper_image()?;
         ls.host.load_calibration(&image)?;
         ls.fw.load_calibration(&image)?;

@@ -30,10 +30,9 @@ pub struct FuzzReport {
 
 /// Sends `n` bad frames to the firmware.
 pub fn run(opts: &PilOptions, n: u32) -> Result<FuzzReport, PilError> {
-    // The firmware boots from the Table 2 image; so does its host twin.
-    let boot_image = super::bench::paper_image()?;
+    // The firmware boots uncalibrated; so does its host twin.
     let cfg = DriveConfig {
-        model: estimator_core::drive::Models::Image(&boot_image),
+        model: estimator_core::drive::Models::Image(&[]),
         ..DriveConfig::paper_rig()
     };
     let mut host = Drive::new(&cfg)?;
