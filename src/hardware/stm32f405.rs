@@ -171,7 +171,9 @@ impl ControlIo {
         if let Some(last) = self.last_entry {
             let gap = now.wrapping_sub(last);
             if gap > self.period_cycles + self.period_cycles / 2 {
-                missed = missed.max(gap / self.period_cycles - 1).max(1);
+                // `checked_div`: no division panic in the tick (a period is never 0 cycles).
+                let periods = gap.checked_div(self.period_cycles).unwrap_or(1);
+                missed = missed.max(periods.saturating_sub(1)).max(1);
             }
         }
         self.last_entry = Some(now);
