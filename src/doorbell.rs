@@ -26,8 +26,9 @@ impl Doorbell {
         }
     }
 
-    /// Rings (any context): the waiting task runs when its priority allows.
-    #[inline]
+    /// Rings (any context): the waiting task runs when its priority allows. Not inlined: the
+    /// waker's critical section once, not at every ring (flash).
+    #[inline(never)]
     pub fn ring(&self) {
         self.rung.store(true, Ordering::Release);
         self.waker.wake();

@@ -67,8 +67,9 @@ pub enum Event {
     },
 }
 
-/// Queues a record (never blocks: a full queue drops it and counts) and wakes the logger.
-#[inline]
+/// Queues a record (never blocks: a full queue drops it and counts) and wakes the logger. Not
+/// inlined: one copy of the queue's enqueue for every kind of record (flash).
+#[inline(never)]
 pub fn push(p: &mut Producer, e: Event) {
     if p.enqueue(e).is_err() {
         DROPPED.fetch_add(1, Ordering::Relaxed);

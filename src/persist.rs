@@ -15,7 +15,9 @@ pub mod detail {
     pub const ENCODE: u8 = 0x30;
 }
 
-/// A short name for a save failure's detail code, for the log.
+/// A short name for a save failure's detail code, for the log. Not inlined: one copy of the
+/// table (flash).
+#[inline(never)]
 pub fn detail_name(code: u8) -> &'static str {
     use estimator_core::endpoint::storage_detail as e;
     match code {

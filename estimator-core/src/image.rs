@@ -78,7 +78,9 @@ pub const MAX_BYTES: usize = HEADER
     + MODEL4_BYTES
     + 4 * 6;
 
-/// Micrometres in Q16.16 within `[min_um, MAX_ABS_UM]`, as the builders accept them.
+/// Micrometres in Q16.16 within `[min_um, MAX_ABS_UM]`, as the builders accept them. Not
+/// inlined: one copy for the image's many such fields (flash; loading is never per tick).
+#[inline(never)]
 fn um(r: &mut Stream, min_um: i32, field: &'static str) -> Result<I16F16, BlobError> {
     let bits = r.i32()?;
     let max = (MAX_ABS_UM as i32) << 16;

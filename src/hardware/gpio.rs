@@ -42,6 +42,8 @@ pub enum Pull {
 pub struct Port(usize);
 
 impl Port {
+    // Not inlined: `init` configures a dozen pins (flash).
+    #[inline(never)]
     fn modify(self, offset: usize, pin: u8, width: u32, value: u32) {
         let reg = (self.0 + offset) as *mut u32;
         let shift = pin as u32 * width;
