@@ -132,9 +132,9 @@ pub fn to_trace(
             let current_a = polarity.current_frame(command_a);
             Record {
                 t_s: s.tick.wrapping_sub(t0) as f64 / rate_hz,
-                motor_counts: r.motor_counts,
+                motor_counts: MotorCounts(r.motor_counts),
                 x_ls_mm: r.scale_counts as f64 / (SCALE_COUNTS_PER_UM as f64 * 1000.0),
-                setpoint_counts: r.setpoint_counts,
+                setpoint_counts: MotorCounts(r.setpoint_counts),
                 cmd_dir,
                 out: Output {
                     current_a,
@@ -744,9 +744,9 @@ mod tests {
             .map(|r| TickSample {
                 tick: r.out.telemetry.tick,
                 sample: RecordSample {
-                    motor_counts: r.motor_counts,
+                    motor_counts: r.motor_counts.0,
                     scale_counts: (r.x_ls_mm * 2000.0).round() as i32,
-                    setpoint_counts: r.setpoint_counts,
+                    setpoint_counts: r.setpoint_counts.0,
                     current_ma: (r.out.current_a.to_num::<f64>() * 1000.0).round() as i16,
                 },
             })

@@ -13,3 +13,24 @@ pub struct MotorCounts(pub i32);
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash)]
 #[repr(transparent)]
 pub struct ScaleCounts(pub i32);
+
+impl MotorCounts {
+    /// Millimetres of nominal travel at `counts_per_mm` (host tools, plots).
+    pub fn to_mm(self, counts_per_mm: f64) -> f64 {
+        self.0 as f64 / counts_per_mm
+    }
+}
+
+/// The raw count (CSV columns, messages).
+impl core::fmt::Display for MotorCounts {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        self.0.fmt(f)
+    }
+}
+
+/// The raw count (CSV columns, messages).
+impl core::fmt::Display for ScaleCounts {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        self.0.fmt(f)
+    }
+}

@@ -129,7 +129,7 @@ fn prepare(trace: &Trace) -> Prepared {
         })
         .collect();
     Prepared {
-        x_counts: trace.records.iter().map(|r| r.motor_counts).collect(),
+        x_counts: trace.records.iter().map(|r| r.motor_counts.0).collect(),
         // The drive-frame current Model 4 is fitted on: the simulated drives run the paper rig's
         // polarity (not inverted), and recordings of an inverted drive are turned back into the
         // drive's frame by `belt-tool`'s `to_trace`.
@@ -636,6 +636,7 @@ pub fn quantised(params: &ModelParams, rig: &Rig) -> Result<ModelParams, BlobErr
 mod tests {
     use super::*;
     use crate::run::Record;
+    use estimator_core::units::MotorCounts;
 
     /// A recording of the motor at `xs` (counts) with the carriage exactly on it.
     fn trace(xs: impl Iterator<Item = i32>, rig: &Rig) -> Trace {
@@ -644,9 +645,9 @@ mod tests {
             .enumerate()
             .map(|(i, x)| Record {
                 t_s: i as f64 / 2000.0,
-                motor_counts: x,
+                motor_counts: MotorCounts(x),
                 x_ls_mm: x as f64 / cpm,
-                setpoint_counts: x,
+                setpoint_counts: MotorCounts(x),
                 cmd_dir: 1,
                 out: Default::default(),
             })

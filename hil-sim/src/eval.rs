@@ -153,7 +153,7 @@ pub fn calibrate_plant(
 /// (the paper's models and the baselines) replayed through the fixed-point code the firmware
 /// runs, from the recorded motor counts.
 pub fn estimates(trace: &Trace, coeffs: &ModelCoeffs) -> Vec<(&'static str, Vec<f64>)> {
-    let x0 = trace.records.first().map_or(0, |r| r.motor_counts);
+    let x0 = trace.records.first().map_or(0, |r| r.motor_counts.0);
     ModelKind::ALL
         .iter()
         .map(|&kind| {
@@ -167,7 +167,7 @@ pub fn estimates(trace: &Trace, coeffs: &ModelCoeffs) -> Vec<(&'static str, Vec<
                         coeffs,
                         kind,
                         &mut st,
-                        r.motor_counts,
+                        r.motor_counts.0,
                         r.out.current_a,
                     )
                     .to_num::<f64>()

@@ -222,12 +222,12 @@ pub fn positioning(
     let n = recs.len();
     let arrivals: Vec<f64> = arrivals(scenario, trace).into_iter().map(|a| a.1).collect();
     // Tracking while moving.
-    let mut state = ModelState::new(recs.first().map_or(0, |r| r.setpoint_counts));
+    let mut state = ModelState::new(recs.first().map_or(0, |r| r.setpoint_counts.0));
     let (mut sq, mut count) = (0.0, 0usize);
     for r in recs {
-        let y = estimate(coeffs, model, &mut state, r.setpoint_counts).to_num::<f64>();
+        let y = estimate(coeffs, model, &mut state, r.setpoint_counts.0).to_num::<f64>();
         if r.out.telemetry.moving {
-            let planned_mm = r.setpoint_counts as f64 / cpm + y / 1000.0;
+            let planned_mm = r.setpoint_counts.to_mm(cpm) + y / 1000.0;
             let e = (r.x_ls_mm - planned_mm) * 1000.0;
             sq += e * e;
             count += 1;
@@ -249,7 +249,7 @@ pub fn positioning(
         let a_lim = m.accel_mm_s2 * cpm * dt * dt; // counts per tick^2
         let wv = RATIO_WINDOW_MIN.max((100.0 / v_lim).ceil() as usize);
         let wa = RATIO_WINDOW_MIN.max((200.0 / a_lim).sqrt().ceil() as usize);
-        let s = |j: usize| recs[j].setpoint_counts as f64;
+        let s = |j: usize| recs[j].setpoint_counts.0 as f64;
         for i in (start + wv)..end {
             v_ratio = v_ratio.max((s(i) - s(i - wv)).abs() / wv as f64 / v_lim);
         }

@@ -2,6 +2,7 @@
 
 use estimator_core::drive::{Command, Faults, Output, Sample};
 use estimator_core::rig::Rig;
+use estimator_core::units::MotorCounts;
 
 use crate::controller::{ControlError, Controller};
 use crate::plant::{Plant, PlantParams};
@@ -12,12 +13,12 @@ use crate::scenario::Scenario;
 pub struct Record {
     /// Simulated time, seconds.
     pub t_s: f64,
-    /// Motor position x_PE as the drive unwrapped it, counts.
-    pub motor_counts: i32,
+    /// Motor position x_PE as the drive unwrapped it.
+    pub motor_counts: MotorCounts,
     /// Carriage position x_LS from the linear scale (0.5 um counts, as read), millimetres.
     pub x_ls_mm: f64,
-    /// Trajectory set-point, counts.
-    pub setpoint_counts: i32,
+    /// Trajectory set-point.
+    pub setpoint_counts: MotorCounts,
     /// Commanded direction (sign of the set-point's motion, held at rest): +1 or -1.
     pub cmd_dir: i8,
     /// The drive's output (current and telemetry).
@@ -42,7 +43,7 @@ pub struct Trace {
 impl Trace {
     /// x_PE in millimetres at record `i`.
     pub fn x_pe_mm(&self, i: usize) -> f64 {
-        self.records[i].motor_counts as f64 / self.counts_per_mm
+        self.records[i].motor_counts.to_mm(self.counts_per_mm)
     }
     /// Delta x = x_LS - x_PE in micrometres at record `i` (the paper's eq. 13).
     pub fn dx_um(&self, i: usize) -> f64 {
@@ -242,9 +243,9 @@ pub fn run(
         last_sp = tel.setpoint_counts.0;
         records.push(Record {
             t_s: t,
-            motor_counts: tel.motor_counts.0,
+            motor_counts: tel.motor_counts,
             x_ls_mm: plant.scale_counts() as f64 / plant.scale_counts_per_mm(),
-            setpoint_counts: tel.setpoint_counts.0,
+            setpoint_counts: tel.setpoint_counts,
             cmd_dir,
             out,
         });

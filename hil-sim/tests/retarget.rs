@@ -53,7 +53,7 @@ fn retargets_with_new_limits_run_and_stay_continuous() {
     let sp: Vec<i64> = trace
         .records
         .iter()
-        .map(|r| r.setpoint_counts as i64)
+        .map(|r| r.setpoint_counts.0 as i64)
         .collect();
     let cpm = trace.counts_per_mm;
     assert!(trace.records.len() > 4000, "{} ticks", trace.records.len());
@@ -68,6 +68,6 @@ fn retargets_with_new_limits_run_and_stay_continuous() {
     assert!(max_step as f64 <= 200.0 * cpm / 2000.0 + 1.0, "{max_step}");
     assert!(max_dv <= 4, "velocity stepped by {max_dv} counts/tick");
     assert_eq!(*sp.last().unwrap(), (60.0 * cpm).round() as i64);
-    let x = trace.records.last().unwrap().motor_counts as f64 / cpm;
+    let x = trace.records.last().unwrap().motor_counts.to_mm(cpm);
     assert!((x - 60.0).abs() < 0.01, "ended at {x} mm");
 }
