@@ -77,37 +77,36 @@ impl QemuOptions {
 }
 
 /// Why a QEMU run failed.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
 pub enum QemuError {
-    /// Starting QEMU or reading the ELF failed.
-    Io(io::Error),
-    /// The ELF has no defmt table (not a defmt firmware) or it cannot be parsed.
-    Elf(String),
+    /// Starting QEMU failed.
+    #[error("qemu: {0}")]
+    Io(#[from] io::Error),
+    /// The firmware ELF could not be read.
+    #[error("firmware ELF {path}: {source}")]
+    ElfRead {
+        /// The ELF named.
+        path: PathBuf,
+        /// Why it could not be read.
+        source: io::Error,
+    },
+    /// The ELF's defmt table cannot be parsed (the decoder's reason).
+    #[error("firmware ELF {path}: defmt table: {reason}")]
+    ElfTable {
+        /// The ELF named.
+        path: PathBuf,
+        /// The decoder's reason.
+        reason: String,
+    },
+    /// The ELF has no defmt table (not a defmt firmware).
+    #[error("firmware ELF {0}: no .defmt table (not a belt-drive firmware?)")]
+    NoDefmtTable(PathBuf),
     /// The run exceeded its deadline; QEMU was killed.
+    #[error("qemu: no exit after {:.1} s, killed", .0.as_secs_f64())]
     Timeout(Duration),
     /// QEMU ended without an exit code (killed by a signal).
+    #[error("qemu: killed by a signal")]
     Signal,
-}
-
-impl std::fmt::Display for QemuError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            QemuError::Io(e) => write!(f, "qemu: {e}"),
-            QemuError::Elf(e) => write!(f, "firmware ELF: {e}"),
-            QemuError::Timeout(t) => {
-                write!(f, "qemu: no exit after {:.1} s, killed", t.as_secs_f64())
-            }
-            QemuError::Signal => write!(f, "qemu: killed by a signal"),
-        }
-    }
-}
-
-impl std::error::Error for QemuError {}
-
-impl From<io::Error> for QemuError {
-    fn from(e: io::Error) -> Self {
-        QemuError::Io(e)
-    }
 }
 
 /// A running QEMU.
@@ -176,11 +175,17 @@ pub fn command_line(opts: &QemuOptions) -> Vec<String> {
 impl Qemu {
     /// Starts QEMU on `opts.elf` and the log decoder thread.
     pub fn spawn(opts: &QemuOptions) -> Result<Qemu, QemuError> {
-        let elf = std::fs::read(&opts.elf)
-            .map_err(|e| QemuError::Elf(format!("{}: {e}", opts.elf.display())))?;
+        let elf = std::fs::read(&opts.elf).map_err(|source| QemuError::ElfRead {
+            path: opts.elf.clone(),
+            source,
+        })?;
+        // The decoder's error type is its own (anyhow); its message is kept as the reason.
         let table = defmt_decoder::Table::parse(&elf)
-            .map_err(|e| QemuError::Elf(e.to_string()))?
-            .ok_or_else(|| QemuError::Elf(format!("{}: no .defmt table", opts.elf.display())))?;
+            .map_err(|e| QemuError::ElfTable {
+                path: opts.elf.clone(),
+                reason: e.to_string(),
+            })?
+            .ok_or_else(|| QemuError::NoDefmtTable(opts.elf.clone()))?;
         let locations = table.get_locations(&elf).unwrap_or_default();
 
         // Every run gets a staging area (calibration transfers need one): a fresh file when
@@ -371,4 +376,34 @@ fn short_path(p: &Path) -> String {
         out.push(c);
     }
     out.display().to_string()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A firmware path that is missing, or a file that is no defmt firmware, is refused before
+    /// QEMU starts, naming the file.
+    #[test]
+    fn a_bad_firmware_file_is_named() {
+        let dir = std::env::temp_dir().join(format!("belt-qemu-elf-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let missing = dir.join("missing.elf");
+        let e = Qemu::spawn(&QemuOptions::new(&missing)).err().unwrap();
+        assert!(
+            matches!(&e, QemuError::ElfRead { path, .. } if *path == missing),
+            "{e}"
+        );
+        assert!(e.to_string().contains("missing.elf"), "{e}");
+
+        let text = dir.join("not-an-elf.elf");
+        std::fs::write(&text, b"not an ELF at all").unwrap();
+        let e = Qemu::spawn(&QemuOptions::new(&text)).err().unwrap();
+        assert!(
+            matches!(&e, QemuError::ElfTable { path, .. } | QemuError::NoDefmtTable(path) if *path == text),
+            "{e}"
+        );
+        assert!(e.to_string().contains("not-an-elf.elf"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }
