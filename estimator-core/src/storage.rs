@@ -694,7 +694,8 @@ fn crc_over<F: NorFlash>(
     stream(flash, start, len, |bytes| crc.update(bytes))
 }
 
-/// Fills `out` from `start` (see [`stream`]).
+/// Fills `out` from `start` (see [`stream`]). Not inlined: one copy per flash (flash size).
+#[inline(never)]
 fn read_exact<F: NorFlash>(flash: &mut F, start: u32, out: &mut [u8]) -> Result<(), F::Error> {
     let mut filled = 0;
     stream(flash, start, out.len(), |bytes| {

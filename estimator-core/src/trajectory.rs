@@ -468,7 +468,9 @@ impl Trajectory {
     }
 
     /// Jumps to rest on `position_counts` (e.g. the measured position when re-enabling the
-    /// drive), dropping the target.
+    /// drive), dropping the target. Not inlined: called from many commands, and on the tick
+    /// only when a fault stops the drive (flash size).
+    #[inline(never)]
     pub fn reset(&mut self, position_counts: i32) {
         *self = Self::new(self.coeffs, position_counts);
     }

@@ -467,12 +467,16 @@ impl ModelState {
     }
 
     /// Back to the start state at `x0_counts` (e.g. after homing or new coefficients).
+    // Not inlined: commands only (flash size).
+    #[inline(never)]
     pub fn reset(&mut self, x0_counts: i32) {
         *self = ModelState::new(x0_counts);
     }
 
     /// Forgets the transition but keeps the direction: the estimate continues on the band edge of
     /// the current direction from `x_counts` (e.g. after new coefficients while standing still).
+    // Not inlined: commands only (flash size).
+    #[inline(never)]
     pub fn settle(&mut self, x_counts: i32) {
         let dir = self.dir;
         *self = ModelState::new(x_counts);
