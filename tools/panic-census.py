@@ -12,6 +12,8 @@ import re
 import subprocess
 import sys
 
+from inline_chains import inline_chains
+
 # What a panic enters through; `panic_fmt` and the handler itself are reached only from these.
 ENTRIES = re.compile(
     r"<(core::panicking::panic(?:_const::\w+|_bounds_check|_nounwind)?|"
@@ -29,17 +31,7 @@ def census(elf):
             e = ENTRIES.search(line)
             if e and "+0x" not in line.split("<", 1)[1]:
                 calls.append((int(m.group(1), 16), e.group(1)))
-    if not calls:
-        return collections.Counter()
-    out = subprocess.run(["addr2line", "-e", elf, "-i", "-a"] + [hex(a) for a, _ in calls],
-                         capture_output=True, text=True, check=True).stdout.splitlines()
-    chains, cur = {}, None
-    for line in out:
-        if line.startswith("0x"):
-            cur = int(line, 16)
-            chains[cur] = []
-        elif cur is not None:
-            chains[cur].append(line)
+    chains = inline_chains(elf, [a for a, _ in calls])
     sites = collections.Counter()
     for addr, entry in calls:
         own = [c for c in chains.get(addr, []) if "/registry/" not in c and "/rustc/" not in c

@@ -5,6 +5,8 @@ import re
 import subprocess
 import sys
 
+from inline_chains import inline_chains
+
 
 def symbols(elf):
     out = subprocess.run(["llvm-nm", "-C", "-S", elf], capture_output=True, text=True, check=True)
@@ -59,15 +61,7 @@ def main(elf, trace, top=40):
         print(f"{n / ticks:8.1f}  {fn}")
 
     pcs = sorted(counts)
-    out = subprocess.run(["addr2line", "-e", elf, "-i", "-a"] + [hex(p) for p in pcs],
-                         capture_output=True, text=True, check=True).stdout.splitlines()
-    chains, cur = {}, None
-    for line in out:
-        if line.startswith("0x"):
-            cur = int(line, 16)
-            chains[cur] = []
-        elif cur is not None:
-            chains[cur].append(line)
+    chains = inline_chains(elf, pcs)
     by_line, where_of = collections.Counter(), {}
     for pc in pcs:
         own = [c for c in chains.get(pc, []) if "/estimator-core/" in c or "/belt-link/" in c]

@@ -9,6 +9,8 @@
 //!                                                 host/firmware equality, stack, flash, RAM
 //! qemu-run --pil-fuzz N [--log-level LEVEL] [ELF] N bad frames through USART2 in PIL mode
 //!                                                 (the emulated serial line, byte by byte)
+//! qemu-run --footprint [--check FILE] ELF          flash and static RAM only, no QEMU (the
+//!                                                 real board's image, tools/board-target.json)
 //! ```
 //! `.cargo/qemu-runner.sh` calls it for `cargo test-target` / `cargo run-qemu`; ELF defaults to
 //! the `cargo fw-qemu` output for `--bench` and `--pil-fuzz`.
@@ -45,8 +47,12 @@ struct Args {
     /// static RAM; the last line is one JSON object.
     #[arg(long)]
     bench: bool,
-    /// With --bench: fail when a figure exceeds this checked-in JSON file.
-    #[arg(long, requires = "bench")]
+    /// Flash and static RAM of the ELF from its section headers only (no QEMU run; any build,
+    /// e.g. the real board's); the last line is one JSON object.
+    #[arg(long, conflicts_with_all = ["bench", "pil_fuzz"], requires = "elf")]
+    footprint: bool,
+    /// With --bench or --footprint: fail when a figure exceeds this checked-in JSON file.
+    #[arg(long)]
     check: Option<PathBuf>,
     /// With --bench: run only this model (e.g. for a tick profile, tools/tick-profile.sh).
     #[arg(long, requires = "bench", conflicts_with = "check")]
@@ -97,6 +103,14 @@ fn main() -> ExitCode {
         Some(p) => LogSink::File(p.clone()),
         None => LogSink::Stdout,
     };
+    if args.check.is_some() && !(args.bench || args.footprint) {
+        eprintln!("qemu-run: --check needs --bench or --footprint");
+        return ExitCode::from(2);
+    }
+    // clap requires the ELF with --footprint.
+    if let (true, Some(elf)) = (args.footprint, &args.elf) {
+        return run_footprint(elf, args.check.as_deref());
+    }
     if args.bench || args.pil_fuzz.is_some() {
         let elf = args
             .elf
@@ -259,9 +273,41 @@ fn run_bench(
     }
 }
 
+/// `--footprint`: flash and static RAM of `elf`, held against `check` when given.
+fn run_footprint(elf: &std::path::Path, check: Option<&std::path::Path>) -> ExitCode {
+    let f = match bench::footprint(elf) {
+        Ok(f) => f,
+        Err(e) => {
+            eprintln!("qemu-run: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let measured = serde_json::json!({
+        "flash_bytes": f.flash_bytes,
+        "static_ram_bytes": f.static_ram_bytes,
+    });
+    let mut ok = true;
+    if let Some(path) = check {
+        match check_against(&measured, path) {
+            Ok(notes) => notes.iter().for_each(|n| println!("{n}")),
+            Err(e) => {
+                println!("{e}");
+                ok = false;
+            }
+        }
+    }
+    println!("{measured}");
+    if ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    }
+}
+
 /// Holds `measured` against the checked-in figures at `path` (same keys): any flash, static RAM,
 /// peak stack or per-tick maximum above them is an error that names the figure, so that every
-/// change of cost shows in a reviewed change of the file. Figures below them are notes.
+/// change of cost shows in a reviewed change of the file. Figures below them are notes. Only the
+/// keys `measured` has are held (`--footprint` measures no stack).
 fn check_against(
     measured: &serde_json::Value,
     path: &std::path::Path,
@@ -274,6 +320,7 @@ fn check_against(
     })?;
     let mut keys: Vec<String> = ["flash_bytes", "static_ram_bytes", "peak_stack_bytes"]
         .iter()
+        .filter(|k| measured.get(**k).is_some())
         .map(|k| format!("/{k}"))
         .collect();
     if let Some(models) = measured["instructions"].as_object() {
