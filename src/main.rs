@@ -53,7 +53,7 @@ mod app {
     /// `--staging` file), not in RAM.
     type LinkEndpoint = Endpoint<FlashStaging<hardware::StagingFlash>>;
     use estimator_core::settings::{self, RawSettings, SettingsError};
-    use estimator_core::ConfigError;
+    use estimator_core::{ConfigError, ConfigField};
 
     /// Received bytes waiting for `link` (one slot stays free): more than one largest frame
     /// (77 bytes) plus a status request, 2.7 ms of a saturated 460800 Bd line. Hosts wait for
@@ -134,7 +134,7 @@ mod app {
         // host tests: refused only by a broken build.
         let (paper, _) = match Parts::decode(PAPER_PARTS) {
             Ok(p) => p,
-            Err(e) => defmt::panic!("built-in configuration refused: {=str}", e.field()),
+            Err(e) => defmt::panic!("built-in configuration refused: {=istr}", e.field().istr()),
         };
         let (stored, stored_record, record_crc) = match boot {
             Boot::Loaded(r) => {
@@ -188,7 +188,7 @@ mod app {
                 unsafe { cx.local.drive_storage.assume_init_mut() }
             }
             // Cannot happen: an empty image is no calibration, not a bad one.
-            Err(e) => defmt::panic!("drive not assembled: {=str}", blob_error_name(e)),
+            Err(e) => defmt::panic!("drive not assembled: {=istr}", blob_error_name(e)),
         };
         let mut configured = false;
         let mut initial_model = ModelKind::None;
@@ -208,8 +208,8 @@ mod app {
                     }
                 }
                 Err(Ok(e)) => defmt::error!(
-                    "stored configuration refused: {=str}: the drive boots unconfigured",
-                    e.field()
+                    "stored configuration refused: {=istr}: the drive boots unconfigured",
+                    e.field().istr()
                 ),
                 Err(Err(_)) => defmt::error!("stored configuration not installed"),
             }
@@ -223,7 +223,7 @@ mod app {
                     .stage_blob(&r, endpoint.staging())
                     .map_err(|code| {
                         defmt::error!(
-                            "stored calibration not staged: {=str}; no compensation until one loads",
+                            "stored calibration not staged: {=istr}; no compensation until one loads",
                             persist::detail_name(code)
                         )
                     })
@@ -243,9 +243,11 @@ mod app {
                             model.as_str()
                         );
                     }
-                    Some(Err(e)) => defmt::error!(
-                        "stored calibration refused: {=str}; no compensation until one loads",
-                        blob_error_name(e)
+                    Some(Err(e)) => log_blob_refused(
+                        defmt::intern!(
+                            "stored calibration refused (no compensation until one loads)"
+                        ),
+                        e,
                     ),
                 }
             }
@@ -552,13 +554,13 @@ mod app {
                         let bad = receiver.frames_bad;
                         if bad <= 10 || bad % 1000 == 0 {
                             defmt::warn!(
-                                "link: frame rejected: {=str} (kind {=u8:#04x}), {=u32} bad so far",
+                                "link: frame rejected: {=istr} (kind {=u8:#04x}), {=u32} bad so far",
                                 error_name(r.error),
                                 r.kind,
                                 bad
                             );
                         } else {
-                            defmt::debug!("link: frame rejected: {=str}", error_name(r.error));
+                            defmt::debug!("link: frame rejected: {=istr}", error_name(r.error));
                         }
                         let reply = Reply::Error {
                             of: r.kind,
@@ -693,7 +695,7 @@ mod app {
         if within_amplifier(p.max_current_a()) {
             Ok(())
         } else {
-            Err(ConfigError::OutOfRange("pid.max_current_a"))
+            Err(ConfigError::OutOfRange(ConfigField::PidMaxCurrentA))
         }
     }
 
@@ -710,7 +712,7 @@ mod app {
     fn log_settings_error(e: &SettingsError) {
         match *e {
             SettingsError::Invalid(c) => {
-                defmt::error!("stored configuration refused: {=str}", c.field())
+                defmt::error!("stored configuration refused: {=istr}", c.field().istr())
             }
             SettingsError::UnknownKey(k) => {
                 defmt::error!("stored configuration refused: unknown field key {=u8}", k)
@@ -775,9 +777,9 @@ mod app {
                     scale_um
                 )
             }
-            LinkEvent::Applied(c) => defmt::info!("command: {=str}", command_name(&c)),
+            LinkEvent::Applied(c) => defmt::info!("command: {=istr}", command_name(&c)),
             LinkEvent::Refused(c, why) => defmt::warn!(
-                "command {=str} refused: {=str}",
+                "command {=istr} refused: {=istr}",
                 command_name(&c),
                 command_error_name(why)
             ),
@@ -790,14 +792,12 @@ mod app {
             LinkEvent::CalibrationLoaded { len } => {
                 defmt::info!("calibration loaded ({=u32} bytes): Model 3 available", len)
             }
-            LinkEvent::CalibrationRejected(e) => {
-                defmt::error!(
-                    "calibration rejected: {=str}; previous tables kept",
-                    blob_error_name(e)
-                )
-            }
+            LinkEvent::CalibrationRejected(e) => log_blob_refused(
+                defmt::intern!("calibration rejected (previous tables kept)"),
+                e,
+            ),
             LinkEvent::ConfigRefused(e) => {
-                defmt::warn!("configuration refused: {=str}", e.field())
+                defmt::warn!("configuration refused: {=istr}", e.field().istr())
             }
             LinkEvent::Configured => {
                 defmt::info!("new configuration in force: home the drive again")
@@ -810,68 +810,85 @@ mod app {
                 )
             }
             LinkEvent::SaveFailed(d) => {
-                defmt::error!("save failed: {=str}", persist::detail_name(d))
+                defmt::error!("save failed: {=istr}", persist::detail_name(d))
             }
         }
     }
 
-    fn command_name(c: &Command) -> &'static str {
+    fn command_name(c: &Command) -> defmt::Str {
         match c {
-            Command::MoveMotorTo { .. } => "move",
-            Command::MoveTo { .. } => "move carriage",
-            Command::Stop => "stop",
-            Command::Enable => "enable",
-            Command::Disable => "disable",
-            Command::ClearFaults => "clear faults",
-            Command::SelectModel(_) => "select model",
-            Command::Home { .. } => "home",
-            Command::Homing => "homing",
+            Command::MoveMotorTo { .. } => defmt::intern!("move"),
+            Command::MoveTo { .. } => defmt::intern!("move carriage"),
+            Command::Stop => defmt::intern!("stop"),
+            Command::Enable => defmt::intern!("enable"),
+            Command::Disable => defmt::intern!("disable"),
+            Command::ClearFaults => defmt::intern!("clear faults"),
+            Command::SelectModel(_) => defmt::intern!("select model"),
+            Command::Home { .. } => defmt::intern!("home"),
+            Command::Homing => defmt::intern!("homing"),
         }
     }
 
-    fn command_error_name(e: CommandError) -> &'static str {
+    fn command_error_name(e: CommandError) -> defmt::Str {
         match e {
-            CommandError::TargetOutOfTravel => "target outside the travel",
-            CommandError::VelocityOutOfRange => "velocity out of range",
-            CommandError::AccelOutOfRange => "acceleration out of range",
-            CommandError::NotEnabled => "drive not enabled (or faulted)",
-            CommandError::Busy => "busy (moving)",
-            CommandError::NotHomed => "not homed",
-            CommandError::Unconfigured => "not configured",
-            CommandError::NotCalibrated => "no calibration for this geometry",
+            CommandError::TargetOutOfTravel => defmt::intern!("target outside the travel"),
+            CommandError::VelocityOutOfRange => defmt::intern!("velocity out of range"),
+            CommandError::AccelOutOfRange => defmt::intern!("acceleration out of range"),
+            CommandError::NotEnabled => defmt::intern!("drive not enabled (or faulted)"),
+            CommandError::Busy => defmt::intern!("busy (moving)"),
+            CommandError::NotHomed => defmt::intern!("not homed"),
+            CommandError::Unconfigured => defmt::intern!("not configured"),
+            CommandError::NotCalibrated => defmt::intern!("no calibration for this geometry"),
         }
     }
 
-    fn blob_error_name(e: BlobError) -> &'static str {
+    /// Logs a refused calibration, naming the field at fault when there is one.
+    fn log_blob_refused(context: defmt::Str, e: BlobError) {
         match e {
-            BlobError::Truncated => "truncated",
-            BlobError::TooLong => "too long",
-            BlobError::BadMagic => "bad magic",
-            BlobError::UnsupportedVersion(_) => "unsupported version",
-            BlobError::BadChecksum => "checksum mismatch",
-            BlobError::RigMismatch => "calibrated on another rig",
-            BlobError::BadCount(_) => "table count out of bounds",
-            BlobError::Invalid(_) => "a value failed the model checks",
-            BlobError::Busy => "drive moving",
-            BlobError::BufferTooSmall | BlobError::Unrepresentable(_) => "encoder error",
-            BlobError::Unreadable => "staging flash unreadable",
+            BlobError::BadCount(f) => {
+                defmt::error!("{=istr}: {=istr}: count out of bounds", context, f.istr())
+            }
+            BlobError::Invalid(c) => defmt::error!(
+                "{=istr}: {=istr}: failed the model checks",
+                context,
+                c.field().istr()
+            ),
+            _ => defmt::error!("{=istr}: {=istr}", context, blob_error_name(e)),
         }
     }
 
-    fn error_name(e: LinkError) -> &'static str {
+    fn blob_error_name(e: BlobError) -> defmt::Str {
         match e {
-            LinkError::Framing => "COBS framing",
-            LinkError::Oversize => "oversize",
-            LinkError::TooShort => "too short",
-            LinkError::Crc => "CRC",
-            LinkError::UnknownKind => "unknown kind",
-            LinkError::BadLength => "bad length",
-            LinkError::OutOfRange => "value out of range",
-            LinkError::Refused => "refused",
-            LinkError::Calibration => "calibration",
-            LinkError::NotSupported => "not supported",
-            LinkError::Config => "configuration refused",
-            LinkError::Storage => "storage",
+            BlobError::Truncated => defmt::intern!("truncated"),
+            BlobError::TooLong => defmt::intern!("too long"),
+            BlobError::BadMagic => defmt::intern!("bad magic"),
+            BlobError::UnsupportedVersion(_) => defmt::intern!("unsupported version"),
+            BlobError::BadChecksum => defmt::intern!("checksum mismatch"),
+            BlobError::RigMismatch => defmt::intern!("calibrated on another rig"),
+            BlobError::BadCount(_) => defmt::intern!("table count out of bounds"),
+            BlobError::Invalid(_) => defmt::intern!("a value failed the model checks"),
+            BlobError::Busy => defmt::intern!("drive moving"),
+            BlobError::BufferTooSmall | BlobError::Unrepresentable(_) => {
+                defmt::intern!("encoder error")
+            }
+            BlobError::Unreadable => defmt::intern!("staging flash unreadable"),
+        }
+    }
+
+    fn error_name(e: LinkError) -> defmt::Str {
+        match e {
+            LinkError::Framing => defmt::intern!("COBS framing"),
+            LinkError::Oversize => defmt::intern!("oversize"),
+            LinkError::TooShort => defmt::intern!("too short"),
+            LinkError::Crc => defmt::intern!("CRC"),
+            LinkError::UnknownKind => defmt::intern!("unknown kind"),
+            LinkError::BadLength => defmt::intern!("bad length"),
+            LinkError::OutOfRange => defmt::intern!("value out of range"),
+            LinkError::Refused => defmt::intern!("refused"),
+            LinkError::Calibration => defmt::intern!("calibration"),
+            LinkError::NotSupported => defmt::intern!("not supported"),
+            LinkError::Config => defmt::intern!("configuration refused"),
+            LinkError::Storage => defmt::intern!("storage"),
         }
     }
 }

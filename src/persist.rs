@@ -18,23 +18,27 @@ pub mod detail {
 /// A short name for a save failure's detail code, for the log. Not inlined: one copy of the
 /// table (flash).
 #[inline(never)]
-pub fn detail_name(code: u8) -> &'static str {
+pub fn detail_name(code: u8) -> defmt::Str {
     use estimator_core::endpoint::storage_detail as e;
     match code {
-        1 => "flash error",
-        2 => "flash geometry not supported",
-        3 => "record larger than a slot",
-        4 | 5 => "buffer too small",
-        6 => "the record read back differs",
-        7 => "the record changed while read",
-        8 => "the calibration staging area failed",
-        detail::ENCODE => "settings did not encode",
-        e::NO_STORAGE => "no storage on this build (QEMU: start with --storage FILE)",
-        e::CALIBRATION_BYTES_GONE => {
-            "the calibration's bytes were overwritten by a later transfer: upload it again"
+        1 => defmt::intern!("flash error"),
+        2 => defmt::intern!("flash geometry not supported"),
+        3 => defmt::intern!("record larger than a slot"),
+        4 | 5 => defmt::intern!("buffer too small"),
+        6 => defmt::intern!("the record read back differs"),
+        7 => defmt::intern!("the record changed while read"),
+        8 => defmt::intern!("the calibration staging area failed"),
+        detail::ENCODE => defmt::intern!("settings did not encode"),
+        e::NO_STORAGE => {
+            defmt::intern!("no storage on this build (QEMU: start with --storage FILE)")
         }
-        e::ENABLED => "the drive is enabled: disable it first",
-        _ => "unknown",
+        e::CALIBRATION_BYTES_GONE => {
+            defmt::intern!(
+                "the calibration's bytes were overwritten by a later transfer: upload it again"
+            )
+        }
+        e::ENABLED => defmt::intern!("the drive is enabled: disable it first"),
+        _ => defmt::intern!("unknown"),
     }
 }
 
@@ -57,7 +61,7 @@ pub fn log_boot(b: &Boot) {
     match *b {
         Boot::NoStorage => defmt::warn!("storage: none on this build"),
         Boot::Nothing => defmt::warn!("storage: no valid record"),
-        Boot::Failed(code) => defmt::error!("storage: unreadable: {=str}", detail_name(code)),
+        Boot::Failed(code) => defmt::error!("storage: unreadable: {=istr}", detail_name(code)),
         Boot::Loaded(r) => defmt::info!(
             "storage: record {=u32} in slot {=str}, crc {=u32:#010x}, {=usize} B settings, {=usize} B calibration",
             r.seq,

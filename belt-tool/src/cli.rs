@@ -277,7 +277,7 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
                         .iter()
                         .map(|v| {
                             (
-                                v.field.name.to_string(),
+                                v.field.name().to_string(),
                                 json!({"active": v.active, "staged": v.staged_change(),
                                        "unit": v.field.unit}),
                             )
@@ -291,7 +291,7 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
                         });
                         println!(
                             "{:<42} {:>14}  {}{staged}",
-                            v.field.name,
+                            v.field.name(),
                             config::format_value(v.field, v.active),
                             v.field.unit
                         );

@@ -79,10 +79,10 @@ pub fn lookup(name: &str) -> Result<&'static Field, ArgError> {
     let near: Vec<&str> = FIELDS
         .iter()
         .filter(|f| {
-            let (s, l) = f.name.rsplit_once('.').unwrap_or(("", f.name));
+            let (s, l) = f.name().rsplit_once('.').unwrap_or(("", f.name()));
             (!section.is_empty() && s == section) || l == last || l.contains(last)
         })
-        .map(|f| f.name)
+        .map(|f| f.name())
         .take(12)
         .collect();
     let name = name.to_string();
@@ -114,7 +114,7 @@ pub fn parse_value(field: &Field, text: &str) -> Result<f64, ArgError> {
         "true" if field.whole => 1.0,
         "false" if field.whole => 0.0,
         _ => t.parse::<f64>().map_err(|_| ArgError::NotANumber {
-            field: field.name,
+            field: field.name(),
             text: t.to_string(),
         })?,
     };
@@ -170,7 +170,7 @@ fn read_settings(link: &mut Link, staged: bool) -> Result<Settings, ToolError> {
                 "{}: the drive's {}configuration holds {} = {value}: {e}",
                 link.name(),
                 if staged { "staged " } else { "" },
-                v.field.name,
+                v.field.name(),
             ))
         })?;
     }
@@ -180,10 +180,10 @@ fn read_settings(link: &mut Link, staged: bool) -> Result<Settings, ToolError> {
 /// The drive's drive-train geometry (the `rig.*` fields).
 pub fn rig(link: &mut Link) -> Result<Rig, ToolError> {
     let mut s = Settings::PAPER;
-    for f in FIELDS.iter().filter(|f| f.name.starts_with("rig.")) {
+    for f in FIELDS.iter().filter(|f| f.name().starts_with("rig.")) {
         let v = get(link, f)?;
         s.set(f.key, v.active).map_err(|e| {
-            ToolError::Drive(format!("{}: the drive's {}: {e}", link.name(), f.name))
+            ToolError::Drive(format!("{}: the drive's {}: {e}", link.name(), f.name()))
         })?;
     }
     Ok(s.rig)
@@ -223,14 +223,14 @@ pub fn set_and_apply(
         .map_err(|e| match e {
             ToolError::Refused { why, .. } => ToolError::Drive(format!(
                 "{source}: {} = {v}: the drive refused it: {why}",
-                f.name
+                f.name()
             )),
             e => e,
         })?;
     }
     // The drive converts no units: the image of the staged values is built here.
     let image = read_settings(link, true)?.parts_image().map_err(|e| {
-        let what = match settings::field_named(e.field()) {
+        let what = match settings::field_named(e.field().name()) {
             Some(f) => format!("{e} (unit {})", f.unit),
             None => e.to_string(),
         };
@@ -322,7 +322,11 @@ pub fn dump(port: &str, values: &[FieldValue]) -> String {
     for v in values {
         s.push_str(&format!(
             "{:<48} # {}\n",
-            format!("\"{}\" = {}", v.field.name, format_value(v.field, v.active)),
+            format!(
+                "\"{}\" = {}",
+                v.field.name(),
+                format_value(v.field, v.active)
+            ),
             v.field.unit
         ));
     }
@@ -348,7 +352,7 @@ mod tests {
             "\"rig.gear_ratio\" = 19.2\ndrive.rate_hz = 4000\n[homing]\ntowards_positive = true\n",
         )
         .unwrap();
-        let names: Vec<_> = vals.iter().map(|(f, v)| (f.name, *v)).collect();
+        let names: Vec<_> = vals.iter().map(|(f, v)| (f.name(), *v)).collect();
         assert!(names.contains(&("rig.gear_ratio", 19.2)));
         assert!(names.contains(&("drive.rate_hz", 4000.0)));
         assert!(names.contains(&("homing.towards_positive", 1.0)));
@@ -392,14 +396,14 @@ mod tests {
         assert_eq!(back.len(), FIELDS.len());
         for ((f, v), want) in back.iter().zip(&values) {
             assert_eq!(f.key, want.field.key);
-            assert_eq!(v.to_bits(), want.active.to_bits(), "{}", f.name);
+            assert_eq!(v.to_bits(), want.active.to_bits(), "{}", f.name());
         }
     }
 
     #[test]
     fn assignments() {
         let (f, v) = parse_assignment("polarity.scale_inverted=true").unwrap();
-        assert_eq!((f.name, v), ("polarity.scale_inverted", 1.0));
+        assert_eq!((f.name(), v), ("polarity.scale_inverted", 1.0));
         assert!(err(parse_assignment("rig.gear_ratio")).contains("NAME=VALUE"));
         assert!(err(parse_assignment("drive.initial_model=9"))
             .contains("drive.initial_model: out of range"));
@@ -417,7 +421,7 @@ mod tests {
         match lookup("rig.gear") {
             Err(ArgError::UnknownNear { near, .. }) => assert!(near.contains(&"rig.gear_ratio")),
             Err(other) => panic!("{other:?}"),
-            Ok(f) => panic!("rig.gear found {}", f.name),
+            Ok(f) => panic!("rig.gear found {}", f.name()),
         }
         assert!(matches!(
             lookup("zzz"),

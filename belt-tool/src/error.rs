@@ -254,7 +254,7 @@ pub fn refusal(reason: LinkError, detail: u8) -> String {
             Some(f) => format!(
                 "configuration field {} ({}) is invalid or does not fit the rest of the \
                  configuration",
-                f.name, f.unit
+                f.name(), f.unit
             ),
             None if detail == 0xff => "the configuration as a whole is invalid".into(),
             None if detail == CONFIG_IMAGE_REFUSED => "the drive refused the configuration image \

@@ -71,7 +71,7 @@ pub struct LinkStats {
 pub fn describe(req: &Request) -> String {
     let mm = |um: i32| format!("{:.3} mm", um as f64 / 1000.0);
     let field = |key: u8| {
-        estimator_core::settings::field(key).map_or(format!("key {key}"), |f| f.name.to_string())
+        estimator_core::settings::field(key).map_or(format!("key {key}"), |f| f.name().to_string())
     };
     match *req {
         Request::Command(c) => match c {

@@ -41,6 +41,7 @@ use crate::model::{
 use crate::rig::Rig;
 use crate::staging::Source;
 use crate::ConfigError;
+use crate::ConfigField;
 use belt_link::bytes::{Fields, Reader, Short, Writer};
 use belt_link::Crc32;
 
@@ -85,7 +86,7 @@ pub enum BlobError {
     /// Calibrated on a rig with another counts-per-mm.
     RigMismatch,
     /// A table count is out of bounds.
-    BadCount(&'static str),
+    BadCount(ConfigField),
     /// A value failed the models' own checks.
     Invalid(ConfigError),
     /// The drive is moving: calibrations load at rest.
@@ -93,7 +94,7 @@ pub enum BlobError {
     /// The output buffer is too small (encoding only).
     BufferTooSmall,
     /// A value does not fit the blob's fixed-point format (encoding only).
-    Unrepresentable(&'static str),
+    Unrepresentable(ConfigField),
     /// The stored bytes could not be read (the staging flash failed).
     Unreadable,
 }
@@ -177,11 +178,11 @@ impl ReadFixed for Reader<'_> {
 
 trait WriteFixed {
     /// `v * 2^frac` rounded to an i32, or `Unrepresentable(field)`.
-    fn fixed(&mut self, v: f64, frac: u32, field: &'static str) -> Result<(), BlobError>;
+    fn fixed(&mut self, v: f64, frac: u32, field: ConfigField) -> Result<(), BlobError>;
 }
 
 impl WriteFixed for Writer<'_> {
-    fn fixed(&mut self, v: f64, frac: u32, field: &'static str) -> Result<(), BlobError> {
+    fn fixed(&mut self, v: f64, frac: u32, field: ConfigField) -> Result<(), BlobError> {
         let q = v * (1u64 << frac) as f64;
         let q = if q >= 0.0 { q + 0.5 } else { q - 0.5 };
         if !(q.is_finite() && q >= i32::MIN as f64 && q <= i32::MAX as f64) {
@@ -203,33 +204,41 @@ pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, 
     write_rig(&mut w, rig);
     w.u32(params.reversal_deadband_counts);
     let m1 = &params.model1;
-    w.fixed(m1.m_mm_per_mm * 1000.0, Q16, "model1.m_mm_per_mm")?;
-    w.fixed(m1.offset_mm * 1000.0, Q16, "model1.offset_mm")?;
-    w.fixed(m1.h_mm * 1000.0, Q16, "model1.h_mm")?;
-    w.fixed(m1.h_g_mm * 1000.0, Q16, "model1.h_g_mm")?;
+    w.fixed(m1.m_mm_per_mm * 1000.0, Q16, ConfigField::Model1MMmPerMm)?;
+    w.fixed(m1.offset_mm * 1000.0, Q16, ConfigField::Model1OffsetMm)?;
+    w.fixed(m1.h_mm * 1000.0, Q16, ConfigField::Model1HMm)?;
+    w.fixed(m1.h_g_mm * 1000.0, Q16, ConfigField::Model1HGMm)?;
     w.fixed(
         m1.slope_a_mm_per_mm * 1000.0,
         Q16,
-        "model1.slope_a_mm_per_mm",
+        ConfigField::Model1SlopeAMmPerMm,
     )?;
     w.fixed(
         m1.slope_b_mm_per_mm * 1000.0,
         Q16,
-        "model1.slope_b_mm_per_mm",
+        ConfigField::Model1SlopeBMmPerMm,
     )?;
     let m2 = &params.model2;
-    w.fixed(m2.m_mm_per_mm * 1000.0, Q16, "model2.m_mm_per_mm")?;
-    w.fixed(m2.offset_mm * 1000.0, Q16, "model2.offset_mm")?;
-    w.fixed(m2.h_mm * 1000.0, Q16, "model2.h_mm")?;
-    w.fixed(m2.h_g_mm * 1000.0, Q16, "model2.h_g_mm")?;
-    w.fixed(m2.rate_a_per_mm, Q24, "model2.rate_a_per_mm")?;
-    w.fixed(m2.rate_b_per_mm, Q24, "model2.rate_b_per_mm")?;
-    w.fixed(m2.amplitude_a_mm * 1000.0, Q16, "model2.amplitude_a_mm")?;
-    w.fixed(m2.amplitude_b_mm * 1000.0, Q16, "model2.amplitude_b_mm")?;
+    w.fixed(m2.m_mm_per_mm * 1000.0, Q16, ConfigField::Model2MMmPerMm)?;
+    w.fixed(m2.offset_mm * 1000.0, Q16, ConfigField::Model2OffsetMm)?;
+    w.fixed(m2.h_mm * 1000.0, Q16, ConfigField::Model2HMm)?;
+    w.fixed(m2.h_g_mm * 1000.0, Q16, ConfigField::Model2HGMm)?;
+    w.fixed(m2.rate_a_per_mm, Q24, ConfigField::Model2RateAPerMm)?;
+    w.fixed(m2.rate_b_per_mm, Q24, ConfigField::Model2RateBPerMm)?;
+    w.fixed(
+        m2.amplitude_a_mm * 1000.0,
+        Q16,
+        ConfigField::Model2AmplitudeAMm,
+    )?;
+    w.fixed(
+        m2.amplitude_b_mm * 1000.0,
+        Q16,
+        ConfigField::Model2AmplitudeBMm,
+    )?;
     let m3 = &params.model3;
     for (band, name) in [
-        (&m3.forward_band, "model3.forward_band"),
-        (&m3.reverse_band, "model3.reverse_band"),
+        (&m3.forward_band, ConfigField::Model3ForwardBand),
+        (&m3.reverse_band, ConfigField::Model3ReverseBand),
     ] {
         let n = band.len.min(MAX_BAND_POINTS);
         w.u16(n as u16);
@@ -240,8 +249,8 @@ pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, 
         }
     }
     for (t, name) in [
-        (&m3.forward_transition, "model3.forward_transition"),
-        (&m3.reverse_transition, "model3.reverse_transition"),
+        (&m3.forward_transition, ConfigField::Model3ForwardTransition),
+        (&m3.reverse_transition, ConfigField::Model3ReverseTransition),
     ] {
         let (nd, ng) = (t.n_d.min(MAX_TRANSITION_D), t.n_g0.min(MAX_TRANSITION_G0));
         w.u16(nd as u16);
@@ -258,17 +267,25 @@ pub fn encode(params: &ModelParams, rig: &Rig, buf: &mut [u8]) -> Result<usize, 
             }
         }
     }
-    w.fixed(params.backlash.offset_um, Q16, "backlash.offset_um")?;
-    w.fixed(params.backlash.backlash_um, Q16, "backlash.backlash_um")?;
+    w.fixed(
+        params.backlash.offset_um,
+        Q16,
+        ConfigField::BacklashOffsetUm,
+    )?;
+    w.fixed(
+        params.backlash.backlash_um,
+        Q16,
+        ConfigField::BacklashBacklashUm,
+    )?;
     let t = &params.bidir_table;
     let rows = t.rows.min(MAX_BIDIR_ROWS);
     w.u16(rows as u16);
     w.u16(0);
-    w.fixed(t.x0_mm * 1000.0, 0, "bidir_table.x0_mm")?;
-    w.fixed(t.step_mm * 1000.0, 8, "bidir_table.step_mm")?;
+    w.fixed(t.x0_mm * 1000.0, 0, ConfigField::BidirTableX0Mm)?;
+    w.fixed(t.step_mm * 1000.0, 8, ConfigField::BidirTableStepMm)?;
     for i in 0..rows {
-        w.fixed(t.forward_um[i], Q16, "bidir_table.forward_um")?;
-        w.fixed(t.reverse_um[i], Q16, "bidir_table.reverse_um")?;
+        w.fixed(t.forward_um[i], Q16, ConfigField::BidirTableForwardUm)?;
+        w.fixed(t.reverse_um[i], Q16, ConfigField::BidirTableReverseUm)?;
     }
     write_model4(&mut w, &params.model4)?;
     let len = w.finish().map_err(|_| BlobError::BufferTooSmall)?;
@@ -453,9 +470,12 @@ fn parse<'a>(blob: &'a [u8], rig: &Rig) -> Result<Parsed<'a>, BlobError> {
         amplitude_b_mm: um(r.fixed(Q16)?),
     };
     let mut bands: [&[u8]; 2] = [&[], &[]];
-    for (dir, name) in ["model3.forward_band", "model3.reverse_band"]
-        .into_iter()
-        .enumerate()
+    for (dir, name) in [
+        ConfigField::Model3ForwardBand,
+        ConfigField::Model3ReverseBand,
+    ]
+    .into_iter()
+    .enumerate()
     {
         let n = r.u16()? as usize;
         r.u16()?;
@@ -466,9 +486,12 @@ fn parse<'a>(blob: &'a [u8], rig: &Rig) -> Result<Parsed<'a>, BlobError> {
     }
     let mut shapes = [(0, 0, 0.0, 0.0); 2];
     let mut gaps: [&[u8]; 2] = [&[], &[]];
-    for (dir, name) in ["model3.forward_transition", "model3.reverse_transition"]
-        .into_iter()
-        .enumerate()
+    for (dir, name) in [
+        ConfigField::Model3ForwardTransition,
+        ConfigField::Model3ReverseTransition,
+    ]
+    .into_iter()
+    .enumerate()
     {
         let (nd, ng) = (r.u16()? as usize, r.u16()? as usize);
         if nd > MAX_TRANSITION_D || ng > MAX_TRANSITION_G0 {
@@ -486,7 +509,7 @@ fn parse<'a>(blob: &'a [u8], rig: &Rig) -> Result<Parsed<'a>, BlobError> {
     let rows = r.u16()? as usize;
     r.u16()?;
     if !(2..=MAX_BIDIR_ROWS).contains(&rows) {
-        return Err(BlobError::BadCount("bidir_table.rows"));
+        return Err(BlobError::BadCount(ConfigField::BidirTableRows));
     }
     let x0_mm = r.fixed(0)? / 1000.0;
     let step_mm = r.fixed(8)? / 1000.0;
@@ -568,31 +591,35 @@ pub fn decode(blob: &[u8], rig: &Rig) -> Result<ModelParams, BlobError> {
 /// Model 4's section (the last one).
 fn write_model4(w: &mut Writer<'_>, m4: &Model4Params) -> Result<(), BlobError> {
     for v in m4.widths_mm {
-        w.fixed(v * 1000.0, 8, "model4.widths_mm")?;
+        w.fixed(v * 1000.0, 8, ConfigField::Model4WidthsMm)?;
     }
     for v in m4.play_um_per_mm {
-        w.fixed(v, Q16, "model4.play_um_per_mm")?;
+        w.fixed(v, Q16, ConfigField::Model4PlayUmPerMm)?;
     }
     for v in m4.play_forward_um_per_mm {
-        w.fixed(v, Q16, "model4.play_forward_um_per_mm")?;
+        w.fixed(v, Q16, ConfigField::Model4PlayForwardUmPerMm)?;
     }
-    w.fixed(m4.x_ref_mm * 1000.0, 0, "model4.x_ref_mm")?;
-    w.fixed(m4.offset_um, Q16, "model4.offset_um")?;
-    w.fixed(m4.slope_um_per_mm, Q16, "model4.slope_um_per_mm")?;
-    w.fixed(m4.knot_start_mm * 1000.0, 0, "model4.knot_start_mm")?;
-    w.fixed(m4.knot_step_mm * 1000.0, 8, "model4.knot_step_mm")?;
+    w.fixed(m4.x_ref_mm * 1000.0, 0, ConfigField::Model4XRefMm)?;
+    w.fixed(m4.offset_um, Q16, ConfigField::Model4OffsetUm)?;
+    w.fixed(m4.slope_um_per_mm, Q16, ConfigField::Model4SlopeUmPerMm)?;
+    w.fixed(m4.knot_start_mm * 1000.0, 0, ConfigField::Model4KnotStartMm)?;
+    w.fixed(m4.knot_step_mm * 1000.0, 8, ConfigField::Model4KnotStepMm)?;
     for v in m4.knot_um {
-        w.fixed(v, Q16, "model4.knot_um")?;
+        w.fixed(v, Q16, ConfigField::Model4KnotUm)?;
     }
-    w.fixed(m4.pitch_mm * 1000.0, 12, "model4.pitch_mm")?;
-    w.fixed(m4.pitch_um[0], Q16, "model4.pitch_um")?;
-    w.fixed(m4.pitch_um[1], Q16, "model4.pitch_um")?;
-    w.fixed(m4.turn_mm * 1000.0, 8, "model4.turn_mm")?;
-    w.fixed(m4.turn_um[0], Q16, "model4.turn_um")?;
-    w.fixed(m4.turn_um[1], Q16, "model4.turn_um")?;
-    w.fixed(m4.current_um_per_a, Q16, "model4.current_um_per_a")?;
-    w.fixed(m4.current_lp_um_per_a, Q16, "model4.current_lp_um_per_a")?;
-    w.fixed(m4.model2_weight, Q16, "model4.model2_weight")?;
+    w.fixed(m4.pitch_mm * 1000.0, 12, ConfigField::Model4PitchMm)?;
+    w.fixed(m4.pitch_um[0], Q16, ConfigField::Model4PitchUm)?;
+    w.fixed(m4.pitch_um[1], Q16, ConfigField::Model4PitchUm)?;
+    w.fixed(m4.turn_mm * 1000.0, 8, ConfigField::Model4TurnMm)?;
+    w.fixed(m4.turn_um[0], Q16, ConfigField::Model4TurnUm)?;
+    w.fixed(m4.turn_um[1], Q16, ConfigField::Model4TurnUm)?;
+    w.fixed(m4.current_um_per_a, Q16, ConfigField::Model4CurrentUmPerA)?;
+    w.fixed(
+        m4.current_lp_um_per_a,
+        Q16,
+        ConfigField::Model4CurrentLpUmPerA,
+    )?;
+    w.fixed(m4.model2_weight, Q16, ConfigField::Model4Model2Weight)?;
     Ok(())
 }
 

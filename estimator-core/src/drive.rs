@@ -7,6 +7,7 @@
 //! Order inside a tick (sampling first, as ODrive's `sampling_cb`): unwrap the motor counter,
 //! advance the trajectory, run the PID, run the error model, check faults, saturate.
 
+use crate::ConfigField;
 use core::mem::MaybeUninit;
 
 use fixed::types::{I16F16, I40F24};
@@ -265,7 +266,7 @@ fn counting_up(raw: u16, inverted: bool) -> u16 {
     }
 }
 
-fn finite(v: f64, field: &'static str) -> Result<f64, ConfigError> {
+fn finite(v: f64, field: ConfigField) -> Result<f64, ConfigError> {
     if v.is_finite() {
         Ok(v)
     } else {
@@ -287,7 +288,7 @@ fn um_to_counts_q32(um: i32, frac_bits: u32, counts_per_um_q32: i64) -> i32 {
     (q >> shift).clamp(i32::MIN as i64, i32::MAX as i64) as i32
 }
 
-fn to_i32(v: f64, field: &'static str) -> Result<i32, ConfigError> {
+fn to_i32(v: f64, field: ConfigField) -> Result<i32, ConfigError> {
     if v >= i32::MIN as f64 && v <= i32::MAX as f64 {
         Ok(v as i32)
     } else {
@@ -340,28 +341,28 @@ impl Parts {
         let ctx = BuildContext::new(cfg.rig, cfg.rate_hz)?;
         let rate_hz = ctx.rate_hz();
         let cpm = cfg.rig.counts_per_mm();
-        let lo = finite(cfg.travel_min_mm, "drive.travel_min_mm")?;
-        let hi = finite(cfg.travel_max_mm, "drive.travel_max_mm")?;
-        let margin = finite(cfg.travel_margin_mm, "drive.travel_margin_mm")?;
+        let lo = finite(cfg.travel_min_mm, ConfigField::DriveTravelMinMm)?;
+        let hi = finite(cfg.travel_max_mm, ConfigField::DriveTravelMaxMm)?;
+        let margin = finite(cfg.travel_margin_mm, ConfigField::DriveTravelMarginMm)?;
         if hi <= lo {
-            return Err(E::OutOfRange("drive.travel_max_mm"));
+            return Err(E::OutOfRange(ConfigField::DriveTravelMaxMm));
         }
         if margin < 0.0 {
-            return Err(E::OutOfRange("drive.travel_margin_mm"));
+            return Err(E::OutOfRange(ConfigField::DriveTravelMarginMm));
         }
-        let vmax = finite(cfg.max_velocity_mm_s, "drive.max_velocity_mm_s")?;
-        let amax = finite(cfg.max_accel_mm_s2, "drive.max_accel_mm_s2")?;
+        let vmax = finite(cfg.max_velocity_mm_s, ConfigField::DriveMaxVelocityMmS)?;
+        let amax = finite(cfg.max_accel_mm_s2, ConfigField::DriveMaxAccelMmS2)?;
         if !(vmax > 0.0 && vmax * 1000.0 <= u32::MAX as f64) {
-            return Err(E::OutOfRange("drive.max_velocity_mm_s"));
+            return Err(E::OutOfRange(ConfigField::DriveMaxVelocityMmS));
         }
         if !(amax > 0.0 && amax * 1000.0 <= u32::MAX as f64) {
-            return Err(E::OutOfRange("drive.max_accel_mm_s2"));
+            return Err(E::OutOfRange(ConfigField::DriveMaxAccelMmS2));
         }
         if vmax * 1000.0 < 1.0 {
-            return Err(E::OutOfRange("drive.max_velocity_mm_s"));
+            return Err(E::OutOfRange(ConfigField::DriveMaxVelocityMmS));
         }
         if amax * 1000.0 < 1.0 {
-            return Err(E::OutOfRange("drive.max_accel_mm_s2"));
+            return Err(E::OutOfRange(ConfigField::DriveMaxAccelMmS2));
         }
         let counts_per_um_q32 = (cpm / 1000.0 * 4_294_967_296.0) as i64;
         // The travel's ends through the very conversion a move's target takes (whole um, then
@@ -372,10 +373,10 @@ impl Parts {
         };
         let limits = Limits {
             counts_per_um_q32,
-            target_min_counts: end_counts(lo, "drive.travel_min_mm")?,
-            target_max_counts: end_counts(hi, "drive.travel_max_mm")?,
-            fault_min_counts: to_i32((lo - margin) * cpm, "drive.travel_margin_mm")?,
-            fault_max_counts: to_i32((hi + margin) * cpm, "drive.travel_margin_mm")?,
+            target_min_counts: end_counts(lo, ConfigField::DriveTravelMinMm)?,
+            target_max_counts: end_counts(hi, ConfigField::DriveTravelMaxMm)?,
+            fault_min_counts: to_i32((lo - margin) * cpm, ConfigField::DriveTravelMarginMm)?,
+            fault_max_counts: to_i32((hi + margin) * cpm, ConfigField::DriveTravelMarginMm)?,
             max_velocity_um_s: (vmax * 1000.0) as u32,
             max_accel_um_s2: (amax * 1000.0) as u32,
         };
@@ -389,12 +390,12 @@ impl Parts {
             max_speed_mm_s: cfg.encoder_max_speed_mm_s,
         };
         let motor = enc.build::<u16>(&ctx)?;
-        let scale_per_tick = finite(cfg.encoder_max_speed_mm_s, "encoder.max_speed_mm_s")?
+        let scale_per_tick = finite(cfg.encoder_max_speed_mm_s, ConfigField::EncoderMaxSpeedMmS)?
             * 1000.0
             * SCALE_COUNTS_PER_UM as f64
             / rate_hz;
         let scale = encoder::Coeffs::<u16>::from_max_delta_counts(scale_per_tick as u32 + 1)
-            .map_err(|_| E::OutOfRange("encoder.max_speed_mm_s"))?;
+            .map_err(|_| E::OutOfRange(ConfigField::EncoderMaxSpeedMmS))?;
         let pid = cfg.pid.build(&ctx)?;
         let start = trajectory::Config {
             velocity_mm_s: vmax,
@@ -404,34 +405,34 @@ impl Parts {
         let trajectory = Trajectory::new(start.build(&ctx)?, 0);
 
         // Homing: slow and gentle, found before the following-error fault.
-        let hv = finite(homing.velocity_mm_s, "homing.velocity_mm_s")?;
+        let hv = finite(homing.velocity_mm_s, ConfigField::HomingVelocityMmS)?;
         if !(hv > 0.0 && hv <= vmax) {
-            return Err(E::OutOfRange("homing.velocity_mm_s"));
+            return Err(E::OutOfRange(ConfigField::HomingVelocityMmS));
         }
-        let hi_a = finite(homing.current_a, "homing.current_a")?;
+        let hi_a = finite(homing.current_a, ConfigField::HomingCurrentA)?;
         if !(hi_a > 0.0 && hi_a <= cfg.pid.max_current_a) {
-            return Err(E::OutOfRange("homing.current_a"));
+            return Err(E::OutOfRange(ConfigField::HomingCurrentA));
         }
-        let detect = finite(homing.detect_error_mm, "homing.detect_error_mm")?;
+        let detect = finite(homing.detect_error_mm, ConfigField::HomingDetectErrorMm)?;
         if !(detect > 0.0 && detect < cfg.faults.following_error_at_rest_mm) {
-            return Err(E::OutOfRange("homing.detect_error_mm"));
+            return Err(E::OutOfRange(ConfigField::HomingDetectErrorMm));
         }
-        let hpos = finite(homing.position_mm, "homing.position_mm")?;
+        let hpos = finite(homing.position_mm, ConfigField::HomingPositionMm)?;
         if !(hpos >= lo - margin && hpos <= hi + margin) {
-            return Err(E::OutOfRange("homing.position_mm"));
+            return Err(E::OutOfRange(ConfigField::HomingPositionMm));
         }
-        let backoff = finite(homing.backoff_mm, "homing.backoff_mm")?;
+        let backoff = finite(homing.backoff_mm, ConfigField::HomingBackoffMm)?;
         let after = if homing.towards_positive {
             hpos - backoff
         } else {
             hpos + backoff
         };
         if !(backoff >= 0.0 && after >= lo && after <= hi) {
-            return Err(E::OutOfRange("homing.backoff_mm"));
+            return Err(E::OutOfRange(ConfigField::HomingBackoffMm));
         }
         // Whole um/s: a speed that rounds to none would never move (the image refuses it too).
         if hv * 1000.0 < 1.0 {
-            return Err(E::OutOfRange("homing.velocity_mm_s"));
+            return Err(E::OutOfRange(ConfigField::HomingVelocityMmS));
         }
         let homing = HomingCoeffs {
             towards_positive: homing.towards_positive,
@@ -439,13 +440,13 @@ impl Parts {
             // Reaches the jog speed within 0.1 s.
             accel_um_s2: ((hv * 10_000.0) as u32).clamp(1, limits.max_accel_um_s2),
             current_limit_a: I16F16::checked_from_num(hi_a)
-                .ok_or(E::OutOfRange("homing.current_a"))?,
+                .ok_or(E::OutOfRange(ConfigField::HomingCurrentA))?,
             detect_counts: (detect * cpm) as u32,
-            position_um: to_i32(hpos * 1000.0, "homing.position_mm")?,
-            backoff_um: to_i32(backoff * 1000.0, "homing.backoff_mm")?,
+            position_um: to_i32(hpos * 1000.0, ConfigField::HomingPositionMm)?,
+            backoff_um: to_i32(backoff * 1000.0, ConfigField::HomingBackoffMm)?,
             search_counts: to_i32(
                 (hi - lo + 2.0 * margin + backoff) * cpm,
-                "drive.travel_max_mm",
+                ConfigField::DriveTravelMaxMm,
             )?,
         };
         Ok(Parts {
@@ -522,7 +523,7 @@ impl Drive {
             Models::Image(b) => {
                 crate::image::decode_into(b, &cfg.rig, &mut self.models).map_err(|e| match e {
                     BlobError::Invalid(e) => e,
-                    _ => ConfigError::OutOfRange("drive.model (calibration image)"),
+                    _ => ConfigError::OutOfRange(ConfigField::CalibrationImage),
                 })?
             }
         }
@@ -898,7 +899,7 @@ impl Drive {
         let v = grid(velocity_um_s, self.move_scale.velocity_bits_per_um_s_q32);
         let a = grid(accel_um_s2, self.move_scale.accel_bits_per_um_s2_q32);
         trajectory::Coeffs::new(v, a, a).map_err(|e| match e.field() {
-            "trajectory.velocity_mm_s" => CommandError::VelocityOutOfRange,
+            ConfigField::TrajectoryVelocityMmS => CommandError::VelocityOutOfRange,
             _ => CommandError::AccelOutOfRange,
         })
     }

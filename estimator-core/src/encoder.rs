@@ -19,6 +19,7 @@
 //! Follows idsp's unwrapper: the step is the counter difference taken modulo the counter's range
 //! (`wrapping_sub`, then reinterpreted as signed), so wraps in either direction cost nothing.
 
+use crate::ConfigField;
 use core::marker::PhantomData;
 
 use crate::{BuildContext, ConfigError};
@@ -80,11 +81,11 @@ impl Config {
     /// itself is accepted) for counter type `C`.
     pub fn build<C: Counter>(&self, ctx: &BuildContext) -> Result<Coeffs<C>, ConfigError> {
         if !self.max_speed_mm_s.is_finite() {
-            return Err(ConfigError::NotFinite("encoder.max_speed_mm_s"));
+            return Err(ConfigError::NotFinite(ConfigField::EncoderMaxSpeedMmS));
         }
         let per_tick = self.max_speed_mm_s * ctx.rig().counts_per_mm() / ctx.rate_hz();
         if !(per_tick > 0.0 && per_tick <= C::MAX_DELTA_COUNTS as f64) {
-            return Err(ConfigError::OutOfRange("encoder.max_speed_mm_s"));
+            return Err(ConfigError::OutOfRange(ConfigField::EncoderMaxSpeedMmS));
         }
         // Round up without `f64::ceil` (not in `core`): the cast truncates a positive value.
         let whole = per_tick as u32;
@@ -94,7 +95,7 @@ impl Config {
             whole
         };
         Coeffs::from_max_delta_counts(max_delta_counts)
-            .map_err(|_| ConfigError::OutOfRange("encoder.max_speed_mm_s"))
+            .map_err(|_| ConfigError::OutOfRange(ConfigField::EncoderMaxSpeedMmS))
     }
 }
 
@@ -142,7 +143,7 @@ impl<C: Counter> Coeffs<C> {
     /// Coefficients from a step limit in counts per sample: 1 ..= [`Counter::MAX_DELTA_COUNTS`].
     pub const fn from_max_delta_counts(max_delta_counts: u32) -> Result<Self, ConfigError> {
         if max_delta_counts == 0 || max_delta_counts > C::MAX_DELTA_COUNTS {
-            return Err(ConfigError::OutOfRange("encoder.max_delta_counts"));
+            return Err(ConfigError::OutOfRange(ConfigField::EncoderMaxDeltaCounts));
         }
         Ok(Self {
             max_delta_counts,
@@ -421,11 +422,11 @@ mod tests {
 
         let bad = |max_speed_mm_s| Config { max_speed_mm_s };
         let field = |cfg: Config| cfg.build::<u16>(&rig).unwrap_err().field();
-        assert_eq!(field(bad(f64::NAN)), "encoder.max_speed_mm_s");
-        assert_eq!(field(bad(0.0)), "encoder.max_speed_mm_s");
-        assert_eq!(field(bad(-1.0)), "encoder.max_speed_mm_s");
+        assert_eq!(field(bad(f64::NAN)), ConfigField::EncoderMaxSpeedMmS);
+        assert_eq!(field(bad(0.0)), ConfigField::EncoderMaxSpeedMmS);
+        assert_eq!(field(bad(-1.0)), ConfigField::EncoderMaxSpeedMmS);
         // 40 m/s at 2 kHz is 37358 counts per tick: more than a 16-bit counter can tell.
-        assert_eq!(field(bad(40_000.0)), "encoder.max_speed_mm_s");
+        assert_eq!(field(bad(40_000.0)), ConfigField::EncoderMaxSpeedMmS);
         assert!(bad(40_000.0).build::<u32>(&rig).is_ok());
         // The same speed at 20 kHz is 3736 counts per sample: within 16 bits.
         let fast = BuildContext::new(crate::rig::Rig::PAPER, 20_000.0).unwrap();

@@ -10,6 +10,7 @@
 //! Coeffs`, state in [`State`]. It sees the motor position measured this tick and the current
 //! commanded on the previous tick (the current that produced this tick's motion).
 
+use crate::ConfigField;
 use fixed::types::{I16F16, I40F24};
 
 use crate::{BuildContext, ConfigError};
@@ -192,7 +193,7 @@ impl Config {
         use ConfigError as E;
         let (rig, rate_hz) = (ctx.rig(), ctx.rate_hz());
         let cpm = rig.counts_per_mm();
-        let fin = |v: f64, f: &'static str| {
+        let fin = |v: f64, f: ConfigField| {
             if v.is_finite() {
                 Ok(v)
             } else {
@@ -201,22 +202,24 @@ impl Config {
         };
         let rest = fin(
             self.following_error_at_rest_mm,
-            "faults.following_error_at_rest_mm",
+            ConfigField::FaultsFollowingErrorAtRestMm,
         )?;
         let at_max = fin(
             self.following_error_at_max_velocity_mm,
-            "faults.following_error_at_max_velocity_mm",
+            ConfigField::FaultsFollowingErrorAtMaxVelocityMm,
         )?;
         if !(rest > 0.0 && rest * cpm <= 1e9) {
-            return Err(E::OutOfRange("faults.following_error_at_rest_mm"));
+            return Err(E::OutOfRange(ConfigField::FaultsFollowingErrorAtRestMm));
         }
         if !(at_max >= rest && at_max * cpm <= 1e9) {
-            return Err(E::OutOfRange("faults.following_error_at_max_velocity_mm"));
+            return Err(E::OutOfRange(
+                ConfigField::FaultsFollowingErrorAtMaxVelocityMm,
+            ));
         }
         // Extra counts of allowed error per count/tick of set-point speed, Q16.
         let vmax_counts_per_tick = max_velocity_mm_s * cpm / rate_hz;
         let slope = (at_max - rest) * cpm / vmax_counts_per_tick;
-        let ticks = |s: f64, f: &'static str| -> Result<u16, ConfigError> {
+        let ticks = |s: f64, f: ConfigField| -> Result<u16, ConfigError> {
             let s = fin(s, f)?;
             let t = s * rate_hz;
             if !(s >= 0.0 && t <= u16::MAX as f64) {
@@ -226,7 +229,7 @@ impl Config {
             let n = (t + 0.5) as u16;
             Ok(if s > 0.0 { n.max(1) } else { 0 })
         };
-        let amps = |a: f64, f: &'static str| -> Result<u32, ConfigError> {
+        let amps = |a: f64, f: ConfigField| -> Result<u32, ConfigError> {
             let a = fin(a, f)?;
             if !(a > 0.0 && a < 32_000.0) {
                 return Err(E::OutOfRange(f));
@@ -234,25 +237,25 @@ impl Config {
             Ok((a * 65_536.0) as u32)
         };
         // Speeds as counts per WINDOW ticks.
-        let per_window = |mm_s: f64, f: &'static str| -> Result<i32, ConfigError> {
+        let per_window = |mm_s: f64, f: ConfigField| -> Result<i32, ConfigError> {
             let c = mm_s * cpm / rate_hz * WINDOW as f64;
             if !(c > 0.0 && c < 1e9) {
                 return Err(E::OutOfRange(f));
             }
             Ok(c as i32)
         };
-        let ratio = fin(self.overspeed_ratio, "faults.overspeed_ratio")?;
+        let ratio = fin(self.overspeed_ratio, ConfigField::FaultsOverspeedRatio)?;
         if !(1.0..=10.0).contains(&ratio) {
-            return Err(E::OutOfRange("faults.overspeed_ratio"));
+            return Err(E::OutOfRange(ConfigField::FaultsOverspeedRatio));
         }
-        let link = fin(self.link_timeout_s, "faults.link_timeout_s")?;
+        let link = fin(self.link_timeout_s, ConfigField::FaultsLinkTimeoutS)?;
         let link_ticks = link * rate_hz;
         if !(link >= 0.0 && link_ticks <= u32::MAX as f64 / 2.0) {
-            return Err(E::OutOfRange("faults.link_timeout_s"));
+            return Err(E::OutOfRange(ConfigField::FaultsLinkTimeoutS));
         }
-        let motion = fin(self.stall_motion_mm, "faults.stall_motion_mm")?;
+        let motion = fin(self.stall_motion_mm, ConfigField::FaultsStallMotionMm)?;
         if !(motion >= 0.0 && motion * cpm <= 1e9) {
-            return Err(E::OutOfRange("faults.stall_motion_mm"));
+            return Err(E::OutOfRange(ConfigField::FaultsStallMotionMm));
         }
         // A detector switched off gets a threshold it can never reach: no per-tick check of
         // "is it on".
@@ -262,26 +265,29 @@ impl Config {
             // Q8, capped at 2^16 (256 extra counts per count/tick): the product with a Q4 speed
             // of at most 2^15 then fits a u32.
             fe_slope_q8: (slope * 256.0).clamp(0.0, 65_536.0) as u32,
-            stall_current: amps(self.stall_current_a, "faults.stall_current_a")?,
+            stall_current: amps(self.stall_current_a, ConfigField::FaultsStallCurrentA)?,
             stall_motion_counts: (motion * cpm) as u32,
-            stall_ticks: ticks_or_never(ticks(self.stall_time_s, "faults.stall_time_s")?),
-            runaway_current: amps(self.runaway_current_a, "faults.runaway_current_a")?,
+            stall_ticks: ticks_or_never(ticks(self.stall_time_s, ConfigField::FaultsStallTimeS)?),
+            runaway_current: amps(self.runaway_current_a, ConfigField::FaultsRunawayCurrentA)?,
             runaway_window_counts: per_window(
-                fin(self.runaway_speed_mm_s, "faults.runaway_speed_mm_s")?,
-                "faults.runaway_speed_mm_s",
+                fin(self.runaway_speed_mm_s, ConfigField::FaultsRunawaySpeedMmS)?,
+                ConfigField::FaultsRunawaySpeedMmS,
             )? as u32,
-            runaway_ticks: ticks_or_never(ticks(self.runaway_time_s, "faults.runaway_time_s")?),
+            runaway_ticks: ticks_or_never(ticks(
+                self.runaway_time_s,
+                ConfigField::FaultsRunawayTimeS,
+            )?),
             overspeed_window_counts: per_window(
                 max_velocity_mm_s * ratio,
-                "faults.overspeed_ratio",
+                ConfigField::FaultsOverspeedRatio,
             )? as u32,
             overspeed_ticks: ticks_or_never(ticks(
                 self.overspeed_time_s,
-                "faults.overspeed_time_s",
+                ConfigField::FaultsOverspeedTimeS,
             )?),
             saturation_ticks: ticks_or_never(ticks(
                 self.saturation_time_s,
-                "faults.saturation_time_s",
+                ConfigField::FaultsSaturationTimeS,
             )?),
             link_timeout_ticks: if link > 0.0 {
                 (link_ticks as u32).max(1)
@@ -370,22 +376,22 @@ impl Coeffs {
         let [rest, slope, stall_a, motion, stall_t, runaway_a, runaway_w, runaway_t, over_w, over_t, sat_t, link] =
             w;
         Ok(Coeffs {
-            fe_rest_counts: counts(rest, "faults.following_error_at_rest_mm")?,
+            fe_rest_counts: counts(rest, ConfigField::FaultsFollowingErrorAtRestMm)?,
             fe_slope_q8: check(
                 slope <= 1 << 16,
                 slope,
-                "faults.following_error_at_max_velocity_mm",
+                ConfigField::FaultsFollowingErrorAtMaxVelocityMm,
             )?,
-            stall_current: amps(stall_a, "faults.stall_current_a")?,
-            stall_motion_counts: counts(motion, "faults.stall_motion_mm")?,
-            stall_ticks: ticks(stall_t, "faults.stall_time_s")?,
-            runaway_current: amps(runaway_a, "faults.runaway_current_a")?,
-            runaway_window_counts: counts(runaway_w, "faults.runaway_speed_mm_s")?,
-            runaway_ticks: ticks(runaway_t, "faults.runaway_time_s")?,
-            overspeed_window_counts: counts(over_w, "faults.overspeed_ratio")?,
-            overspeed_ticks: ticks(over_t, "faults.overspeed_time_s")?,
-            saturation_ticks: ticks(sat_t, "faults.saturation_time_s")?,
-            link_timeout_ticks: check(link <= u32::MAX / 2, link, "faults.link_timeout_s")?,
+            stall_current: amps(stall_a, ConfigField::FaultsStallCurrentA)?,
+            stall_motion_counts: counts(motion, ConfigField::FaultsStallMotionMm)?,
+            stall_ticks: ticks(stall_t, ConfigField::FaultsStallTimeS)?,
+            runaway_current: amps(runaway_a, ConfigField::FaultsRunawayCurrentA)?,
+            runaway_window_counts: counts(runaway_w, ConfigField::FaultsRunawaySpeedMmS)?,
+            runaway_ticks: ticks(runaway_t, ConfigField::FaultsRunawayTimeS)?,
+            overspeed_window_counts: counts(over_w, ConfigField::FaultsOverspeedRatio)?,
+            overspeed_ticks: ticks(over_t, ConfigField::FaultsOverspeedTimeS)?,
+            saturation_ticks: ticks(sat_t, ConfigField::FaultsSaturationTimeS)?,
+            link_timeout_ticks: check(link <= u32::MAX / 2, link, ConfigField::FaultsLinkTimeoutS)?,
         })
     }
 
@@ -575,35 +581,35 @@ mod tests {
                     stall_current_a: f64::NAN,
                     ..Config::PAPER_RIG
                 },
-                "faults.stall_current_a",
+                ConfigField::FaultsStallCurrentA,
             ),
             (
                 Config {
                     following_error_at_max_velocity_mm: 0.5,
                     ..Config::PAPER_RIG
                 },
-                "faults.following_error_at_max_velocity_mm",
+                ConfigField::FaultsFollowingErrorAtMaxVelocityMm,
             ),
             (
                 Config {
                     overspeed_ratio: 0.9,
                     ..Config::PAPER_RIG
                 },
-                "faults.overspeed_ratio",
+                ConfigField::FaultsOverspeedRatio,
             ),
             (
                 Config {
                     stall_time_s: -1.0,
                     ..Config::PAPER_RIG
                 },
-                "faults.stall_time_s",
+                ConfigField::FaultsStallTimeS,
             ),
             (
                 Config {
                     link_timeout_s: f64::INFINITY,
                     ..Config::PAPER_RIG
                 },
-                "faults.link_timeout_s",
+                ConfigField::FaultsLinkTimeoutS,
             ),
         ];
         for (cfg, field) in bad {

@@ -39,6 +39,7 @@
 //! that needs the parameters' `f64` interpolation: Model 3's reverse band at or above its forward
 //! band (a violation misplaces the estimate, never the drive).
 
+use crate::ConfigField;
 use fixed::types::{I13F3, I16F16, I1F31, U11F5};
 
 use crate::blob::{check_header_from, BlobError};
@@ -81,7 +82,7 @@ pub const MAX_BYTES: usize = HEADER
 /// Micrometres in Q16.16 within `[min_um, MAX_ABS_UM]`, as the builders accept them. Not
 /// inlined: one copy for the image's many such fields (flash; loading is never per tick).
 #[inline(never)]
-fn um(r: &mut Stream, min_um: i32, field: &'static str) -> Result<I16F16, BlobError> {
+fn um(r: &mut Stream, min_um: i32, field: ConfigField) -> Result<I16F16, BlobError> {
     let bits = r.i32()?;
     let max = (MAX_ABS_UM as i32) << 16;
     if bits < min_um.saturating_mul(1 << 16) || bits > max {
@@ -90,7 +91,7 @@ fn um(r: &mut Stream, min_um: i32, field: &'static str) -> Result<I16F16, BlobEr
     Ok(I16F16::from_bits(bits))
 }
 
-fn out_of_range(field: &'static str) -> BlobError {
+fn out_of_range(field: ConfigField) -> BlobError {
     BlobError::Invalid(ConfigError::OutOfRange(field))
 }
 
@@ -98,7 +99,7 @@ fn out_of_range(field: &'static str) -> BlobError {
 const ANY: i32 = -(MAX_ABS_UM as i32);
 
 /// A band line: any Q1.31 slope, the offset within the range, a height of zero or more.
-fn read_band(r: &mut Stream, [c, h]: [&'static str; 2]) -> Result<LinearBand, BlobError> {
+fn read_band(r: &mut Stream, [c, h]: [ConfigField; 2]) -> Result<LinearBand, BlobError> {
     Ok(LinearBand {
         m_um_per_count: I1F31::from_bits(r.i32()?),
         offset_um: um(r, ANY, c)?,
@@ -107,8 +108,8 @@ fn read_band(r: &mut Stream, [c, h]: [&'static str; 2]) -> Result<LinearBand, Bl
 }
 
 fn read_model1(r: &mut Stream) -> Result<Model1Coeffs, BlobError> {
-    let band = read_band(r, ["model1.offset_mm", "model1.h_mm"])?;
-    let h_g_um = um(r, 0, "model1.h_g_mm")?;
+    let band = read_band(r, [ConfigField::Model1OffsetMm, ConfigField::Model1HMm])?;
+    let h_g_um = um(r, 0, ConfigField::Model1HGMm)?;
     let mut slope = |field| -> Result<I1F31, BlobError> {
         let s = r.i32()?;
         if s < 0 {
@@ -119,14 +120,14 @@ fn read_model1(r: &mut Stream) -> Result<Model1Coeffs, BlobError> {
     Ok(Model1Coeffs {
         band,
         h_g_um,
-        slope_a_um_per_count: slope("model1.slope_a_mm_per_mm")?,
-        slope_b_um_per_count: slope("model1.slope_b_mm_per_mm")?,
+        slope_a_um_per_count: slope(ConfigField::Model1SlopeAMmPerMm)?,
+        slope_b_um_per_count: slope(ConfigField::Model1SlopeBMmPerMm)?,
         #[cfg(feature = "std")]
         closing: Default::default(),
     })
 }
 
-fn read_scale(r: &mut Stream, field: &'static str) -> Result<Scale, BlobError> {
+fn read_scale(r: &mut Stream, field: ConfigField) -> Result<Scale, BlobError> {
     let mant = r.u32()?;
     let shift = r.u16()?;
     r.u16()?;
@@ -140,14 +141,14 @@ fn read_scale(r: &mut Stream, field: &'static str) -> Result<Scale, BlobError> {
 }
 
 fn read_model2(r: &mut Stream) -> Result<Model2Coeffs, BlobError> {
-    let band = read_band(r, ["model2.offset_mm", "model2.h_mm"])?;
+    let band = read_band(r, [ConfigField::Model2OffsetMm, ConfigField::Model2HMm])?;
     Ok(Model2Coeffs {
         band,
-        h_g_um: um(r, 0, "model2.h_g_mm")?,
-        amp_a_um: um(r, 0, "model2.amplitude_a_mm")?,
-        amp_b_um: um(r, 0, "model2.amplitude_b_mm")?,
-        rate_a: read_scale(r, "model2.rate_a_per_mm")?,
-        rate_b: read_scale(r, "model2.rate_b_per_mm")?,
+        h_g_um: um(r, 0, ConfigField::Model2HGMm)?,
+        amp_a_um: um(r, 0, ConfigField::Model2AmplitudeAMm)?,
+        amp_b_um: um(r, 0, ConfigField::Model2AmplitudeBMm)?,
+        rate_a: read_scale(r, ConfigField::Model2RateAPerMm)?,
+        rate_b: read_scale(r, ConfigField::Model2RateBPerMm)?,
         #[cfg(feature = "std")]
         closing: Default::default(),
     })
@@ -159,7 +160,7 @@ fn read_model2(r: &mut Stream) -> Result<Model2Coeffs, BlobError> {
 fn read_band_table(
     r: &mut Stream,
     mut out: Option<&mut BandCoeffs>,
-    [len_f, x_f, y_f]: [&'static str; 3],
+    [len_f, x_f, y_f]: [ConfigField; 3],
 ) -> Result<(), BlobError> {
     let n = r.u16()? as usize;
     r.u16()?;
@@ -194,7 +195,7 @@ fn read_band_table(
 fn read_transition(
     r: &mut Stream,
     mut out: Option<&mut TransitionCoeffs>,
-    [nd_f, ng_f, d_f, g_f]: [&'static str; 4],
+    [nd_f, ng_f, d_f, g_f]: [ConfigField; 4],
 ) -> Result<(), BlobError> {
     let (n_d, n_g0) = (r.u16()? as usize, r.u16()? as usize);
     if !(2..=MAX_TRANSITION_D).contains(&n_d) {
@@ -239,38 +240,38 @@ fn read_model3(r: &mut Stream, mut m: Option<&mut Model3Coeffs>) -> Result<(), B
         r,
         m.as_deref_mut().map(|m| &mut m.forward_band),
         [
-            "model3.forward_band.len",
-            "model3.forward_band.x_mm",
-            "model3.forward_band.y_um",
+            ConfigField::Model3ForwardBandLen,
+            ConfigField::Model3ForwardBandXMm,
+            ConfigField::Model3ForwardBandYUm,
         ],
     )?;
     read_band_table(
         r,
         m.as_deref_mut().map(|m| &mut m.reverse_band),
         [
-            "model3.reverse_band.len",
-            "model3.reverse_band.x_mm",
-            "model3.reverse_band.y_um",
+            ConfigField::Model3ReverseBandLen,
+            ConfigField::Model3ReverseBandXMm,
+            ConfigField::Model3ReverseBandYUm,
         ],
     )?;
     read_transition(
         r,
         m.as_deref_mut().map(|m| &mut m.forward_transition),
         [
-            "model3.forward_transition.n_d",
-            "model3.forward_transition.n_g0",
-            "model3.forward_transition.d_step_mm",
-            "model3.forward_transition.g0_step_um",
+            ConfigField::Model3ForwardTransitionND,
+            ConfigField::Model3ForwardTransitionNG0,
+            ConfigField::Model3ForwardTransitionDStepMm,
+            ConfigField::Model3ForwardTransitionG0StepUm,
         ],
     )?;
     read_transition(
         r,
         m.map(|m| &mut m.reverse_transition),
         [
-            "model3.reverse_transition.n_d",
-            "model3.reverse_transition.n_g0",
-            "model3.reverse_transition.d_step_mm",
-            "model3.reverse_transition.g0_step_um",
+            ConfigField::Model3ReverseTransitionND,
+            ConfigField::Model3ReverseTransitionNG0,
+            ConfigField::Model3ReverseTransitionDStepMm,
+            ConfigField::Model3ReverseTransitionG0StepUm,
         ],
     )
 }
@@ -279,14 +280,14 @@ fn read_bidir(r: &mut Stream, mut out: Option<&mut BidirCoeffs>) -> Result<(), B
     let rows = r.u16()? as usize;
     r.u16()?;
     if !(2..=MAX_BIDIR_ROWS).contains(&rows) {
-        return Err(out_of_range("bidir_table.rows"));
+        return Err(out_of_range(ConfigField::BidirTableRows));
     }
     let x0_counts = r.i32()?;
     let step_counts = r.u32()?;
     // A step of one count at least; the span as the builder derives it (saturating: the tick
     // clamps positions to it in `i64`, any value is safe).
     if step_counts == 0 {
-        return Err(out_of_range("bidir_table.step_mm"));
+        return Err(out_of_range(ConfigField::BidirTableStepMm));
     }
     let span = step_counts.saturating_mul(rows as u32 - 1);
     for i in 0..MAX_BIDIR_ROWS {
@@ -321,11 +322,11 @@ fn read_model4(r: &mut Stream) -> Result<Model4Coeffs, BlobError> {
         *w = r.i32()?;
         // Narrowest first, one count at least, at most 2^24 (see `Model4Params::build`).
         if !(1..=1 << 24).contains(w) {
-            return Err(out_of_range("model4.widths_mm"));
+            return Err(out_of_range(ConfigField::Model4WidthsMm));
         }
         if *w <= narrower {
             return Err(BlobError::Invalid(ConfigError::NotMonotonic(
-                "model4.widths_mm",
+                ConfigField::Model4WidthsMm,
             )));
         }
         narrower = *w;
@@ -338,25 +339,25 @@ fn read_model4(r: &mut Stream) -> Result<Model4Coeffs, BlobError> {
     }
     let x_ref_counts = r.i32()?;
     if x_ref_counts.unsigned_abs() > i32::MAX as u32 / 2 {
-        return Err(out_of_range("model4.x_ref_mm"));
+        return Err(out_of_range(ConfigField::Model4XRefMm));
     }
-    let offset_um = um(r, ANY, "model4.offset_um")?;
+    let offset_um = um(r, ANY, ConfigField::Model4OffsetUm)?;
     let slope_q31 = r.i32()?;
     if slope_q31 == i32::MIN {
-        return Err(out_of_range("model4.slope_um_per_mm"));
+        return Err(out_of_range(ConfigField::Model4SlopeUmPerMm));
     }
     let hat_start_counts = r.i32()?;
     if hat_start_counts.unsigned_abs() > 1 << 30 {
-        return Err(out_of_range("model4.knot_start_mm"));
+        return Err(out_of_range(ConfigField::Model4KnotStartMm));
     }
     // A step of 1..=2^24 counts.
     let hat_recip_q32 = r.u32()?;
     if hat_recip_q32 < 1 << 8 {
-        return Err(out_of_range("model4.knot_step_mm"));
+        return Err(out_of_range(ConfigField::Model4KnotStepMm));
     }
     let mut knot_um = [I16F16::ZERO; N_KNOTS];
     for k in knot_um.iter_mut() {
-        *k = um(r, ANY, "model4.knot_um")?;
+        *k = um(r, ANY, ConfigField::Model4KnotUm)?;
     }
     // Periods of 16 counts to 2^31 counts.
     let rate = |r: &mut Stream, field| -> Result<u32, BlobError> {
@@ -367,18 +368,21 @@ fn read_model4(r: &mut Stream) -> Result<Model4Coeffs, BlobError> {
             Err(out_of_range(field))
         }
     };
-    let pitch_rate = rate(r, "model4.pitch_mm")?;
+    let pitch_rate = rate(r, ConfigField::Model4PitchMm)?;
     let pitch_um = [
-        um(r, ANY, "model4.pitch_um")?,
-        um(r, ANY, "model4.pitch_um")?,
+        um(r, ANY, ConfigField::Model4PitchUm)?,
+        um(r, ANY, ConfigField::Model4PitchUm)?,
     ];
-    let turn_rate = rate(r, "model4.turn_mm")?;
-    let turn_um = [um(r, ANY, "model4.turn_um")?, um(r, ANY, "model4.turn_um")?];
-    let current_um_per_a = um(r, ANY, "model4.current_um_per_a")?;
-    let current_lp_um_per_a = um(r, ANY, "model4.current_lp_um_per_a")?;
+    let turn_rate = rate(r, ConfigField::Model4TurnMm)?;
+    let turn_um = [
+        um(r, ANY, ConfigField::Model4TurnUm)?,
+        um(r, ANY, ConfigField::Model4TurnUm)?,
+    ];
+    let current_um_per_a = um(r, ANY, ConfigField::Model4CurrentUmPerA)?;
+    let current_lp_um_per_a = um(r, ANY, ConfigField::Model4CurrentLpUmPerA)?;
     let model2_q16 = r.i32()?;
     if model2_q16.unsigned_abs() > 8 << 16 {
-        return Err(out_of_range("model4.model2_weight"));
+        return Err(out_of_range(ConfigField::Model4Model2Weight));
     }
     Ok(Model4Coeffs {
         weight_total: weight_total(&weight_q24),

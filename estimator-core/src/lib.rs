@@ -11,6 +11,7 @@
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
+pub mod field;
 pub mod rig;
 pub mod units;
 
@@ -37,6 +38,7 @@ pub mod vectors;
 #[cfg(feature = "std")]
 pub mod reference;
 
+pub use field::ConfigField;
 pub use fixed;
 
 /// What every per-tick configuration is built for: the drive train's geometry and the control
@@ -60,10 +62,10 @@ impl BuildContext {
     pub fn new(rig: rig::Rig, rate_hz: f64) -> Result<BuildContext, ConfigError> {
         rig.validate()?;
         if !rate_hz.is_finite() {
-            return Err(ConfigError::NotFinite("drive.rate_hz"));
+            return Err(ConfigError::NotFinite(ConfigField::DriveRateHz));
         }
         if !(100.0..=100_000.0).contains(&rate_hz) {
-            return Err(ConfigError::OutOfRange("drive.rate_hz"));
+            return Err(ConfigError::OutOfRange(ConfigField::DriveRateHz));
         }
         Ok(BuildContext { rig, rate_hz })
     }
@@ -83,20 +85,20 @@ impl BuildContext {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ConfigError {
     /// The field is NaN or infinite.
-    NotFinite(&'static str),
+    NotFinite(ConfigField),
     /// The field is outside the range the fixed-point formats can carry.
-    OutOfRange(&'static str),
+    OutOfRange(ConfigField),
     /// A table axis is not strictly increasing.
-    NotMonotonic(&'static str),
+    NotMonotonic(ConfigField),
     /// A table axis that must be evenly spaced is not.
-    NotUniform(&'static str),
+    NotUniform(ConfigField),
     /// A table has more points than the firmware reserves, or too few to interpolate.
-    TableSize(&'static str),
+    TableSize(ConfigField),
 }
 
 impl ConfigError {
-    /// The offending field, e.g. `"model1.h_mm"`.
-    pub fn field(&self) -> &'static str {
+    /// The offending field, e.g. `model1.h_mm`.
+    pub fn field(&self) -> ConfigField {
         match *self {
             ConfigError::NotFinite(f)
             | ConfigError::OutOfRange(f)
@@ -132,19 +134,19 @@ mod tests {
         assert_eq!(BuildContext::new(paper, 2000.0), Ok(BuildContext::PAPER));
         for rate in [f64::NAN, f64::INFINITY, 0.0, 50.0, 200_000.0] {
             let e = BuildContext::new(paper, rate).unwrap_err();
-            assert_eq!(e.field(), "drive.rate_hz", "{rate}");
+            assert_eq!(e.field(), ConfigField::DriveRateHz, "{rate}");
         }
         let mut broken = paper;
         broken.gear_ratio = f64::NAN;
         assert_eq!(
             BuildContext::new(broken, 2000.0).unwrap_err().field(),
-            "rig.gear_ratio"
+            ConfigField::RigGearRatio
         );
         let mut broken = paper;
         broken.pulley_teeth = 0;
         assert_eq!(
             BuildContext::new(broken, 2000.0).unwrap_err().field(),
-            "rig.pulley_teeth"
+            ConfigField::RigPulleyTeeth
         );
     }
 }

@@ -37,6 +37,7 @@
 //!   A/(count/tick²) (< 512); `build` names the field that does not fit;
 //! - integrator I8F24 amperes, output I16F16 amperes, both within ±max_current (<= 127 A).
 
+use crate::ConfigField;
 use fixed::types::{I16F16, I1F31, I24F8, I8F24};
 
 #[cfg(test)]
@@ -98,50 +99,50 @@ impl Config {
             self.kp_a_per_mm,
             1.0 / counts_per_mm,
             1.0,
-            "pid.kp_a_per_mm",
+            ConfigField::PidKpAPerMm,
         )?;
         let ki_a_per_count_tick = gain::<I1F31>(
             self.ki_a_per_mm_s,
             1.0 / (counts_per_mm * rate),
             1.0 / 256.0,
-            "pid.ki_a_per_mm_s",
+            ConfigField::PidKiAPerMmS,
         )?;
         let kd_a_tick_per_count = gain::<I16F16>(
             self.kd_a_s_per_mm,
             rate / counts_per_mm,
             16.0,
-            "pid.kd_a_s_per_mm",
+            ConfigField::PidKdASPerMm,
         )?;
         let kff_vel_a_tick_per_count = gain::<I16F16>(
             self.kff_vel_a_s_per_mm,
             rate / counts_per_mm,
             16.0,
-            "pid.kff_vel_a_s_per_mm",
+            ConfigField::PidKffVelASPerMm,
         )?;
         let kff_acc_a_tick2_per_count = gain::<I16F16>(
             self.kff_acc_a_s2_per_mm,
             rate * rate / counts_per_mm,
             512.0,
-            "pid.kff_acc_a_s2_per_mm",
+            ConfigField::PidKffAccAS2PerMm,
         )?;
         let cutoff = self.derivative_cutoff_hz;
         if !cutoff.is_finite() {
-            return Err(ConfigError::NotFinite("pid.derivative_cutoff_hz"));
+            return Err(ConfigError::NotFinite(ConfigField::PidDerivativeCutoffHz));
         }
         if !(cutoff > 0.0 && cutoff <= rate / 2.0) {
-            return Err(ConfigError::OutOfRange("pid.derivative_cutoff_hz"));
+            return Err(ConfigError::OutOfRange(ConfigField::PidDerivativeCutoffHz));
         }
         let wt = 2.0 * core::f64::consts::PI * cutoff / rate;
         let derivative_alpha = I1F31::checked_from_num(wt / (1.0 + wt))
             .filter(|a| *a > 0)
-            .ok_or(ConfigError::OutOfRange("pid.derivative_cutoff_hz"))?;
+            .ok_or(ConfigError::OutOfRange(ConfigField::PidDerivativeCutoffHz))?;
         let max = self.max_current_a;
         if !max.is_finite() {
-            return Err(ConfigError::NotFinite("pid.max_current_a"));
+            return Err(ConfigError::NotFinite(ConfigField::PidMaxCurrentA));
         }
         let max_current_a = I16F16::checked_from_num(max)
             .filter(|m| *m > 0 && *m <= MAX_CURRENT_A)
-            .ok_or(ConfigError::OutOfRange("pid.max_current_a"))?;
+            .ok_or(ConfigError::OutOfRange(ConfigField::PidMaxCurrentA))?;
         Ok(Coeffs {
             kp_a_per_count,
             ki_a_per_count_tick,
@@ -175,7 +176,7 @@ fn gain<F: fixed::traits::Fixed>(
     value: f64,
     scale: f64,
     max: f64,
-    field: &'static str,
+    field: ConfigField,
 ) -> Result<F, ConfigError> {
     if !value.is_finite() {
         return Err(ConfigError::NotFinite(field));
@@ -317,25 +318,25 @@ impl Coeffs {
         };
         let [kp, ki, kd, alpha, kff_vel, kff_acc, max] = b;
         if alpha <= 0 {
-            return Err(ConfigError::OutOfRange("pid.derivative_cutoff_hz"));
+            return Err(ConfigError::OutOfRange(ConfigField::PidDerivativeCutoffHz));
         }
         if !(max > 0 && max <= MAX_CURRENT_A.to_bits()) {
-            return Err(ConfigError::OutOfRange("pid.max_current_a"));
+            return Err(ConfigError::OutOfRange(ConfigField::PidMaxCurrentA));
         }
         Ok(Coeffs {
-            kp_a_per_count: I8F24::from_bits(gain(kp, 24, "pid.kp_a_per_mm")?),
-            ki_a_per_count_tick: I1F31::from_bits(gain(ki, 23, "pid.ki_a_per_mm_s")?),
-            kd_a_tick_per_count: I16F16::from_bits(gain(kd, 20, "pid.kd_a_s_per_mm")?),
+            kp_a_per_count: I8F24::from_bits(gain(kp, 24, ConfigField::PidKpAPerMm)?),
+            ki_a_per_count_tick: I1F31::from_bits(gain(ki, 23, ConfigField::PidKiAPerMmS)?),
+            kd_a_tick_per_count: I16F16::from_bits(gain(kd, 20, ConfigField::PidKdASPerMm)?),
             derivative_alpha: I1F31::from_bits(alpha),
             kff_vel_a_tick_per_count: I16F16::from_bits(gain(
                 kff_vel,
                 20,
-                "pid.kff_vel_a_s_per_mm",
+                ConfigField::PidKffVelASPerMm,
             )?),
             kff_acc_a_tick2_per_count: I16F16::from_bits(gain(
                 kff_acc,
                 25,
-                "pid.kff_acc_a_s2_per_mm",
+                ConfigField::PidKffAccAS2PerMm,
             )?),
             max_current_a: I16F16::from_bits(max),
         })
@@ -511,98 +512,98 @@ mod tests {
                 kp_a_per_mm: f64::NAN,
                 ..ok
             }),
-            "pid.kp_a_per_mm"
+            ConfigField::PidKpAPerMm
         );
         assert_eq!(
             field(Config {
                 kp_a_per_mm: -1.0,
                 ..ok
             }),
-            "pid.kp_a_per_mm"
+            ConfigField::PidKpAPerMm
         );
         assert_eq!(
             field(Config {
                 kp_a_per_mm: 2000.0,
                 ..ok
             }),
-            "pid.kp_a_per_mm"
+            ConfigField::PidKpAPerMm
         );
         assert_eq!(
             field(Config {
                 ki_a_per_mm_s: 1e-9,
                 ..ok
             }),
-            "pid.ki_a_per_mm_s"
+            ConfigField::PidKiAPerMmS
         );
         assert_eq!(
             field(Config {
                 ki_a_per_mm_s: 1e12,
                 ..ok
             }),
-            "pid.ki_a_per_mm_s"
+            ConfigField::PidKiAPerMmS
         );
         assert_eq!(
             field(Config {
                 kd_a_s_per_mm: f64::INFINITY,
                 ..ok
             }),
-            "pid.kd_a_s_per_mm"
+            ConfigField::PidKdASPerMm
         );
         assert_eq!(
             field(Config {
                 kd_a_s_per_mm: 1e5,
                 ..ok
             }),
-            "pid.kd_a_s_per_mm"
+            ConfigField::PidKdASPerMm
         );
         assert_eq!(
             field(Config {
                 kff_vel_a_s_per_mm: -0.1,
                 ..ok
             }),
-            "pid.kff_vel_a_s_per_mm"
+            ConfigField::PidKffVelASPerMm
         );
         assert_eq!(
             field(Config {
                 kff_acc_a_s2_per_mm: 1e3,
                 ..ok
             }),
-            "pid.kff_acc_a_s2_per_mm"
+            ConfigField::PidKffAccAS2PerMm
         );
         assert_eq!(
             field(Config {
                 derivative_cutoff_hz: 0.0,
                 ..ok
             }),
-            "pid.derivative_cutoff_hz"
+            ConfigField::PidDerivativeCutoffHz
         );
         assert_eq!(
             field(Config {
                 derivative_cutoff_hz: 1001.0,
                 ..ok
             }),
-            "pid.derivative_cutoff_hz"
+            ConfigField::PidDerivativeCutoffHz
         );
         assert_eq!(
             field(Config {
                 derivative_cutoff_hz: f64::NAN,
                 ..ok
             }),
-            "pid.derivative_cutoff_hz"
+            ConfigField::PidDerivativeCutoffHz
         );
         assert_eq!(
             field(Config {
                 max_current_a: 0.0,
                 ..ok
             }),
-            "pid.max_current_a"
+            ConfigField::PidMaxCurrentA
         );
         assert_eq!(
             field(Config {
                 max_current_a: 128.0,
                 ..ok
             }),
-            "pid.max_current_a"
+            ConfigField::PidMaxCurrentA
         );
         // Zero switches a term off.
         assert!(Config {
@@ -826,7 +827,7 @@ mod tests {
         };
         assert_eq!(
             at_bound.build(&BuildContext::PAPER).unwrap_err().field(),
-            "pid.kd_a_s_per_mm"
+            ConfigField::PidKdASPerMm
         );
     }
 

@@ -6,6 +6,8 @@
 //! revolution), a common XL pulley, which puts one motor count at 0.535 um of belt, close to the
 //! 0.5 um resolution of the rig's linear scale.
 
+use crate::ConfigField;
+
 /// Mechanical constants that convert motor encoder counts into nominal carriage travel.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Rig {
@@ -80,16 +82,16 @@ impl Rig {
     pub fn validate(&self) -> Result<(), crate::ConfigError> {
         use crate::ConfigError as E;
         if self.encoder_lines == 0 || self.encoder_lines > 1 << 20 {
-            return Err(E::OutOfRange("rig.encoder_lines"));
+            return Err(E::OutOfRange(ConfigField::RigEncoderLines));
         }
         if !positive_below(self.gear_ratio, 1e4) {
-            return Err(E::OutOfRange("rig.gear_ratio"));
+            return Err(E::OutOfRange(ConfigField::RigGearRatio));
         }
         if !positive_below(self.belt_pitch_mm, 1e3) {
-            return Err(E::OutOfRange("rig.belt_pitch_mm"));
+            return Err(E::OutOfRange(ConfigField::RigBeltPitchMm));
         }
         if self.pulley_teeth == 0 || self.pulley_teeth > 1000 {
-            return Err(E::OutOfRange("rig.pulley_teeth"));
+            return Err(E::OutOfRange(ConfigField::RigPulleyTeeth));
         }
         Ok(())
     }

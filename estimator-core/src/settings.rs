@@ -6,6 +6,7 @@
 //! The model parameters are not here: they come with the calibration blob, which records the
 //! geometry it was made for.
 
+use crate::ConfigField;
 use belt_link::bytes::{Fields, Reader, Short, Writer};
 use belt_link::ModelKind;
 
@@ -137,10 +138,10 @@ impl Settings {
     pub fn set(&mut self, key: u8, value: f64) -> Result<(), SettingsError> {
         let f = field(key).ok_or(SettingsError::UnknownKey(key))?;
         if !value.is_finite() {
-            return Err(SettingsError::Invalid(ConfigError::NotFinite(f.name)));
+            return Err(SettingsError::Invalid(ConfigError::NotFinite(f.field)));
         }
         if !(value >= f.min && value <= f.max) || (f.whole && value != (value as i64) as f64) {
-            return Err(SettingsError::Invalid(ConfigError::OutOfRange(f.name)));
+            return Err(SettingsError::Invalid(ConfigError::OutOfRange(f.field)));
         }
         (f.set)(self, value);
         Ok(())
@@ -338,8 +339,8 @@ impl std::error::Error for SettingsError {}
 pub struct Field {
     /// Its key on the link and in the record.
     pub key: u8,
-    /// Its name, as refusals give it.
-    pub name: &'static str,
+    /// The field, as refusals name it.
+    pub field: ConfigField,
     /// Its unit, for people.
     pub unit: &'static str,
     /// Smallest value the field's type holds.
@@ -352,6 +353,13 @@ pub struct Field {
     set: fn(&mut Settings, f64),
 }
 
+impl Field {
+    /// Its name, as refusals give it.
+    pub const fn name(&self) -> &'static str {
+        self.field.name()
+    }
+}
+
 /// The field with key `key`.
 pub fn field(key: u8) -> Option<&'static Field> {
     FIELDS.iter().find(|f| f.key == key)
@@ -359,24 +367,27 @@ pub fn field(key: u8) -> Option<&'static Field> {
 
 /// The field named `name`.
 pub fn field_named(name: &str) -> Option<&'static Field> {
-    FIELDS.iter().find(|f| f.name == name)
+    FIELDS.iter().find(|f| f.field.name() == name)
 }
 
 /// The key of the field a [`ConfigError`] names (0xff if none does).
 pub fn key_of(e: &ConfigError) -> u8 {
-    FIELD_NAMES
-        .iter()
-        .position(|n| *n == e.field())
-        .map_or(0xff, |k| k as u8)
+    // The settings fields come first among the `ConfigField`s, in key order (tested).
+    let k = e.field() as u8;
+    if (k as usize) < FIELD_COUNT {
+        k
+    } else {
+        0xff
+    }
 }
 
 const INF: f64 = f64::INFINITY;
 
 macro_rules! real {
-    ($key:expr, $name:expr, $unit:expr, $($path:ident).+) => {
+    ($key:expr, $field:expr, $unit:expr, $($path:ident).+) => {
         Field {
             key: $key,
-            name: $name,
+            field: $field,
             unit: $unit,
             min: -INF,
             max: INF,
@@ -388,10 +399,10 @@ macro_rules! real {
 }
 
 macro_rules! flag {
-    ($key:expr, $name:expr, $($path:ident).+) => {
+    ($key:expr, $field:expr, $($path:ident).+) => {
         Field {
             key: $key,
-            name: $name,
+            field: $field,
             unit: "0 or 1",
             min: 0.0,
             max: 1.0,
@@ -405,22 +416,10 @@ macro_rules! flag {
 /// Every field, in key order.
 pub static FIELDS: [Field; 40] = TABLE;
 
-/// The fields' names by key, without the table's accessors: what the drive needs to name a
-/// refused field on the link (the accessors would link the `f64` checks into the firmware).
-pub const FIELD_NAMES: [&str; FIELD_COUNT] = {
-    let mut out = [""; FIELD_COUNT];
-    let mut i = 0;
-    while i < FIELD_COUNT {
-        out[i] = TABLE[i].name;
-        i += 1;
-    }
-    out
-};
-
 const TABLE: [Field; 40] = [
     Field {
         key: 0,
-        name: "rig.encoder_lines",
+        field: ConfigField::RigEncoderLines,
         unit: "lines/rev",
         min: 1.0,
         max: (1u32 << 20) as f64,
@@ -428,11 +427,16 @@ const TABLE: [Field; 40] = [
         get: |s| s.rig.encoder_lines as f64,
         set: |s, v| s.rig.encoder_lines = v as u32,
     },
-    real!(1, "rig.gear_ratio", "motor rev/pulley rev", rig.gear_ratio),
-    real!(2, "rig.belt_pitch_mm", "mm", rig.belt_pitch_mm),
+    real!(
+        1,
+        ConfigField::RigGearRatio,
+        "motor rev/pulley rev",
+        rig.gear_ratio
+    ),
+    real!(2, ConfigField::RigBeltPitchMm, "mm", rig.belt_pitch_mm),
     Field {
         key: 3,
-        name: "rig.pulley_teeth",
+        field: ConfigField::RigPulleyTeeth,
         unit: "teeth",
         min: 1.0,
         max: 1000.0,
@@ -440,92 +444,130 @@ const TABLE: [Field; 40] = [
         get: |s| s.rig.pulley_teeth as f64,
         set: |s, v| s.rig.pulley_teeth = v as u32,
     },
-    real!(4, "drive.rate_hz", "Hz", rate_hz),
-    real!(5, "drive.travel_min_mm", "mm", travel_min_mm),
-    real!(6, "drive.travel_max_mm", "mm", travel_max_mm),
-    real!(7, "drive.travel_margin_mm", "mm", travel_margin_mm),
-    real!(8, "drive.max_velocity_mm_s", "mm/s", max_velocity_mm_s),
-    real!(9, "drive.max_accel_mm_s2", "mm/s^2", max_accel_mm_s2),
-    real!(10, "encoder.max_speed_mm_s", "mm/s", encoder_max_speed_mm_s),
+    real!(4, ConfigField::DriveRateHz, "Hz", rate_hz),
+    real!(5, ConfigField::DriveTravelMinMm, "mm", travel_min_mm),
+    real!(6, ConfigField::DriveTravelMaxMm, "mm", travel_max_mm),
+    real!(7, ConfigField::DriveTravelMarginMm, "mm", travel_margin_mm),
+    real!(
+        8,
+        ConfigField::DriveMaxVelocityMmS,
+        "mm/s",
+        max_velocity_mm_s
+    ),
+    real!(9, ConfigField::DriveMaxAccelMmS2, "mm/s^2", max_accel_mm_s2),
+    real!(
+        10,
+        ConfigField::EncoderMaxSpeedMmS,
+        "mm/s",
+        encoder_max_speed_mm_s
+    ),
     flag!(
         11,
-        "polarity.motor_encoder_inverted",
+        ConfigField::PolarityMotorEncoderInverted,
         polarity.motor_encoder_inverted
     ),
-    flag!(12, "polarity.scale_inverted", polarity.scale_inverted),
-    flag!(13, "polarity.current_inverted", polarity.current_inverted),
-    real!(14, "pid.kp_a_per_mm", "A/mm", pid.kp_a_per_mm),
-    real!(15, "pid.ki_a_per_mm_s", "A/(mm s)", pid.ki_a_per_mm_s),
-    real!(16, "pid.kd_a_s_per_mm", "A s/mm", pid.kd_a_s_per_mm),
+    flag!(
+        12,
+        ConfigField::PolarityScaleInverted,
+        polarity.scale_inverted
+    ),
+    flag!(
+        13,
+        ConfigField::PolarityCurrentInverted,
+        polarity.current_inverted
+    ),
+    real!(14, ConfigField::PidKpAPerMm, "A/mm", pid.kp_a_per_mm),
+    real!(15, ConfigField::PidKiAPerMmS, "A/(mm s)", pid.ki_a_per_mm_s),
+    real!(16, ConfigField::PidKdASPerMm, "A s/mm", pid.kd_a_s_per_mm),
     real!(
         17,
-        "pid.derivative_cutoff_hz",
+        ConfigField::PidDerivativeCutoffHz,
         "Hz",
         pid.derivative_cutoff_hz
     ),
     real!(
         18,
-        "pid.kff_vel_a_s_per_mm",
+        ConfigField::PidKffVelASPerMm,
         "A s/mm",
         pid.kff_vel_a_s_per_mm
     ),
     real!(
         19,
-        "pid.kff_acc_a_s2_per_mm",
+        ConfigField::PidKffAccAS2PerMm,
         "A s^2/mm",
         pid.kff_acc_a_s2_per_mm
     ),
-    real!(20, "pid.max_current_a", "A", pid.max_current_a),
+    real!(20, ConfigField::PidMaxCurrentA, "A", pid.max_current_a),
     real!(
         21,
-        "faults.following_error_at_rest_mm",
+        ConfigField::FaultsFollowingErrorAtRestMm,
         "mm",
         faults.following_error_at_rest_mm
     ),
     real!(
         22,
-        "faults.following_error_at_max_velocity_mm",
+        ConfigField::FaultsFollowingErrorAtMaxVelocityMm,
         "mm",
         faults.following_error_at_max_velocity_mm
     ),
-    real!(23, "faults.stall_current_a", "A", faults.stall_current_a),
-    real!(24, "faults.stall_motion_mm", "mm", faults.stall_motion_mm),
-    real!(25, "faults.stall_time_s", "s", faults.stall_time_s),
+    real!(
+        23,
+        ConfigField::FaultsStallCurrentA,
+        "A",
+        faults.stall_current_a
+    ),
+    real!(
+        24,
+        ConfigField::FaultsStallMotionMm,
+        "mm",
+        faults.stall_motion_mm
+    ),
+    real!(25, ConfigField::FaultsStallTimeS, "s", faults.stall_time_s),
     real!(
         26,
-        "faults.runaway_current_a",
+        ConfigField::FaultsRunawayCurrentA,
         "A",
         faults.runaway_current_a
     ),
     real!(
         27,
-        "faults.runaway_speed_mm_s",
+        ConfigField::FaultsRunawaySpeedMmS,
         "mm/s",
         faults.runaway_speed_mm_s
     ),
-    real!(28, "faults.runaway_time_s", "s", faults.runaway_time_s),
+    real!(
+        28,
+        ConfigField::FaultsRunawayTimeS,
+        "s",
+        faults.runaway_time_s
+    ),
     real!(
         29,
-        "faults.overspeed_ratio",
+        ConfigField::FaultsOverspeedRatio,
         "x max velocity",
         faults.overspeed_ratio
     ),
-    real!(30, "faults.overspeed_time_s", "s", faults.overspeed_time_s),
+    real!(
+        30,
+        ConfigField::FaultsOverspeedTimeS,
+        "s",
+        faults.overspeed_time_s
+    ),
     real!(
         31,
-        "faults.saturation_time_s",
+        ConfigField::FaultsSaturationTimeS,
         "s",
         faults.saturation_time_s
     ),
     real!(
         32,
-        "faults.link_timeout_s",
+        ConfigField::FaultsLinkTimeoutS,
         "s (0 = off)",
         faults.link_timeout_s
     ),
     Field {
         key: 33,
-        name: "drive.initial_model",
+        field: ConfigField::DriveInitialModel,
         unit: "0 none, 1-3 Models 1-3, 4 backlash, 5 bidirectional table, 6 Model 4",
         min: 0.0,
         max: (ModelKind::ALL.len() - 1) as f64,
@@ -533,12 +575,26 @@ const TABLE: [Field; 40] = [
         get: |s| s.initial_model as u8 as f64,
         set: |s, v| s.initial_model = ModelKind::from_u8(v as u8).unwrap_or_default(),
     },
-    flag!(34, "homing.towards_positive", homing.towards_positive),
-    real!(35, "homing.velocity_mm_s", "mm/s", homing.velocity_mm_s),
-    real!(36, "homing.current_a", "A", homing.current_a),
-    real!(37, "homing.detect_error_mm", "mm", homing.detect_error_mm),
-    real!(38, "homing.position_mm", "mm", homing.position_mm),
-    real!(39, "homing.backoff_mm", "mm", homing.backoff_mm),
+    flag!(
+        34,
+        ConfigField::HomingTowardsPositive,
+        homing.towards_positive
+    ),
+    real!(
+        35,
+        ConfigField::HomingVelocityMmS,
+        "mm/s",
+        homing.velocity_mm_s
+    ),
+    real!(36, ConfigField::HomingCurrentA, "A", homing.current_a),
+    real!(
+        37,
+        ConfigField::HomingDetectErrorMm,
+        "mm",
+        homing.detect_error_mm
+    ),
+    real!(38, ConfigField::HomingPositionMm, "mm", homing.position_mm),
+    real!(39, ConfigField::HomingBackoffMm, "mm", homing.backoff_mm),
 ];
 
 #[cfg(test)]
@@ -548,10 +604,14 @@ mod tests {
     #[test]
     fn keys_are_their_index_and_names_unique() {
         for (i, f) in FIELDS.iter().enumerate() {
-            assert_eq!(f.key as usize, i, "{}", f.name);
-            assert_eq!(FIELD_NAMES[i], f.name);
-            assert_eq!(key_of(&ConfigError::OutOfRange(f.name)), f.key);
-            assert_eq!(field_named(f.name).map(|g| g.key), Some(f.key));
+            assert_eq!(f.key as usize, i, "{}", f.name());
+            assert_eq!(f.field as usize, i, "{}", f.name());
+            assert_eq!(key_of(&ConfigError::OutOfRange(f.field)), f.key);
+            assert_eq!(field_named(f.name()).map(|g| g.key), Some(f.key));
+        }
+        // Every other field is no settings key.
+        for f in &ConfigField::ALL[FIELD_COUNT..] {
+            assert_eq!(key_of(&ConfigError::OutOfRange(*f)), 0xff, "{f}");
         }
     }
 
@@ -576,7 +636,7 @@ mod tests {
                 v * 1.5 + 0.25
             };
             s.set(f.key, new).unwrap();
-            assert_eq!(s.get(f.key), Some(new), "{}", f.name);
+            assert_eq!(s.get(f.key), Some(new), "{}", f.name());
         }
         let mut buf = [0u8; ENCODED_LEN];
         assert_eq!(s.encode(&mut buf), Ok(ENCODED_LEN));
@@ -603,7 +663,7 @@ mod tests {
         assert_eq!(
             raw.settings(),
             Err(SettingsError::Invalid(ConfigError::NotFinite(
-                "rig.gear_ratio"
+                ConfigField::RigGearRatio
             )))
         );
         // The same bytes as the checked record.
@@ -633,11 +693,11 @@ mod tests {
             Err(SettingsError::Invalid(e)) => e.field(),
             other => panic!("{other:?}"),
         };
-        assert_eq!(e(s.set(0, 0.0)), "rig.encoder_lines");
-        assert_eq!(e(s.set(0, 1.5)), "rig.encoder_lines");
-        assert_eq!(e(s.set(1, f64::NAN)), "rig.gear_ratio");
-        assert_eq!(e(s.set(11, 2.0)), "polarity.motor_encoder_inverted");
-        assert_eq!(e(s.set(33, 7.0)), "drive.initial_model");
+        assert_eq!(e(s.set(0, 0.0)), ConfigField::RigEncoderLines);
+        assert_eq!(e(s.set(0, 1.5)), ConfigField::RigEncoderLines);
+        assert_eq!(e(s.set(1, f64::NAN)), ConfigField::RigGearRatio);
+        assert_eq!(e(s.set(11, 2.0)), ConfigField::PolarityMotorEncoderInverted);
+        assert_eq!(e(s.set(33, 7.0)), ConfigField::DriveInitialModel);
         assert_eq!(s.set(200, 1.0), Err(SettingsError::UnknownKey(200)));
         assert_eq!(s, Settings::PAPER, "refused values change nothing");
 
@@ -658,7 +718,7 @@ mod tests {
         assert!(matches!(
             Settings::decode(&bad),
             Err(SettingsError::Invalid(ConfigError::NotFinite(
-                "rig.encoder_lines"
+                ConfigField::RigEncoderLines
             )))
         ));
     }

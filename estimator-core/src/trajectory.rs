@@ -32,6 +32,7 @@
 //! deceleration to rest, then starts a fresh move back: a reversal passes through zero velocity
 //! for exactly one tick and never steps the velocity.
 
+use crate::ConfigField;
 use fixed::types::I40F24;
 
 #[cfg(test)]
@@ -103,20 +104,20 @@ impl Config {
             self.velocity_mm_s,
             counts_per_mm / rate_hz,
             MAX_VELOCITY_BITS,
-            "trajectory.velocity_mm_s",
+            ConfigField::TrajectoryVelocityMmS,
         )?;
         let per_tick2 = counts_per_mm / (rate_hz * rate_hz);
         let acceleration = grid_floor(
             self.acceleration_mm_s2,
             per_tick2,
             MAX_ACCEL_BITS,
-            "trajectory.acceleration_mm_s2",
+            ConfigField::TrajectoryAccelerationMmS2,
         )?;
         let deceleration = grid_floor(
             self.deceleration_mm_s2,
             per_tick2,
             MAX_ACCEL_BITS,
-            "trajectory.deceleration_mm_s2",
+            ConfigField::TrajectoryDecelerationMmS2,
         )?;
         Coeffs::new(
             I40F24::from_bits(velocity as i64),
@@ -137,7 +138,7 @@ fn grid_floor(
     value: f64,
     scale: f64,
     max_bits: u64,
-    field: &'static str,
+    field: ConfigField,
 ) -> Result<u64, ConfigError> {
     if !value.is_finite() {
         return Err(ConfigError::NotFinite(field));
@@ -190,17 +191,17 @@ impl Coeffs {
         let velocity = in_range(
             velocity_counts_per_tick,
             MAX_VELOCITY_BITS,
-            "trajectory.velocity_mm_s",
+            ConfigField::TrajectoryVelocityMmS,
         )?;
         let accel = in_range(
             acceleration_counts_per_tick2,
             MAX_ACCEL_BITS,
-            "trajectory.acceleration_mm_s2",
+            ConfigField::TrajectoryAccelerationMmS2,
         )? as u32;
         let decel = in_range(
             deceleration_counts_per_tick2,
             MAX_ACCEL_BITS,
-            "trajectory.deceleration_mm_s2",
+            ConfigField::TrajectoryDecelerationMmS2,
         )? as u32;
         // Divisions are fine here: once per configuration, never per tick.
         let velocity_n = div_ceil_u64(velocity, decel);
@@ -208,7 +209,9 @@ impl Coeffs {
             + velocity_n as u128 * decel as u128;
         // Upper bound (r <= d) of the run-out; rejects before `velocity_n` can overflow a u32.
         if run_out > MAX_RUN_OUT_BITS {
-            return Err(ConfigError::OutOfRange("trajectory.deceleration_mm_s2"));
+            return Err(ConfigError::OutOfRange(
+                ConfigField::TrajectoryDecelerationMmS2,
+            ));
         }
         let velocity_n = velocity_n as u32;
         let velocity_r = (velocity - (velocity_n as u64 - 1) * decel as u64) as u32;
@@ -776,56 +779,56 @@ mod tests {
                 velocity_mm_s: f64::NAN,
                 ..ok
             }),
-            "trajectory.velocity_mm_s"
+            ConfigField::TrajectoryVelocityMmS
         );
         assert_eq!(
             field(Config {
                 velocity_mm_s: 0.0,
                 ..ok
             }),
-            "trajectory.velocity_mm_s"
+            ConfigField::TrajectoryVelocityMmS
         );
         assert_eq!(
             field(Config {
                 velocity_mm_s: -5.0,
                 ..ok
             }),
-            "trajectory.velocity_mm_s"
+            ConfigField::TrajectoryVelocityMmS
         );
         assert_eq!(
             field(Config {
                 velocity_mm_s: 1e9,
                 ..ok
             }),
-            "trajectory.velocity_mm_s"
+            ConfigField::TrajectoryVelocityMmS
         );
         assert_eq!(
             field(Config {
                 acceleration_mm_s2: f64::INFINITY,
                 ..ok
             }),
-            "trajectory.acceleration_mm_s2"
+            ConfigField::TrajectoryAccelerationMmS2
         );
         assert_eq!(
             field(Config {
                 acceleration_mm_s2: 0.0,
                 ..ok
             }),
-            "trajectory.acceleration_mm_s2"
+            ConfigField::TrajectoryAccelerationMmS2
         );
         assert_eq!(
             field(Config {
                 acceleration_mm_s2: 1e12,
                 ..ok
             }),
-            "trajectory.acceleration_mm_s2"
+            ConfigField::TrajectoryAccelerationMmS2
         );
         assert_eq!(
             field(Config {
                 deceleration_mm_s2: -1.0,
                 ..ok
             }),
-            "trajectory.deceleration_mm_s2"
+            ConfigField::TrajectoryDecelerationMmS2
         );
         // Stopping from 100 mm/s at 1e-6 mm/s² would take far more than 2^31 counts.
         assert_eq!(
@@ -833,7 +836,7 @@ mod tests {
                 deceleration_mm_s2: 1e-6,
                 ..ok
             }),
-            "trajectory.deceleration_mm_s2"
+            ConfigField::TrajectoryDecelerationMmS2
         );
         assert!(Coeffs::new(I40F24::ZERO, I40F24::ONE, I40F24::ONE).is_err());
         assert!(Coeffs::new(I40F24::ONE, I40F24::from_num(64), I40F24::ONE).is_err());

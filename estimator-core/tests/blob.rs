@@ -4,6 +4,7 @@ use estimator_core::blob::{crc32, decode, encode, BlobError, MAX_BYTES, MODEL4_B
 use estimator_core::drive::{Command, Drive, DriveConfig, Sample};
 use estimator_core::model::{ModelKind, ModelParams};
 use estimator_core::rig::Rig;
+use estimator_core::ConfigField;
 use proptest::prelude::*;
 
 fn paper_blob() -> Vec<u8> {
@@ -118,13 +119,13 @@ fn well_signed_nonsense_is_refused_by_the_model_checks() {
     resign(&mut b);
     assert_eq!(
         decode(&b, &rig),
-        Err(BlobError::BadCount("model3.forward_band"))
+        Err(BlobError::BadCount(ConfigField::Model3ForwardBand))
     );
     // The bidirectional table (before Model 4: rows, 0, x0, step, 2 rows of 2 values) with
     // one row, with too many, and with a step of zero.
     for (rows, want) in [
-        (1u16, Err(BlobError::BadCount("bidir_table.rows"))),
-        (257, Err(BlobError::BadCount("bidir_table.rows"))),
+        (1u16, Err(BlobError::BadCount(ConfigField::BidirTableRows))),
+        (257, Err(BlobError::BadCount(ConfigField::BidirTableRows))),
         (3, Err(BlobError::Truncated)),
     ] {
         let mut b = paper_blob();

@@ -146,7 +146,7 @@ fn refused_field(at: usize, bytes: &[u8]) -> &'static str {
     b[at..at + bytes.len()].copy_from_slice(bytes);
     reseal(&mut b);
     match image::decode(&b, &Rig::PAPER) {
-        Err(BlobError::Invalid(e)) => e.field(),
+        Err(BlobError::Invalid(e)) => e.field().name(),
         other => panic!("at {at}: {other:?}"),
     }
 }

@@ -8,7 +8,7 @@ use estimator_core::model::{
 };
 use estimator_core::reference::Reference;
 use estimator_core::rig::Rig;
-use estimator_core::ConfigError;
+use estimator_core::{ConfigError, ConfigField};
 
 const RIG: Rig = Rig::PAPER;
 
@@ -413,58 +413,58 @@ fn config_errors_name_the_field() {
     use ConfigError::*;
     assert_eq!(
         build_err(|p| p.model1.h_mm = f64::NAN),
-        NotFinite("model1.h_mm")
+        NotFinite(ConfigField::Model1HMm)
     );
     assert_eq!(
         build_err(|p| p.model1.h_mm = -0.1),
-        OutOfRange("model1.h_mm")
+        OutOfRange(ConfigField::Model1HMm)
     );
     assert_eq!(
         build_err(|p| p.model1.m_mm_per_mm = 5.0),
-        OutOfRange("model1.m_mm_per_mm")
+        OutOfRange(ConfigField::Model1MMmPerMm)
     );
     assert_eq!(
         build_err(|p| p.model1.slope_a_mm_per_mm = -0.1),
-        OutOfRange("model1.slope_a_mm_per_mm")
+        OutOfRange(ConfigField::Model1SlopeAMmPerMm)
     );
     assert_eq!(
         build_err(|p| p.model1.slope_b_mm_per_mm = f64::INFINITY),
-        NotFinite("model1.slope_b_mm_per_mm")
+        NotFinite(ConfigField::Model1SlopeBMmPerMm)
     );
     assert_eq!(
         build_err(|p| p.model1.h_g_mm = 20.0),
-        OutOfRange("model1.h_g_mm")
+        OutOfRange(ConfigField::Model1HGMm)
     );
     assert_eq!(
         build_err(|p| p.model2.rate_a_per_mm = 0.1),
-        OutOfRange("model2.rate_a_per_mm")
+        OutOfRange(ConfigField::Model2RateAPerMm)
     );
     assert_eq!(
         build_err(|p| p.model2.rate_b_per_mm = -1e9),
-        OutOfRange("model2.rate_b_per_mm")
+        OutOfRange(ConfigField::Model2RateBPerMm)
     );
     assert_eq!(
         build_err(|p| p.model2.amplitude_b_mm = -0.01),
-        OutOfRange("model2.amplitude_b_mm")
+        OutOfRange(ConfigField::Model2AmplitudeBMm)
     );
     assert_eq!(
         build_err(|p| p.model2.h_mm = f64::NAN),
-        NotFinite("model2.h_mm")
+        NotFinite(ConfigField::Model2HMm)
     );
     assert_eq!(
         build_err(|p| p.model3.forward_band.x_mm[3] = p.model3.forward_band.x_mm[2]),
-        NotMonotonic("model3.forward_band.x_mm")
+        NotMonotonic(ConfigField::Model3ForwardBandXMm)
     );
     // Distinct in mm, identical after rounding to counts.
     assert_eq!(
         build_err(|p| p.model3.reverse_band.x_mm[3] = p.model3.reverse_band.x_mm[2] + 1e-5),
-        NotMonotonic("model3.reverse_band.x_mm")
+        NotMonotonic(ConfigField::Model3ReverseBandXMm)
     );
     // Increasing but not evenly spaced: off the even axis by 2 um (the tolerance is 1.5 um);
     // within it, accepted.
     assert_eq!(
         build_err(|p| p.model3.forward_band.x_mm[4] += 0.002),
-        NotUniform("model3.forward_band.x_mm")
+        NotUniform(ConfigField::Model3ForwardBandXMm)
     );
     let mut p = ModelParams::PAPER;
     p.model3.reverse_band.x_mm[4] += 0.001;
@@ -475,60 +475,60 @@ fn config_errors_name_the_field() {
             let n = p.model3.reverse_band.len;
             p.model3.reverse_band.x_mm[n - 1] += 1.0;
         }),
-        NotUniform("model3.reverse_band.x_mm")
+        NotUniform(ConfigField::Model3ReverseBandXMm)
     );
     assert_eq!(
         build_err(|p| p.model3.forward_band.x_mm[0] = f64::NAN),
-        NotFinite("model3.forward_band.x_mm")
+        NotFinite(ConfigField::Model3ForwardBandXMm)
     );
     assert_eq!(
         build_err(|p| p.model3.forward_band.x_mm[0] = -2e6),
-        OutOfRange("model3.forward_band.x_mm")
+        OutOfRange(ConfigField::Model3ForwardBandXMm)
     );
     assert_eq!(
         build_err(|p| p.model3.forward_band.len = 1),
-        TableSize("model3.forward_band.len")
+        TableSize(ConfigField::Model3ForwardBandLen)
     );
     assert_eq!(
         build_err(|p| p.model3.reverse_band.len = MAX_BAND_POINTS + 1),
-        TableSize("model3.reverse_band.len")
+        TableSize(ConfigField::Model3ReverseBandLen)
     );
     assert_eq!(
         build_err(|p| p.model3.forward_band.y_um[1] = 1e6),
-        OutOfRange("model3.forward_band.y_um")
+        OutOfRange(ConfigField::Model3ForwardBandYUm)
     );
     // A reverse band below the forward band: negative band.
     assert_eq!(
         build_err(|p| p.model3.reverse_band.y_um[4] = p.model3.forward_band.y_um[4] - 1.0),
-        OutOfRange("model3.reverse_band.y_um")
+        OutOfRange(ConfigField::Model3ReverseBandYUm)
     );
     assert_eq!(
         build_err(|p| p.model3.forward_transition.gap_um[2][3] = -1.0),
-        OutOfRange("model3.forward_transition.gap_um")
+        OutOfRange(ConfigField::Model3ForwardTransitionGapUm)
     );
     assert_eq!(
         build_err(|p| p.model3.reverse_transition.gap_um[0][0] = f64::NAN),
-        NotFinite("model3.reverse_transition.gap_um")
+        NotFinite(ConfigField::Model3ReverseTransitionGapUm)
     );
     assert_eq!(
         build_err(|p| p.model3.reverse_transition.gap_um[0][0] = 3000.0),
-        OutOfRange("model3.reverse_transition.gap_um")
+        OutOfRange(ConfigField::Model3ReverseTransitionGapUm)
     );
     assert_eq!(
         build_err(|p| p.model3.forward_transition.n_d = MAX_TRANSITION_D + 1),
-        TableSize("model3.forward_transition.n_d")
+        TableSize(ConfigField::Model3ForwardTransitionND)
     );
     assert_eq!(
         build_err(|p| p.model3.reverse_transition.n_g0 = MAX_TRANSITION_G0 + 1),
-        TableSize("model3.reverse_transition.n_g0")
+        TableSize(ConfigField::Model3ReverseTransitionNG0)
     );
     assert_eq!(
         build_err(|p| p.model3.forward_transition.d_step_mm = 1e-5),
-        OutOfRange("model3.forward_transition.d_step_mm")
+        OutOfRange(ConfigField::Model3ForwardTransitionDStepMm)
     );
     assert_eq!(
         build_err(|p| p.model3.forward_transition.g0_step_um = 0.0),
-        OutOfRange("model3.forward_transition.g0_step_um")
+        OutOfRange(ConfigField::Model3ForwardTransitionG0StepUm)
     );
     let mut p = ModelParams::PAPER;
     p.model1.h_mm = f64::NAN;
@@ -539,7 +539,7 @@ fn config_errors_name_the_field() {
     };
     assert_eq!(
         ModelParams::PAPER.build(&bad_rig),
-        Err(OutOfRange("rig.gear_ratio"))
+        Err(OutOfRange(ConfigField::RigGearRatio))
     );
 }
 

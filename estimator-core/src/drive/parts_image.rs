@@ -8,6 +8,7 @@
 //! move scale, the loop gains, the fault thresholds, polarity, homing, the status scale, the
 //! initial model, then the CRC-32 of everything before it.
 
+use crate::ConfigField;
 use belt_link::bytes::{Fields, Reader, Short, Writer};
 use belt_link::ModelKind;
 use fixed::types::{I16F16, I40F24};
@@ -26,7 +27,7 @@ pub const PARTS_IMAGE_LEN: usize = 229;
 pub type PartsImage = [u8; PARTS_IMAGE_LEN];
 
 /// The image as a whole: its length, magic, version or CRC (not a field of it).
-pub const IMAGE_FIELD: &str = "config_image";
+pub const IMAGE_FIELD: ConfigField = ConfigField::ConfigImage;
 
 /// Slack where the image's integer checks meet values the host rounded differently (travel ends
 /// and homing positions truncated to whole micrometres, then to counts): 2 um and 2 counts.
@@ -123,7 +124,7 @@ impl Parts {
     fn read(r: &mut Reader) -> Result<(Parts, u32), Option<ConfigError>> {
         use ConfigError::OutOfRange as Bad;
         let short = |_: Short| None;
-        let check = |ok: bool, field: &'static str| if ok { Ok(()) } else { Err(Some(Bad(field))) };
+        let check = |ok: bool, field: ConfigField| if ok { Ok(()) } else { Err(Some(Bad(field))) };
         if r.take::<4>().map_err(short)? != MAGIC || r.u16().map_err(short)? != PARTS_IMAGE_VERSION
         {
             return Err(None);
@@ -138,7 +139,7 @@ impl Parts {
         // The geometry's own check, float-free (its doubles on their bits).
         rig.validate().map_err(Some)?;
         let rate_hz = r.u32().map_err(short)?;
-        check((100..=100_000).contains(&rate_hz), "drive.rate_hz")?;
+        check((100..=100_000).contains(&rate_hz), ConfigField::DriveRateHz)?;
 
         let limits = Limits {
             counts_per_um_q32: r.u64().map_err(short)? as i64,
@@ -149,10 +150,10 @@ impl Parts {
             max_velocity_um_s: r.u32().map_err(short)?,
             max_accel_um_s2: r.u32().map_err(short)?,
         };
-        check(limits.counts_per_um_q32 > 0, "rig.gear_ratio")?;
+        check(limits.counts_per_um_q32 > 0, ConfigField::RigGearRatio)?;
         check(
             limits.target_min_counts < limits.target_max_counts,
-            "drive.travel_max_mm",
+            ConfigField::DriveTravelMaxMm,
         )?;
         // `a <= b` but for rounding.
         let tol = um_to_counts_q32(ROUNDING_SLACK_UM, 0, limits.counts_per_um_q32) as i64
@@ -162,14 +163,17 @@ impl Parts {
         check(
             slack(limits.fault_min_counts, limits.target_min_counts)
                 && slack(limits.target_max_counts, limits.fault_max_counts),
-            "drive.travel_margin_mm",
+            ConfigField::DriveTravelMarginMm,
         )?;
-        check(limits.max_velocity_um_s > 0, "drive.max_velocity_mm_s")?;
-        check(limits.max_accel_um_s2 > 0, "drive.max_accel_mm_s2")?;
+        check(
+            limits.max_velocity_um_s > 0,
+            ConfigField::DriveMaxVelocityMmS,
+        )?;
+        check(limits.max_accel_um_s2 > 0, ConfigField::DriveMaxAccelMmS2)?;
 
         let step = |v: u32| {
             encoder::Coeffs::<u16>::from_max_delta_counts(v)
-                .map_err(|_| Some(Bad("encoder.max_speed_mm_s")))
+                .map_err(|_| Some(Bad(ConfigField::EncoderMaxSpeedMmS)))
         };
         let motor = step(r.u32().map_err(short)?)?;
         let scale = step(r.u32().map_err(short)?)?;
@@ -188,11 +192,11 @@ impl Parts {
         };
         check(
             move_scale.velocity_bits_per_um_s_q32 > 0,
-            "drive.max_velocity_mm_s",
+            ConfigField::DriveMaxVelocityMmS,
         )?;
         check(
             move_scale.accel_bits_per_um_s2_q32 > 0,
-            "drive.max_accel_mm_s2",
+            ConfigField::DriveMaxAccelMmS2,
         )?;
 
         let mut gains = [0i32; 7];
@@ -207,7 +211,7 @@ impl Parts {
         let monitor = fault::Coeffs::from_words(words).map_err(Some)?;
 
         let flags = r.u8().map_err(short)?;
-        check(flags < 8, "polarity")?;
+        check(flags < 8, ConfigField::Polarity)?;
         let polarity = Polarity {
             motor_encoder_inverted: flags & 1 != 0,
             scale_inverted: flags & 2 != 0,
@@ -215,7 +219,7 @@ impl Parts {
         };
 
         let towards = r.u8().map_err(short)?;
-        check(towards < 2, "homing.towards_positive")?;
+        check(towards < 2, ConfigField::HomingTowardsPositive)?;
         let homing = HomingCoeffs {
             towards_positive: towards == 1,
             velocity_um_s: r.u32().map_err(short)?,
@@ -228,26 +232,26 @@ impl Parts {
         };
         check(
             (1..=limits.max_velocity_um_s).contains(&homing.velocity_um_s),
-            "homing.velocity_mm_s",
+            ConfigField::HomingVelocityMmS,
         )?;
         check(
             (1..=limits.max_accel_um_s2).contains(&homing.accel_um_s2),
-            "homing.velocity_mm_s",
+            ConfigField::HomingVelocityMmS,
         )?;
         check(
             homing.current_limit_a > 0 && homing.current_limit_a <= pid.max_current_a(),
-            "homing.current_a",
+            ConfigField::HomingCurrentA,
         )?;
         check(
             homing.detect_counts <= monitor.following_error_at_rest_counts(),
-            "homing.detect_error_mm",
+            ConfigField::HomingDetectErrorMm,
         )?;
         let counts = |um: i32| um_to_counts_q32(um, 0, limits.counts_per_um_q32);
         let within = |c: i32, lo: i32, hi: i32| slack(lo, c) && slack(c, hi);
         let home = counts(homing.position_um);
         check(
             within(home, limits.fault_min_counts, limits.fault_max_counts),
-            "homing.position_mm",
+            ConfigField::HomingPositionMm,
         )?;
         let away = if homing.towards_positive {
             homing.position_um as i64 - homing.backoff_um as i64
@@ -263,14 +267,14 @@ impl Parts {
                         limits.target_max_counts,
                     )
                 }),
-            "homing.backoff_mm",
+            ConfigField::HomingBackoffMm,
         )?;
-        check(homing.search_counts > 0, "drive.travel_max_mm")?;
+        check(homing.search_counts > 0, ConfigField::DriveTravelMaxMm)?;
 
         let um_per_count_q32 = r.u64().map_err(short)? as i64;
-        check(um_per_count_q32 > 0, "rig.gear_ratio")?;
-        let initial_model =
-            ModelKind::from_u8(r.u8().map_err(short)?).ok_or(Some(Bad("drive.initial_model")))?;
+        check(um_per_count_q32 > 0, ConfigField::RigGearRatio)?;
+        let initial_model = ModelKind::from_u8(r.u8().map_err(short)?)
+            .ok_or(Some(Bad(ConfigField::DriveInitialModel)))?;
         if r.remaining() != 0 {
             return Err(None);
         }
@@ -298,8 +302,8 @@ impl Parts {
 /// The profile's refusals name the drive's limits, which the start profile is built from.
 fn remap_trajectory(e: ConfigError) -> ConfigError {
     ConfigError::OutOfRange(match e.field() {
-        "trajectory.velocity_mm_s" => "drive.max_velocity_mm_s",
-        _ => "drive.max_accel_mm_s2",
+        ConfigField::TrajectoryVelocityMmS => ConfigField::DriveMaxVelocityMmS,
+        _ => ConfigField::DriveMaxAccelMmS2,
     })
 }
 
@@ -376,58 +380,130 @@ mod tests {
     #[test]
     fn fields_out_of_range_are_refused_by_name() {
         let image = paper().encode(7);
-        let cases: &[(usize, &[u8], &str)] = &[
-            (10, &0u32.to_le_bytes(), "rig.encoder_lines"),
-            (14, &f64::NAN.to_bits().to_le_bytes(), "rig.gear_ratio"),
-            (14, &(-2.0f64).to_bits().to_le_bytes(), "rig.gear_ratio"),
+        let cases: &[(usize, &[u8], ConfigField)] = &[
+            (10, &0u32.to_le_bytes(), ConfigField::RigEncoderLines),
+            (
+                14,
+                &f64::NAN.to_bits().to_le_bytes(),
+                ConfigField::RigGearRatio,
+            ),
+            (
+                14,
+                &(-2.0f64).to_bits().to_le_bytes(),
+                ConfigField::RigGearRatio,
+            ),
             (
                 22,
                 &f64::INFINITY.to_bits().to_le_bytes(),
-                "rig.belt_pitch_mm",
+                ConfigField::RigBeltPitchMm,
             ),
-            (RATE, &99u32.to_le_bytes(), "drive.rate_hz"),
+            (RATE, &99u32.to_le_bytes(), ConfigField::DriveRateHz),
             // Target max below target min.
-            (LIMITS + 12, &i32::MIN.to_le_bytes(), "drive.travel_max_mm"),
-            (LIMITS + 24, &0u32.to_le_bytes(), "drive.max_velocity_mm_s"),
-            (LIMITS + 28, &0u32.to_le_bytes(), "drive.max_accel_mm_s2"),
-            (LIMITS + 32, &0u32.to_le_bytes(), "encoder.max_speed_mm_s"),
+            (
+                LIMITS + 12,
+                &i32::MIN.to_le_bytes(),
+                ConfigField::DriveTravelMaxMm,
+            ),
+            (
+                LIMITS + 24,
+                &0u32.to_le_bytes(),
+                ConfigField::DriveMaxVelocityMmS,
+            ),
+            (
+                LIMITS + 28,
+                &0u32.to_le_bytes(),
+                ConfigField::DriveMaxAccelMmS2,
+            ),
+            (
+                LIMITS + 32,
+                &0u32.to_le_bytes(),
+                ConfigField::EncoderMaxSpeedMmS,
+            ),
             (
                 LIMITS + 32,
                 &40_000u32.to_le_bytes(),
-                "encoder.max_speed_mm_s",
+                ConfigField::EncoderMaxSpeedMmS,
             ),
-            (LIMITS + 40, &0u64.to_le_bytes(), "drive.max_velocity_mm_s"),
-            (LIMITS + 48, &0u32.to_le_bytes(), "drive.max_accel_mm_s2"),
-            (LIMITS + 56, &0u64.to_le_bytes(), "drive.max_velocity_mm_s"),
-            (PID, &(1i32 << 24).to_le_bytes(), "pid.kp_a_per_mm"),
-            (PID, &(-1i32).to_le_bytes(), "pid.kp_a_per_mm"),
-            (PID + 12, &0i32.to_le_bytes(), "pid.derivative_cutoff_hz"),
-            (PID + 24, &(128i32 << 16).to_le_bytes(), "pid.max_current_a"),
+            (
+                LIMITS + 40,
+                &0u64.to_le_bytes(),
+                ConfigField::DriveMaxVelocityMmS,
+            ),
+            (
+                LIMITS + 48,
+                &0u32.to_le_bytes(),
+                ConfigField::DriveMaxAccelMmS2,
+            ),
+            (
+                LIMITS + 56,
+                &0u64.to_le_bytes(),
+                ConfigField::DriveMaxVelocityMmS,
+            ),
+            (PID, &(1i32 << 24).to_le_bytes(), ConfigField::PidKpAPerMm),
+            (PID, &(-1i32).to_le_bytes(), ConfigField::PidKpAPerMm),
+            (
+                PID + 12,
+                &0i32.to_le_bytes(),
+                ConfigField::PidDerivativeCutoffHz,
+            ),
+            (
+                PID + 24,
+                &(128i32 << 16).to_le_bytes(),
+                ConfigField::PidMaxCurrentA,
+            ),
             (
                 FAULTS + 4,
                 &(1u32 << 17).to_le_bytes(),
-                "faults.following_error_at_max_velocity_mm",
+                ConfigField::FaultsFollowingErrorAtMaxVelocityMm,
             ),
-            (FAULTS + 16, &0u32.to_le_bytes(), "faults.stall_time_s"),
+            (
+                FAULTS + 16,
+                &0u32.to_le_bytes(),
+                ConfigField::FaultsStallTimeS,
+            ),
             (
                 FAULTS + 44,
                 &u32::MAX.to_le_bytes(),
-                "faults.link_timeout_s",
+                ConfigField::FaultsLinkTimeoutS,
             ),
-            (HOMING - 1, &[8], "polarity"),
-            (HOMING, &[2], "homing.towards_positive"),
-            (HOMING + 1, &0u32.to_le_bytes(), "homing.velocity_mm_s"),
-            (HOMING + 1, &u32::MAX.to_le_bytes(), "homing.velocity_mm_s"),
+            (HOMING - 1, &[8], ConfigField::Polarity),
+            (HOMING, &[2], ConfigField::HomingTowardsPositive),
+            (
+                HOMING + 1,
+                &0u32.to_le_bytes(),
+                ConfigField::HomingVelocityMmS,
+            ),
+            (
+                HOMING + 1,
+                &u32::MAX.to_le_bytes(),
+                ConfigField::HomingVelocityMmS,
+            ),
             (
                 HOMING + 9,
                 &(100i32 << 16).to_le_bytes(),
-                "homing.current_a",
+                ConfigField::HomingCurrentA,
             ),
-            (HOMING + 17, &i32::MAX.to_le_bytes(), "homing.position_mm"),
-            (HOMING + 21, &(-1i32).to_le_bytes(), "homing.backoff_mm"),
-            (HOMING + 21, &400_000i32.to_le_bytes(), "homing.backoff_mm"),
-            (HOMING + 25, &0i32.to_le_bytes(), "drive.travel_max_mm"),
-            (PARTS_IMAGE_LEN - 5, &[200], "drive.initial_model"),
+            (
+                HOMING + 17,
+                &i32::MAX.to_le_bytes(),
+                ConfigField::HomingPositionMm,
+            ),
+            (
+                HOMING + 21,
+                &(-1i32).to_le_bytes(),
+                ConfigField::HomingBackoffMm,
+            ),
+            (
+                HOMING + 21,
+                &400_000i32.to_le_bytes(),
+                ConfigField::HomingBackoffMm,
+            ),
+            (
+                HOMING + 25,
+                &0i32.to_le_bytes(),
+                ConfigField::DriveTravelMaxMm,
+            ),
+            (PARTS_IMAGE_LEN - 5, &[200], ConfigField::DriveInitialModel),
         ];
         for &(at, bytes, field) in cases {
             let bad = edited(&image, at, bytes);

@@ -9,6 +9,7 @@
 //! The direction is the reversal detector's (the same dead band as the models'), which equals the
 //! commanded direction along a planned path. Neither keeps any state of its own.
 
+use crate::ConfigField;
 use fixed::types::{I13F3, I16F16};
 
 use super::convert::{finite, um_q16};
@@ -37,8 +38,16 @@ impl BacklashParams {
 
     /// Checks and converts to fixed point.
     pub fn build(&self) -> Result<BacklashCoeffs, ConfigError> {
-        let offset = um_q16(self.offset_um, -super::MAX_ABS_UM, "backlash.offset_um")?;
-        let backlash = um_q16(self.backlash_um, -super::MAX_ABS_UM, "backlash.backlash_um")?;
+        let offset = um_q16(
+            self.offset_um,
+            -super::MAX_ABS_UM,
+            ConfigField::BacklashOffsetUm,
+        )?;
+        let backlash = um_q16(
+            self.backlash_um,
+            -super::MAX_ABS_UM,
+            ConfigField::BacklashBacklashUm,
+        )?;
         Ok(BacklashCoeffs {
             forward_um: offset - backlash / 2,
             reverse_um: offset + (backlash - backlash / 2),
@@ -154,26 +163,30 @@ impl BidirCoeffs {
     pub fn build(src: &impl BidirSource, counts_per_mm: f64) -> Result<BidirCoeffs, ConfigError> {
         let (rows, x0_mm, step_mm) = src.shape();
         if !(2..=MAX_BIDIR_ROWS).contains(&rows) {
-            return Err(ConfigError::OutOfRange("bidir_table.rows"));
+            return Err(ConfigError::OutOfRange(ConfigField::BidirTableRows));
         }
-        let x0 = finite(x0_mm, "bidir_table.x0_mm")? * counts_per_mm;
-        let step = finite(step_mm, "bidir_table.step_mm")? * counts_per_mm;
+        let x0 = finite(x0_mm, ConfigField::BidirTableX0Mm)? * counts_per_mm;
+        let step = finite(step_mm, ConfigField::BidirTableStepMm)? * counts_per_mm;
         if !(x0 >= i32::MIN as f64 && x0 <= i32::MAX as f64) {
-            return Err(ConfigError::OutOfRange("bidir_table.x0_mm"));
+            return Err(ConfigError::OutOfRange(ConfigField::BidirTableX0Mm));
         }
         let span = step * (rows - 1) as f64;
         if !(step >= 1.0 && span <= u32::MAX as f64 && x0 + span <= i32::MAX as f64) {
-            return Err(ConfigError::OutOfRange("bidir_table.step_mm"));
+            return Err(ConfigError::OutOfRange(ConfigField::BidirTableStepMm));
         }
         let step_counts = round_u64(step)
             .filter(|&s| s <= u32::MAX as u64)
-            .ok_or(ConfigError::OutOfRange("bidir_table.step_mm"))?
+            .ok_or(ConfigError::OutOfRange(ConfigField::BidirTableStepMm))?
             as u32;
-        let x0_counts = round_i32(x0).ok_or(ConfigError::OutOfRange("bidir_table.x0_mm"))?;
+        let x0_counts =
+            round_i32(x0).ok_or(ConfigError::OutOfRange(ConfigField::BidirTableX0Mm))?;
         let mut values = [[I13F3::ZERO; MAX_BIDIR_ROWS]; 2];
-        for (dir, name) in ["bidir_table.forward_um", "bidir_table.reverse_um"]
-            .into_iter()
-            .enumerate()
+        for (dir, name) in [
+            ConfigField::BidirTableForwardUm,
+            ConfigField::BidirTableReverseUm,
+        ]
+        .into_iter()
+        .enumerate()
         {
             for (i, v) in values[dir].iter_mut().enumerate().take(rows) {
                 *v = bidir_um(src.value_um(dir, i), name)?;
@@ -239,7 +252,7 @@ impl BidirCoeffs {
 
 /// A bidirectional table's value, um, as I13F3 (rounded to 1/8 um): within +-4095 um, which
 /// holds the paper's Table 2 bands over +-2.5 m of travel; the error names the field.
-pub(crate) fn bidir_um(v_um: f64, field: &'static str) -> Result<I13F3, ConfigError> {
+pub(crate) fn bidir_um(v_um: f64, field: ConfigField) -> Result<I13F3, ConfigError> {
     let v = finite(v_um, field)?;
     if v.abs() > BIDIR_MAX_ABS_UM {
         return Err(ConfigError::OutOfRange(field));
@@ -301,32 +314,32 @@ mod tests {
         let mut p = table(1);
         assert_eq!(
             BidirCoeffs::build(&p, cpm),
-            Err(ConfigError::OutOfRange("bidir_table.rows"))
+            Err(ConfigError::OutOfRange(ConfigField::BidirTableRows))
         );
         p = table(4);
         p.step_mm = 0.0;
         assert_eq!(
             BidirCoeffs::build(&p, cpm),
-            Err(ConfigError::OutOfRange("bidir_table.step_mm"))
+            Err(ConfigError::OutOfRange(ConfigField::BidirTableStepMm))
         );
         p = table(4);
         p.reverse_um[3] = f64::NAN;
         assert_eq!(
             BidirCoeffs::build(&p, cpm),
-            Err(ConfigError::NotFinite("bidir_table.reverse_um"))
+            Err(ConfigError::NotFinite(ConfigField::BidirTableReverseUm))
         );
         p = table(4);
         p.x0_mm = 1e12;
         assert_eq!(
             BidirCoeffs::build(&p, cpm),
-            Err(ConfigError::OutOfRange("bidir_table.x0_mm"))
+            Err(ConfigError::OutOfRange(ConfigField::BidirTableX0Mm))
         );
         // The values' format (I13F3) ends at +-4095 um; within it, they round to 1/8 um.
         p = table(4);
         p.forward_um[2] = 4095.5;
         assert_eq!(
             BidirCoeffs::build(&p, cpm),
-            Err(ConfigError::OutOfRange("bidir_table.forward_um"))
+            Err(ConfigError::OutOfRange(ConfigField::BidirTableForwardUm))
         );
         p.forward_um[2] = -4095.0;
         p.reverse_um[1] = 12.3;
@@ -345,7 +358,7 @@ mod tests {
         };
         assert_eq!(
             b.build(),
-            Err(ConfigError::NotFinite("backlash.backlash_um"))
+            Err(ConfigError::NotFinite(ConfigField::BacklashBacklashUm))
         );
     }
 

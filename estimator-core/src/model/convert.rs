@@ -2,6 +2,7 @@
 //! Every function names the configuration field it is checking in its error. Never called per
 //! tick.
 
+use crate::ConfigField;
 use fixed::types::{I16F16, I1F31};
 
 use super::fixmath::pow2;
@@ -14,7 +15,7 @@ use crate::ConfigError;
 pub const MAX_ABS_UM: f64 = 16_000.0;
 
 /// A finite number or [`ConfigError::NotFinite`].
-pub(crate) fn finite(v: f64, field: &'static str) -> Result<f64, ConfigError> {
+pub(crate) fn finite(v: f64, field: ConfigField) -> Result<f64, ConfigError> {
     if v.is_finite() {
         Ok(v)
     } else {
@@ -23,7 +24,7 @@ pub(crate) fn finite(v: f64, field: &'static str) -> Result<f64, ConfigError> {
 }
 
 /// `v_um` in Q16.16 micrometres, checked against `[min_um, MAX_ABS_UM]`.
-pub(crate) fn um_q16(v_um: f64, min_um: f64, field: &'static str) -> Result<I16F16, ConfigError> {
+pub(crate) fn um_q16(v_um: f64, min_um: f64, field: ConfigField) -> Result<I16F16, ConfigError> {
     let v = finite(v_um, field)?;
     if v < min_um || v.abs() > MAX_ABS_UM {
         return Err(ConfigError::OutOfRange(field));
@@ -38,7 +39,7 @@ pub(crate) fn um_q16(v_um: f64, min_um: f64, field: &'static str) -> Result<I16F
 pub(crate) fn slope_q31(
     v_mm_per_mm: f64,
     counts_per_mm: f64,
-    field: &'static str,
+    field: ConfigField,
 ) -> Result<I1F31, ConfigError> {
     let v = finite(v_mm_per_mm, field)?;
     let um_per_count = v * 1000.0 / counts_per_mm;
@@ -89,17 +90,26 @@ mod tests {
 
     #[test]
     fn conversions_name_fields() {
-        assert_eq!(um_q16(f64::NAN, 0.0, "f"), Err(ConfigError::NotFinite("f")));
-        assert_eq!(um_q16(-1.0, 0.0, "f"), Err(ConfigError::OutOfRange("f")));
         assert_eq!(
-            um_q16(16_001.0, 0.0, "f"),
-            Err(ConfigError::OutOfRange("f"))
+            um_q16(f64::NAN, 0.0, ConfigField::Model1HMm),
+            Err(ConfigError::NotFinite(ConfigField::Model1HMm))
         );
-        assert_eq!(um_q16(1.5, 0.0, "f").unwrap(), I16F16::from_num(1.5));
         assert_eq!(
-            slope_q31(2.0, 1867.89, "s"),
-            Err(ConfigError::OutOfRange("s"))
+            um_q16(-1.0, 0.0, ConfigField::Model1HMm),
+            Err(ConfigError::OutOfRange(ConfigField::Model1HMm))
         );
-        assert!(slope_q31(0.0010594, 1867.89, "s").is_ok());
+        assert_eq!(
+            um_q16(16_001.0, 0.0, ConfigField::Model1HMm),
+            Err(ConfigError::OutOfRange(ConfigField::Model1HMm))
+        );
+        assert_eq!(
+            um_q16(1.5, 0.0, ConfigField::Model1HMm).unwrap(),
+            I16F16::from_num(1.5)
+        );
+        assert_eq!(
+            slope_q31(2.0, 1867.89, ConfigField::Model1SlopeAMmPerMm),
+            Err(ConfigError::OutOfRange(ConfigField::Model1SlopeAMmPerMm))
+        );
+        assert!(slope_q31(0.0010594, 1867.89, ConfigField::Model1SlopeAMmPerMm).is_ok());
     }
 }

@@ -15,6 +15,7 @@
 //! never reach the curve (`m <= 0` and the asymptote short of the edge), the output settles on the
 //! asymptote inside the band: [`Model2Coeffs::closing`] reports `None` so the firmware can warn.
 
+use crate::ConfigField;
 use fixed::types::I16F16;
 
 use super::convert::{exp_nonpos, finite, um_q16};
@@ -64,13 +65,33 @@ impl Model2Params {
             self.offset_mm,
             self.h_mm,
             counts_per_mm,
-            ["model2.m_mm_per_mm", "model2.offset_mm", "model2.h_mm"],
+            [
+                ConfigField::Model2MMmPerMm,
+                ConfigField::Model2OffsetMm,
+                ConfigField::Model2HMm,
+            ],
         )?;
-        let h_g_um = um_q16(self.h_g_mm * 1000.0, 0.0, "model2.h_g_mm")?;
-        let amp_a_um = um_q16(self.amplitude_a_mm * 1000.0, 0.0, "model2.amplitude_a_mm")?;
-        let amp_b_um = um_q16(self.amplitude_b_mm * 1000.0, 0.0, "model2.amplitude_b_mm")?;
-        let rate_a = rate(self.rate_a_per_mm, counts_per_mm, "model2.rate_a_per_mm")?;
-        let rate_b = rate(self.rate_b_per_mm, counts_per_mm, "model2.rate_b_per_mm")?;
+        let h_g_um = um_q16(self.h_g_mm * 1000.0, 0.0, ConfigField::Model2HGMm)?;
+        let amp_a_um = um_q16(
+            self.amplitude_a_mm * 1000.0,
+            0.0,
+            ConfigField::Model2AmplitudeAMm,
+        )?;
+        let amp_b_um = um_q16(
+            self.amplitude_b_mm * 1000.0,
+            0.0,
+            ConfigField::Model2AmplitudeBMm,
+        )?;
+        let rate_a = rate(
+            self.rate_a_per_mm,
+            counts_per_mm,
+            ConfigField::Model2RateAPerMm,
+        )?;
+        let rate_b = rate(
+            self.rate_b_per_mm,
+            counts_per_mm,
+            ConfigField::Model2RateBPerMm,
+        )?;
         Ok(Model2Coeffs {
             band,
             h_g_um,
@@ -128,7 +149,7 @@ impl Model2Params {
 
 /// `|rate| log2(e) / counts_per_mm`, scaled so that `Scale::apply(d_counts)` is the exponent `t`
 /// of `2^-t` in Q32.32.
-fn rate(rate_per_mm: f64, counts_per_mm: f64, field: &'static str) -> Result<Scale, ConfigError> {
+fn rate(rate_per_mm: f64, counts_per_mm: f64, field: ConfigField) -> Result<Scale, ConfigError> {
     let r = finite(rate_per_mm, field)?;
     if r > 0.0 {
         return Err(ConfigError::OutOfRange(field));

@@ -8,6 +8,7 @@
 //! no 64-bit division appear below.
 
 use crate::ConfigError;
+use crate::ConfigField;
 
 /// Multiplication by a positive constant known at build time: `v * mant / 2^shift`.
 ///
@@ -30,7 +31,7 @@ impl Scale {
 
     /// The scale closest to `factor` (>= 0, < 2^32). `field` names the configuration value that
     /// produced it for the error.
-    pub fn from_f64(factor: f64, field: &'static str) -> Result<Scale, ConfigError> {
+    pub fn from_f64(factor: f64, field: ConfigField) -> Result<Scale, ConfigError> {
         if !factor.is_finite() {
             return Err(ConfigError::NotFinite(field));
         }
@@ -458,7 +459,7 @@ mod tests {
 
         #[test]
         fn scale_precision(f in 1e-9f64..4.0e9) {
-            let s = Scale::from_f64(f, "f").unwrap();
+            let s = Scale::from_f64(f, ConfigField::Model1HMm).unwrap();
             prop_assert!(((s.factor() - f) / f).abs() <= 2f64.powi(-32));
             prop_assert!(s.apply(u32::MAX) as f64 <= u32::MAX as f64 * f * (1.0 + 1e-9));
         }
@@ -476,23 +477,29 @@ mod tests {
 
     #[test]
     fn scale_limits() {
-        assert_eq!(Scale::from_f64(0.0, "f"), Ok(Scale::ZERO));
         assert_eq!(
-            Scale::from_f64(-1.0, "f"),
-            Err(ConfigError::OutOfRange("f"))
+            Scale::from_f64(0.0, ConfigField::Model1HMm),
+            Ok(Scale::ZERO)
         );
         assert_eq!(
-            Scale::from_f64(f64::NAN, "f"),
-            Err(ConfigError::NotFinite("f"))
+            Scale::from_f64(-1.0, ConfigField::Model1HMm),
+            Err(ConfigError::OutOfRange(ConfigField::Model1HMm))
         );
-        assert_eq!(Scale::from_f64(5e9, "f"), Err(ConfigError::OutOfRange("f")));
+        assert_eq!(
+            Scale::from_f64(f64::NAN, ConfigField::Model1HMm),
+            Err(ConfigError::NotFinite(ConfigField::Model1HMm))
+        );
+        assert_eq!(
+            Scale::from_f64(5e9, ConfigField::Model1HMm),
+            Err(ConfigError::OutOfRange(ConfigField::Model1HMm))
+        );
         // Just below 2^32 rounds up to 2^32: does not fit.
-        assert!(Scale::from_f64(4294967295.9, "f").is_err());
-        let s = Scale::from_f64(1e-30, "f").unwrap();
+        assert!(Scale::from_f64(4294967295.9, ConfigField::Model1HMm).is_err());
+        let s = Scale::from_f64(1e-30, ConfigField::Model1HMm).unwrap();
         assert_eq!(s.apply(u32::MAX), 0);
-        let one = Scale::from_f64(1.0, "f").unwrap();
+        let one = Scale::from_f64(1.0, ConfigField::Model1HMm).unwrap();
         assert_eq!(one.apply(u32::MAX), u32::MAX as u64);
-        let half = Scale::from_f64(0.5, "f").unwrap();
+        let half = Scale::from_f64(0.5, ConfigField::Model1HMm).unwrap();
         assert_eq!(half.apply(7), 3);
     }
 }

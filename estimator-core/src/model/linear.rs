@@ -1,6 +1,7 @@
 //! Model 1 (eq. 14): a hysteresis band `[m x - h, m x]` and a straight transition of slope `a`
 //! (forward) or `b` (reverse) from the turning point to the new direction's band edge.
 
+use crate::ConfigField;
 use fixed::types::{I16F16, I1F31};
 
 use super::convert::{slope_q31, um_q16};
@@ -46,18 +47,22 @@ impl Model1Params {
             self.offset_mm,
             self.h_mm,
             counts_per_mm,
-            ["model1.m_mm_per_mm", "model1.offset_mm", "model1.h_mm"],
+            [
+                ConfigField::Model1MMmPerMm,
+                ConfigField::Model1OffsetMm,
+                ConfigField::Model1HMm,
+            ],
         )?;
-        let h_g_um = um_q16(self.h_g_mm * 1000.0, 0.0, "model1.h_g_mm")?;
+        let h_g_um = um_q16(self.h_g_mm * 1000.0, 0.0, ConfigField::Model1HGMm)?;
         let a = nonneg_slope(
             self.slope_a_mm_per_mm,
             counts_per_mm,
-            "model1.slope_a_mm_per_mm",
+            ConfigField::Model1SlopeAMmPerMm,
         )?;
         let b = nonneg_slope(
             self.slope_b_mm_per_mm,
             counts_per_mm,
-            "model1.slope_b_mm_per_mm",
+            ConfigField::Model1SlopeBMmPerMm,
         )?;
         Ok(Model1Coeffs {
             band,
@@ -87,7 +92,7 @@ impl Model1Params {
     }
 }
 
-fn nonneg_slope(v: f64, counts_per_mm: f64, field: &'static str) -> Result<I1F31, ConfigError> {
+fn nonneg_slope(v: f64, counts_per_mm: f64, field: ConfigField) -> Result<I1F31, ConfigError> {
     let s = slope_q31(v, counts_per_mm, field)?;
     if v < 0.0 {
         return Err(ConfigError::OutOfRange(field));
@@ -112,7 +117,7 @@ impl LinearBand {
         offset_mm: f64,
         h_mm: f64,
         counts_per_mm: f64,
-        [m_field, c_field, h_field]: [&'static str; 3],
+        [m_field, c_field, h_field]: [ConfigField; 3],
     ) -> Result<LinearBand, ConfigError> {
         Ok(LinearBand {
             m_um_per_count: slope_q31(m_mm_per_mm, counts_per_mm, m_field)?,

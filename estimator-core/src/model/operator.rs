@@ -60,6 +60,7 @@
 //! The hat position is `(x - start) * recip >> 16` with `recip = round(2^32 / step_counts)`.
 //! The [`crate::reference`] model evaluates the same definitions in `f64`.
 
+use crate::ConfigField;
 use fixed::types::I16F16;
 
 use super::convert::{finite, MAX_ABS_UM};
@@ -148,51 +149,51 @@ impl Model4Params {
 
     /// Checks every field and converts for `counts_per_mm`; errors name the field.
     pub fn build(&self, counts_per_mm: f64) -> Result<Model4Coeffs, ConfigError> {
-        let counts = |mm: f64, field: &'static str| -> Result<f64, ConfigError> {
+        let counts = |mm: f64, field: ConfigField| -> Result<f64, ConfigError> {
             Ok(finite(mm, field)? * counts_per_mm)
         };
         let mut widths = [0i32; N_OPS];
         // Per direction (reverse, forward): the forward weight is summed here, not per tick.
         let mut weight = [[0i32; N_OPS]; 2];
         for j in 0..N_OPS {
-            let w = rnd(counts(self.widths_mm[j], "model4.widths_mm")?);
+            let w = rnd(counts(self.widths_mm[j], ConfigField::Model4WidthsMm)?);
             if !(1.0..=(1 << 24) as f64).contains(&w) {
-                return Err(ConfigError::OutOfRange("model4.widths_mm"));
+                return Err(ConfigError::OutOfRange(ConfigField::Model4WidthsMm));
             }
             widths[j] = w as i32;
-            let reverse = finite(self.play_um_per_mm[j], "model4.play_um_per_mm")?;
+            let reverse = finite(self.play_um_per_mm[j], ConfigField::Model4PlayUmPerMm)?;
             let extra = finite(
                 self.play_forward_um_per_mm[j],
-                "model4.play_forward_um_per_mm",
+                ConfigField::Model4PlayForwardUmPerMm,
             )?;
-            weight[0][j] = q24_per_count(reverse, counts_per_mm, "model4.play_um_per_mm")?;
+            weight[0][j] = q24_per_count(reverse, counts_per_mm, ConfigField::Model4PlayUmPerMm)?;
             weight[1][j] = q24_per_count(
                 reverse + extra,
                 counts_per_mm,
-                "model4.play_forward_um_per_mm",
+                ConfigField::Model4PlayForwardUmPerMm,
             )?;
         }
-        let x_ref = rnd(counts(self.x_ref_mm, "model4.x_ref_mm")?);
+        let x_ref = rnd(counts(self.x_ref_mm, ConfigField::Model4XRefMm)?);
         if x_ref.abs() > i32::MAX as f64 / 2.0 {
-            return Err(ConfigError::OutOfRange("model4.x_ref_mm"));
+            return Err(ConfigError::OutOfRange(ConfigField::Model4XRefMm));
         }
-        let slope = finite(self.slope_um_per_mm, "model4.slope_um_per_mm")? / counts_per_mm;
+        let slope = finite(self.slope_um_per_mm, ConfigField::Model4SlopeUmPerMm)? / counts_per_mm;
         let slope_q31 = rnd(slope * (1u64 << 31) as f64);
         if slope_q31.abs() >= (1u64 << 31) as f64 {
-            return Err(ConfigError::OutOfRange("model4.slope_um_per_mm"));
+            return Err(ConfigError::OutOfRange(ConfigField::Model4SlopeUmPerMm));
         }
-        let step = rnd(counts(self.knot_step_mm, "model4.knot_step_mm")?);
+        let step = rnd(counts(self.knot_step_mm, ConfigField::Model4KnotStepMm)?);
         if !(1.0..=(1 << 24) as f64).contains(&step) {
-            return Err(ConfigError::OutOfRange("model4.knot_step_mm"));
+            return Err(ConfigError::OutOfRange(ConfigField::Model4KnotStepMm));
         }
         // Support of the hats: one step before the first knot to one after the last.
-        let hat_start = rnd(counts(self.knot_start_mm, "model4.knot_start_mm")?) - step;
+        let hat_start = rnd(counts(self.knot_start_mm, ConfigField::Model4KnotStartMm)?) - step;
         if hat_start.abs() > (1 << 30) as f64 {
-            return Err(ConfigError::OutOfRange("model4.knot_start_mm"));
+            return Err(ConfigError::OutOfRange(ConfigField::Model4KnotStartMm));
         }
         let mut knots = [I16F16::ZERO; N_KNOTS];
         for (k, v) in knots.iter_mut().zip(&self.knot_um) {
-            *k = um(*v, "model4.knot_um")?;
+            *k = um(*v, ConfigField::Model4KnotUm)?;
         }
         let rate = |period_mm: f64, field| -> Result<u32, ConfigError> {
             let p = counts(period_mm, field)?;
@@ -204,7 +205,7 @@ impl Model4Params {
         // Narrowest first: the tick relies on the order (the plays that move are a prefix, see
         // [`Plays`]), and two plays of one width would be one play.
         if widths.windows(2).any(|w| w[1] <= w[0]) {
-            return Err(ConfigError::NotMonotonic("model4.widths_mm"));
+            return Err(ConfigError::NotMonotonic(ConfigField::Model4WidthsMm));
         }
         let weight_total = weight_total(&weight);
         Ok(Model4Coeffs {
@@ -212,27 +213,27 @@ impl Model4Params {
             widths_counts: widths,
             weight_q24: weight,
             x_ref_counts: x_ref as i32,
-            offset_um: um(self.offset_um, "model4.offset_um")?,
+            offset_um: um(self.offset_um, ConfigField::Model4OffsetUm)?,
             slope_q31: slope_q31 as i32,
             hat_start_counts: hat_start as i32,
             hat_recip_q32: rnd((1u64 << 32) as f64 / step).min(u32::MAX as f64) as u32,
             knot_um: knots,
-            pitch_rate: rate(self.pitch_mm, "model4.pitch_mm")?,
+            pitch_rate: rate(self.pitch_mm, ConfigField::Model4PitchMm)?,
             pitch_um: [
-                um(self.pitch_um[0], "model4.pitch_um")?,
-                um(self.pitch_um[1], "model4.pitch_um")?,
+                um(self.pitch_um[0], ConfigField::Model4PitchUm)?,
+                um(self.pitch_um[1], ConfigField::Model4PitchUm)?,
             ],
-            turn_rate: rate(self.turn_mm, "model4.turn_mm")?,
+            turn_rate: rate(self.turn_mm, ConfigField::Model4TurnMm)?,
             turn_um: [
-                um(self.turn_um[0], "model4.turn_um")?,
-                um(self.turn_um[1], "model4.turn_um")?,
+                um(self.turn_um[0], ConfigField::Model4TurnUm)?,
+                um(self.turn_um[1], ConfigField::Model4TurnUm)?,
             ],
-            current_um_per_a: um(self.current_um_per_a, "model4.current_um_per_a")?,
-            current_lp_um_per_a: um(self.current_lp_um_per_a, "model4.current_lp_um_per_a")?,
+            current_um_per_a: um(self.current_um_per_a, ConfigField::Model4CurrentUmPerA)?,
+            current_lp_um_per_a: um(self.current_lp_um_per_a, ConfigField::Model4CurrentLpUmPerA)?,
             model2_q16: {
-                let w = finite(self.model2_weight, "model4.model2_weight")?;
+                let w = finite(self.model2_weight, ConfigField::Model4Model2Weight)?;
                 if w.abs() >= 8.0 {
-                    return Err(ConfigError::OutOfRange("model4.model2_weight"));
+                    return Err(ConfigError::OutOfRange(ConfigField::Model4Model2Weight));
                 }
                 rnd(w * 65536.0) as i32
             },
@@ -255,7 +256,7 @@ fn rnd(v: f64) -> f64 {
     }
 }
 
-fn um(v: f64, field: &'static str) -> Result<I16F16, ConfigError> {
+fn um(v: f64, field: ConfigField) -> Result<I16F16, ConfigError> {
     let v = finite(v, field)?;
     if v.abs() > MAX_ABS_UM {
         return Err(ConfigError::OutOfRange(field));
@@ -266,7 +267,7 @@ fn um(v: f64, field: &'static str) -> Result<I16F16, ConfigError> {
 fn q24_per_count(
     v_um_per_mm: f64,
     counts_per_mm: f64,
-    field: &'static str,
+    field: ConfigField,
 ) -> Result<i32, ConfigError> {
     let q = rnd(finite(v_um_per_mm, field)? / counts_per_mm * (1u64 << 24) as f64);
     if q.abs() >= (1u64 << 31) as f64 {
@@ -640,14 +641,14 @@ mod tests {
         m.widths_mm.swap(3, 4);
         assert_eq!(
             m.build(1868.0),
-            Err(ConfigError::NotMonotonic("model4.widths_mm"))
+            Err(ConfigError::NotMonotonic(ConfigField::Model4WidthsMm))
         );
         // Distinct in mm but one count on the drive: one play, refused as well.
         let mut m = Model4Params::zero(5.08, 5.08 * 28.0);
         m.widths_mm[1] = m.widths_mm[0] + 0.1 / 1868.0;
         assert_eq!(
             m.build(1868.0),
-            Err(ConfigError::NotMonotonic("model4.widths_mm"))
+            Err(ConfigError::NotMonotonic(ConfigField::Model4WidthsMm))
         );
     }
 

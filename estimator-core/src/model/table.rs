@@ -34,6 +34,7 @@
 //! the transition table one more; `g0`'s cell is found once per reversal (on the first Model 3
 //! tick after it) and cached in the state.
 
+use crate::ConfigField;
 use fixed::types::{I16F16, U11F5};
 
 use super::convert::{finite, um_q16, MAX_ABS_UM};
@@ -245,44 +246,44 @@ pub struct Model3Coeffs {
 }
 
 struct BandFields {
-    len: &'static str,
-    x: &'static str,
-    y: &'static str,
+    len: ConfigField,
+    x: ConfigField,
+    y: ConfigField,
 }
 
 struct TransitionFields {
-    n_d: &'static str,
-    n_g0: &'static str,
-    d_step: &'static str,
-    g0_step: &'static str,
-    gap: &'static str,
+    n_d: ConfigField,
+    n_g0: ConfigField,
+    d_step: ConfigField,
+    g0_step: ConfigField,
+    gap: ConfigField,
 }
 
 const _: () = assert!(MAX_BAND_POINTS.is_power_of_two() && MAX_TRANSITION_D.is_power_of_two());
 
 const FWD_BAND: BandFields = BandFields {
-    len: "model3.forward_band.len",
-    x: "model3.forward_band.x_mm",
-    y: "model3.forward_band.y_um",
+    len: ConfigField::Model3ForwardBandLen,
+    x: ConfigField::Model3ForwardBandXMm,
+    y: ConfigField::Model3ForwardBandYUm,
 };
 const REV_BAND: BandFields = BandFields {
-    len: "model3.reverse_band.len",
-    x: "model3.reverse_band.x_mm",
-    y: "model3.reverse_band.y_um",
+    len: ConfigField::Model3ReverseBandLen,
+    x: ConfigField::Model3ReverseBandXMm,
+    y: ConfigField::Model3ReverseBandYUm,
 };
 const FWD_TRANSITION: TransitionFields = TransitionFields {
-    n_d: "model3.forward_transition.n_d",
-    n_g0: "model3.forward_transition.n_g0",
-    d_step: "model3.forward_transition.d_step_mm",
-    g0_step: "model3.forward_transition.g0_step_um",
-    gap: "model3.forward_transition.gap_um",
+    n_d: ConfigField::Model3ForwardTransitionND,
+    n_g0: ConfigField::Model3ForwardTransitionNG0,
+    d_step: ConfigField::Model3ForwardTransitionDStepMm,
+    g0_step: ConfigField::Model3ForwardTransitionG0StepUm,
+    gap: ConfigField::Model3ForwardTransitionGapUm,
 };
 const REV_TRANSITION: TransitionFields = TransitionFields {
-    n_d: "model3.reverse_transition.n_d",
-    n_g0: "model3.reverse_transition.n_g0",
-    d_step: "model3.reverse_transition.d_step_mm",
-    g0_step: "model3.reverse_transition.g0_step_um",
-    gap: "model3.reverse_transition.gap_um",
+    n_d: ConfigField::Model3ReverseTransitionND,
+    n_g0: ConfigField::Model3ReverseTransitionNG0,
+    d_step: ConfigField::Model3ReverseTransitionDStepMm,
+    g0_step: ConfigField::Model3ReverseTransitionG0StepUm,
+    gap: ConfigField::Model3ReverseTransitionGapUm,
 };
 
 /// Where Model 3's table values come from when the coefficients are built: the `f64` arrays of
@@ -413,7 +414,7 @@ fn build_band(
 /// Cells per unit of an even axis in Q0.32 for a step of `step` units: a position times it is
 /// the cell in Q32.32 (one `UMULL`). Steps of at least two units keep it below 2^31; a step
 /// beyond 2^33 units cannot be resolved. `step` is finite (the callers check it first).
-fn per_step_q32(step: f64, field: &'static str) -> Result<u32, ConfigError> {
+fn per_step_q32(step: f64, field: ConfigField) -> Result<u32, ConfigError> {
     if step < 2.0 {
         return Err(ConfigError::OutOfRange(field));
     }

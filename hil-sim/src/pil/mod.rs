@@ -459,7 +459,7 @@ impl PilController {
                 value_bits: value.to_bits(),
             })
             .map_err(|e| PilError::ConfigSet {
-                field: f.name,
+                field: f.name(),
                 value,
                 source: Box::new(e),
             })?;
@@ -591,7 +591,7 @@ impl PilController {
                 detail,
                 ..
             } => Err(PilError::ConfigRefused {
-                field: settings::field(detail).map_or("unknown field", |f| f.name),
+                field: settings::field(detail).map_or("unknown field", |f| f.name()),
             }),
             Reply::Error { reason, detail, .. } => Err(PilError::Rejected {
                 kind,
