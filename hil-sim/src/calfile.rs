@@ -75,13 +75,21 @@ pub enum CalFileError {
         /// The reason, naming the field where there is one.
         source: BlobError,
     },
-    /// `calibration.toml` does not parse or could not be written as TOML.
-    #[error("{}: {message}", path.display())]
+    /// `calibration.toml` does not parse.
+    #[error("{}: {source}", path.display())]
     Toml {
         /// The TOML file.
         path: PathBuf,
-        /// The parser's message with the line.
-        message: String,
+        /// Where and why.
+        source: crate::input::TomlError,
+    },
+    /// The calibration could not be written as TOML.
+    #[error("{}: not written as TOML: {source}", path.display())]
+    ToToml {
+        /// The TOML file.
+        path: PathBuf,
+        /// What the serialiser said.
+        source: toml::ser::Error,
     },
     /// `calibration.toml` lacks its `[fit_rms_um]` table.
     #[error("{}: [fit_rms_um] is missing", path.display())]
@@ -149,9 +157,9 @@ pub fn save(dir: &Path, cal: &Calibration, rig: &Rig) -> Result<(), CalFileError
         models: models_of(&p),
     };
     let path = dir.join("calibration.toml");
-    let text = toml::to_string(&file).map_err(|e| CalFileError::Toml {
+    let text = toml::to_string(&file).map_err(|source| CalFileError::ToToml {
         path: path.clone(),
-        message: e.to_string(),
+        source,
     })?;
     std::fs::write(&path, text).map_err(io(&path))
 }
@@ -271,12 +279,12 @@ pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, CalFileError> {
         }
     })?;
     let path = dir.join("calibration.toml");
-    let toml_err = |message| CalFileError::Toml {
-        path: path.clone(),
-        message,
-    };
     let text = std::fs::read_to_string(&path).map_err(io(&path))?;
-    let mut found: toml::Table = crate::input::from_toml(&text).map_err(toml_err)?;
+    let mut found: toml::Table =
+        crate::input::from_toml(&text).map_err(|source| CalFileError::Toml {
+            path: path.clone(),
+            source,
+        })?;
     found.remove("note");
     let fit_rms_um = match found.remove("fit_rms_um") {
         Some(toml::Value::Table(t)) => t,
@@ -284,7 +292,11 @@ pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, CalFileError> {
     };
     // The model sections mirror the blob: an edit there would be silently ignored, so it is
     // refused instead, naming the field.
-    let want = toml::Value::try_from(models_of(&params)).map_err(|e| toml_err(e.to_string()))?;
+    let want =
+        toml::Value::try_from(models_of(&params)).map_err(|source| CalFileError::ToToml {
+            path: path.clone(),
+            source,
+        })?;
     let found = toml::Value::Table(found);
     if let Some(at) = first_difference("", &want, &found) {
         return Err(CalFileError::Edited {

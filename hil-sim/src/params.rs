@@ -258,7 +258,7 @@ pub enum ParamsError {
     },
     /// Not a plant in TOML (a syntax error, a missing or unknown key), with line and column.
     #[error("{0}")]
-    Toml(String),
+    Toml(crate::input::TomlError),
     /// A field out of its range or inconsistent with another (the first found).
     #[error("{field}: {reason}")]
     Field {
@@ -639,7 +639,7 @@ mod tests {
         let bad = PAPER_RIG_TOML.replace("[carriage]", "[carriage]\ncolour = 3");
         let e = PlantParams::from_toml_str(&bad).unwrap_err();
         assert!(
-            matches!(&e, ParamsError::Toml(m) if m.contains("colour")),
+            matches!(&e, ParamsError::Toml(m) if m.message.contains("colour")),
             "{e:?}"
         );
 

@@ -80,7 +80,7 @@ pub enum ScenarioError {
     },
     /// Not a scenario in TOML (a syntax error, a missing or unknown key), with line and column.
     #[error("{0}")]
-    Toml(String),
+    Toml(crate::input::TomlError),
     /// A field out of its range: the scenario's own, the drive's or the plant's.
     #[error("{}{field} = {value} {rule}", at_move(*move_n))]
     Field {
@@ -449,7 +449,7 @@ mod tests {
         let unknown = "name='x'\nstart_mm=10\n[[move]]\nto_mm=20\nvelocity_mm_s=1\naccel_mm_s2=100\nspeed=3\n";
         let e = Scenario::from_toml_str(unknown).unwrap_err();
         assert!(
-            matches!(&e, ScenarioError::Toml(t) if t.contains("speed")),
+            matches!(&e, ScenarioError::Toml(t) if t.message.contains("speed")),
             "{e:?}"
         );
         let e = Scenario::load("no-such-file.toml").unwrap_err();
