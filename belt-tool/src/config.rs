@@ -99,7 +99,7 @@ pub fn lookup(name: &str) -> Result<&'static Field, ArgError> {
 pub fn check(field: &Field, value: f64) -> Result<(), ArgError> {
     let mut scratch = Settings::PAPER;
     scratch
-        .set(field.key, value)
+        .set(field.key(), value)
         .map_err(|source| ArgError::Refused {
             source,
             unit: field.unit,
@@ -133,7 +133,7 @@ pub fn parse_assignment(arg: &str) -> Result<(&'static Field, f64), ArgError> {
 
 /// Reads one field.
 pub fn get(link: &mut Link, field: &'static Field) -> Result<FieldValue, ToolError> {
-    let req = Request::ConfigGet { key: field.key };
+    let req = Request::ConfigGet { key: field.key() };
     match link.call(&req)? {
         Reply::ConfigValue {
             active_bits,
@@ -165,7 +165,7 @@ fn read_settings(link: &mut Link, staged: bool) -> Result<Settings, ToolError> {
     let mut s = Settings::PAPER;
     for v in get_all(link)? {
         let value = if staged { v.staged } else { v.active };
-        s.set(v.field.key, value).map_err(|e| {
+        s.set(v.field.key(), value).map_err(|e| {
             ToolError::Drive(format!(
                 "{}: the drive's {}configuration holds {} = {value}: {e}",
                 link.name(),
@@ -182,7 +182,7 @@ pub fn rig(link: &mut Link) -> Result<Rig, ToolError> {
     let mut s = Settings::PAPER;
     for f in FIELDS.iter().filter(|f| f.name().starts_with("rig.")) {
         let v = get(link, f)?;
-        s.set(f.key, v.active).map_err(|e| {
+        s.set(f.key(), v.active).map_err(|e| {
             ToolError::Drive(format!("{}: the drive's {}: {e}", link.name(), f.name()))
         })?;
     }
@@ -217,7 +217,7 @@ pub fn set_and_apply(
     };
     for (f, v) in values {
         link.acked(&Request::ConfigSet {
-            key: f.key,
+            key: f.key(),
             value_bits: v.to_bits(),
         })
         .map_err(|e| match e {
@@ -230,7 +230,7 @@ pub fn set_and_apply(
     }
     // The drive converts no units: the image of the staged values is built here.
     let image = read_settings(link, true)?.parts_image().map_err(|e| {
-        let what = match settings::field_named(e.field().name()) {
+        let what = match settings::field(settings::key_of(&e)) {
             Some(f) => format!("{e} (unit {})", f.unit),
             None => e.to_string(),
         };
@@ -268,7 +268,7 @@ pub fn parse_file(path: &Path, text: &str) -> Result<Vec<(&'static Field, f64)>,
             }
         };
         check(field, v).map_err(|e| file(e.to_string()))?;
-        if out.iter().any(|(f, _)| f.key == field.key) {
+        if out.iter().any(|(f, _)| f.key() == field.key()) {
             return Err(file(format!("{name}: given twice")));
         }
         out.push((field, v));
@@ -276,7 +276,7 @@ pub fn parse_file(path: &Path, text: &str) -> Result<Vec<(&'static Field, f64)>,
     if out.is_empty() {
         return Err(file("no configuration values in the file".into()));
     }
-    out.sort_by_key(|(f, _)| f.key);
+    out.sort_by_key(|(f, _)| f.key());
     Ok(out)
 }
 
@@ -383,7 +383,7 @@ mod tests {
         let values: Vec<FieldValue> = FIELDS
             .iter()
             .map(|f| {
-                let v = Settings::PAPER.get(f.key).unwrap();
+                let v = Settings::PAPER.get(f.key()).unwrap();
                 FieldValue {
                     field: f,
                     active: if f.whole { v } else { v / 3.0 },
@@ -395,7 +395,7 @@ mod tests {
         let back = parse_file(Path::new("dump.toml"), &text).unwrap();
         assert_eq!(back.len(), FIELDS.len());
         for ((f, v), want) in back.iter().zip(&values) {
-            assert_eq!(f.key, want.field.key);
+            assert_eq!(f.key(), want.field.key());
             assert_eq!(v.to_bits(), want.active.to_bits(), "{}", f.name());
         }
     }

@@ -398,7 +398,7 @@ mod tests {
             assert_eq!(refusal(LinkError::Refused, e.code()), e.to_string());
         }
         let f = settings::field_named("rig.gear_ratio").unwrap();
-        assert!(refusal(LinkError::Config, f.key).contains("rig.gear_ratio"));
+        assert!(refusal(LinkError::Config, f.key()).contains("rig.gear_ratio"));
         assert!(refusal(LinkError::Config, 200).contains("200"));
         assert!(refusal(LinkError::Refused, 200).contains("200"));
     }

@@ -1156,7 +1156,7 @@ mod tests {
         );
 
         // A new travel: staged, its image sent, applied.
-        let key = settings::field_named("drive.travel_max_mm").unwrap().key;
+        let key = settings::field_named("drive.travel_max_mm").unwrap().key();
         let set = |v: f64| Request::ConfigSet {
             key,
             value_bits: v.to_bits(),

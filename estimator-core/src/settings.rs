@@ -1,7 +1,7 @@
 //! What a machine builder configures, as one record: the drive train's geometry, the travel and
 //! the limits, polarity, gains, fault thresholds, the control rate and homing. Every field has a
-//! key (its number on the link), a name (the same name a refusal gives, e.g.
-//! `"pid.kp_a_per_mm"`) and a unit; values travel and are stored as `f64` in SI-like units.
+//! key (its number on the link: its place among the [`ConfigField`]s, which is its place in
+//! [`FIELDS`]), a name (the same name a refusal gives, e.g. `"pid.kp_a_per_mm"`) and a unit; values travel and are stored as `f64` in SI-like units.
 //!
 //! The model parameters are not here: they come with the calibration blob, which records the
 //! geometry it was made for.
@@ -201,7 +201,7 @@ impl RawSettings {
     pub fn settings(&self) -> Result<Settings, SettingsError> {
         let mut s = Settings::PAPER;
         for f in &FIELDS {
-            s.set(f.key, f64::from_bits(self.bits[f.key as usize]))?;
+            s.set(f.key(), f64::from_bits(self.bits[f.key() as usize]))?;
         }
         Ok(s)
     }
@@ -337,8 +337,6 @@ impl std::error::Error for SettingsError {}
 
 /// One configuration field.
 pub struct Field {
-    /// Its key on the link and in the record.
-    pub key: u8,
     /// The field, as refusals name it.
     pub field: ConfigField,
     /// Its unit, for people.
@@ -354,15 +352,20 @@ pub struct Field {
 }
 
 impl Field {
+    /// Its key on the link and in the record: the field's place among the `ConfigField`s.
+    pub const fn key(&self) -> u8 {
+        self.field as u8
+    }
+
     /// Its name, as refusals give it.
     pub const fn name(&self) -> &'static str {
         self.field.name()
     }
 }
 
-/// The field with key `key`.
+/// The field with key `key` (the table is in key order, tested).
 pub fn field(key: u8) -> Option<&'static Field> {
-    FIELDS.iter().find(|f| f.key == key)
+    FIELDS.get(key as usize)
 }
 
 /// The field named `name`.
@@ -384,9 +387,8 @@ pub fn key_of(e: &ConfigError) -> u8 {
 const INF: f64 = f64::INFINITY;
 
 macro_rules! real {
-    ($key:expr, $field:expr, $unit:expr, $($path:ident).+) => {
+    ($field:expr, $unit:expr, $($path:ident).+) => {
         Field {
-            key: $key,
             field: $field,
             unit: $unit,
             min: -INF,
@@ -399,9 +401,8 @@ macro_rules! real {
 }
 
 macro_rules! flag {
-    ($key:expr, $field:expr, $($path:ident).+) => {
+    ($field:expr, $($path:ident).+) => {
         Field {
-            key: $key,
             field: $field,
             unit: "0 or 1",
             min: 0.0,
@@ -418,7 +419,6 @@ pub static FIELDS: [Field; 40] = TABLE;
 
 const TABLE: [Field; 40] = [
     Field {
-        key: 0,
         field: ConfigField::RigEncoderLines,
         unit: "lines/rev",
         min: 1.0,
@@ -428,14 +428,12 @@ const TABLE: [Field; 40] = [
         set: |s, v| s.rig.encoder_lines = v as u32,
     },
     real!(
-        1,
         ConfigField::RigGearRatio,
         "motor rev/pulley rev",
         rig.gear_ratio
     ),
-    real!(2, ConfigField::RigBeltPitchMm, "mm", rig.belt_pitch_mm),
+    real!(ConfigField::RigBeltPitchMm, "mm", rig.belt_pitch_mm),
     Field {
-        key: 3,
         field: ConfigField::RigPulleyTeeth,
         unit: "teeth",
         min: 1.0,
@@ -444,129 +442,98 @@ const TABLE: [Field; 40] = [
         get: |s| s.rig.pulley_teeth as f64,
         set: |s, v| s.rig.pulley_teeth = v as u32,
     },
-    real!(4, ConfigField::DriveRateHz, "Hz", rate_hz),
-    real!(5, ConfigField::DriveTravelMinMm, "mm", travel_min_mm),
-    real!(6, ConfigField::DriveTravelMaxMm, "mm", travel_max_mm),
-    real!(7, ConfigField::DriveTravelMarginMm, "mm", travel_margin_mm),
+    real!(ConfigField::DriveRateHz, "Hz", rate_hz),
+    real!(ConfigField::DriveTravelMinMm, "mm", travel_min_mm),
+    real!(ConfigField::DriveTravelMaxMm, "mm", travel_max_mm),
+    real!(ConfigField::DriveTravelMarginMm, "mm", travel_margin_mm),
+    real!(ConfigField::DriveMaxVelocityMmS, "mm/s", max_velocity_mm_s),
+    real!(ConfigField::DriveMaxAccelMmS2, "mm/s^2", max_accel_mm_s2),
     real!(
-        8,
-        ConfigField::DriveMaxVelocityMmS,
-        "mm/s",
-        max_velocity_mm_s
-    ),
-    real!(9, ConfigField::DriveMaxAccelMmS2, "mm/s^2", max_accel_mm_s2),
-    real!(
-        10,
         ConfigField::EncoderMaxSpeedMmS,
         "mm/s",
         encoder_max_speed_mm_s
     ),
     flag!(
-        11,
         ConfigField::PolarityMotorEncoderInverted,
         polarity.motor_encoder_inverted
     ),
+    flag!(ConfigField::PolarityScaleInverted, polarity.scale_inverted),
     flag!(
-        12,
-        ConfigField::PolarityScaleInverted,
-        polarity.scale_inverted
-    ),
-    flag!(
-        13,
         ConfigField::PolarityCurrentInverted,
         polarity.current_inverted
     ),
-    real!(14, ConfigField::PidKpAPerMm, "A/mm", pid.kp_a_per_mm),
-    real!(15, ConfigField::PidKiAPerMmS, "A/(mm s)", pid.ki_a_per_mm_s),
-    real!(16, ConfigField::PidKdASPerMm, "A s/mm", pid.kd_a_s_per_mm),
+    real!(ConfigField::PidKpAPerMm, "A/mm", pid.kp_a_per_mm),
+    real!(ConfigField::PidKiAPerMmS, "A/(mm s)", pid.ki_a_per_mm_s),
+    real!(ConfigField::PidKdASPerMm, "A s/mm", pid.kd_a_s_per_mm),
     real!(
-        17,
         ConfigField::PidDerivativeCutoffHz,
         "Hz",
         pid.derivative_cutoff_hz
     ),
     real!(
-        18,
         ConfigField::PidKffVelASPerMm,
         "A s/mm",
         pid.kff_vel_a_s_per_mm
     ),
     real!(
-        19,
         ConfigField::PidKffAccAS2PerMm,
         "A s^2/mm",
         pid.kff_acc_a_s2_per_mm
     ),
-    real!(20, ConfigField::PidMaxCurrentA, "A", pid.max_current_a),
+    real!(ConfigField::PidMaxCurrentA, "A", pid.max_current_a),
     real!(
-        21,
         ConfigField::FaultsFollowingErrorAtRestMm,
         "mm",
         faults.following_error_at_rest_mm
     ),
     real!(
-        22,
         ConfigField::FaultsFollowingErrorAtMaxVelocityMm,
         "mm",
         faults.following_error_at_max_velocity_mm
     ),
     real!(
-        23,
         ConfigField::FaultsStallCurrentA,
         "A",
         faults.stall_current_a
     ),
     real!(
-        24,
         ConfigField::FaultsStallMotionMm,
         "mm",
         faults.stall_motion_mm
     ),
-    real!(25, ConfigField::FaultsStallTimeS, "s", faults.stall_time_s),
+    real!(ConfigField::FaultsStallTimeS, "s", faults.stall_time_s),
     real!(
-        26,
         ConfigField::FaultsRunawayCurrentA,
         "A",
         faults.runaway_current_a
     ),
     real!(
-        27,
         ConfigField::FaultsRunawaySpeedMmS,
         "mm/s",
         faults.runaway_speed_mm_s
     ),
+    real!(ConfigField::FaultsRunawayTimeS, "s", faults.runaway_time_s),
     real!(
-        28,
-        ConfigField::FaultsRunawayTimeS,
-        "s",
-        faults.runaway_time_s
-    ),
-    real!(
-        29,
         ConfigField::FaultsOverspeedRatio,
         "x max velocity",
         faults.overspeed_ratio
     ),
     real!(
-        30,
         ConfigField::FaultsOverspeedTimeS,
         "s",
         faults.overspeed_time_s
     ),
     real!(
-        31,
         ConfigField::FaultsSaturationTimeS,
         "s",
         faults.saturation_time_s
     ),
     real!(
-        32,
         ConfigField::FaultsLinkTimeoutS,
         "s (0 = off)",
         faults.link_timeout_s
     ),
     Field {
-        key: 33,
         field: ConfigField::DriveInitialModel,
         unit: "0 none, 1-3 Models 1-3, 4 backlash, 5 bidirectional table, 6 Model 4",
         min: 0.0,
@@ -575,26 +542,16 @@ const TABLE: [Field; 40] = [
         get: |s| s.initial_model as u8 as f64,
         set: |s, v| s.initial_model = ModelKind::from_u8(v as u8).unwrap_or_default(),
     },
-    flag!(
-        34,
-        ConfigField::HomingTowardsPositive,
-        homing.towards_positive
-    ),
+    flag!(ConfigField::HomingTowardsPositive, homing.towards_positive),
+    real!(ConfigField::HomingVelocityMmS, "mm/s", homing.velocity_mm_s),
+    real!(ConfigField::HomingCurrentA, "A", homing.current_a),
     real!(
-        35,
-        ConfigField::HomingVelocityMmS,
-        "mm/s",
-        homing.velocity_mm_s
-    ),
-    real!(36, ConfigField::HomingCurrentA, "A", homing.current_a),
-    real!(
-        37,
         ConfigField::HomingDetectErrorMm,
         "mm",
         homing.detect_error_mm
     ),
-    real!(38, ConfigField::HomingPositionMm, "mm", homing.position_mm),
-    real!(39, ConfigField::HomingBackoffMm, "mm", homing.backoff_mm),
+    real!(ConfigField::HomingPositionMm, "mm", homing.position_mm),
+    real!(ConfigField::HomingBackoffMm, "mm", homing.backoff_mm),
 ];
 
 #[cfg(test)]
@@ -604,10 +561,10 @@ mod tests {
     #[test]
     fn keys_are_their_index_and_names_unique() {
         for (i, f) in FIELDS.iter().enumerate() {
-            assert_eq!(f.key as usize, i, "{}", f.name());
-            assert_eq!(f.field as usize, i, "{}", f.name());
-            assert_eq!(key_of(&ConfigError::OutOfRange(f.field)), f.key);
-            assert_eq!(field_named(f.name()).map(|g| g.key), Some(f.key));
+            // The table in `ConfigField` order: a field's key is its index here.
+            assert_eq!(f.key() as usize, i, "{}", f.name());
+            assert_eq!(key_of(&ConfigError::OutOfRange(f.field)), f.key());
+            assert_eq!(field_named(f.name()).map(|g| g.key()), Some(f.key()));
         }
         // Every other field is no settings key.
         for f in &ConfigField::ALL[FIELD_COUNT..] {
@@ -625,7 +582,7 @@ mod tests {
     fn every_field_round_trips_through_get_set_and_the_record() {
         let mut s = Settings::PAPER;
         for f in &FIELDS {
-            let v = s.get(f.key).unwrap();
+            let v = s.get(f.key()).unwrap();
             let new = if f.whole {
                 if v + 1.0 <= f.max {
                     v + 1.0
@@ -635,8 +592,8 @@ mod tests {
             } else {
                 v * 1.5 + 0.25
             };
-            s.set(f.key, new).unwrap();
-            assert_eq!(s.get(f.key), Some(new), "{}", f.name());
+            s.set(f.key(), new).unwrap();
+            assert_eq!(s.get(f.key()), Some(new), "{}", f.name());
         }
         let mut buf = [0u8; ENCODED_LEN];
         assert_eq!(s.encode(&mut buf), Ok(ENCODED_LEN));

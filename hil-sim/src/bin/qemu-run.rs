@@ -251,26 +251,7 @@ fn run_bench(
         "peak_stack_bytes": peak,
         "instructions": instructions,
     });
-    if let Some(path) = check {
-        match check_against(&measured, path) {
-            Ok(notes) => {
-                for n in notes {
-                    println!("{n}");
-                }
-            }
-            Err(e) => {
-                println!("{e}");
-                ok = false;
-            }
-        }
-    }
-    // Last line: one JSON object, for scripts.
-    println!("{measured}");
-    if ok {
-        ExitCode::SUCCESS
-    } else {
-        ExitCode::FAILURE
-    }
+    report(&measured, check, ok)
 }
 
 /// `--footprint`: flash and static RAM of `elf`, held against `check` when given.
@@ -286,9 +267,14 @@ fn run_footprint(elf: &std::path::Path, check: Option<&std::path::Path>) -> Exit
         "flash_bytes": f.flash_bytes,
         "static_ram_bytes": f.static_ram_bytes,
     });
-    let mut ok = true;
+    report(&measured, check, true)
+}
+
+/// Holds `measured` against `check` when given (notes and the refusal printed), then prints it
+/// as the last line, one JSON object for scripts; fails if `ok` is false or the check refuses.
+fn report(measured: &serde_json::Value, check: Option<&std::path::Path>, mut ok: bool) -> ExitCode {
     if let Some(path) = check {
-        match check_against(&measured, path) {
+        match check_against(measured, path) {
             Ok(notes) => notes.iter().for_each(|n| println!("{n}")),
             Err(e) => {
                 println!("{e}");

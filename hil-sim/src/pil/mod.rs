@@ -453,9 +453,9 @@ impl PilController {
     /// Sends every configuration field and applies them (the drive must be disabled).
     pub fn configure(&mut self, s: &Settings) -> Result<(), PilError> {
         for f in &settings::FIELDS {
-            let value = s.get(f.key).unwrap_or_default();
+            let value = s.get(f.key()).unwrap_or_default();
             self.expect_ack(&Request::ConfigSet {
-                key: f.key,
+                key: f.key(),
                 value_bits: value.to_bits(),
             })
             .map_err(|e| PilError::ConfigSet {

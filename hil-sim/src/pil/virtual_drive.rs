@@ -100,7 +100,7 @@ pub struct VirtualDriveEnd {
 
 /// The drive's control rate, asked over the link (`drive.rate_hz`).
 fn control_rate(pil: &mut PilController) -> Result<f64, PilError> {
-    let key = settings::field_named("drive.rate_hz").map_or(4, |f| f.key);
+    let key = settings::field_named("drive.rate_hz").map_or(4, |f| f.key());
     match pil.call(&Request::ConfigGet { key })? {
         Reply::ConfigValue { active_bits, .. } => Ok(f64::from_bits(active_bits)),
         other => Err(PilError::UnexpectedReply {
