@@ -32,7 +32,9 @@ mod app {
     use heapless::spsc;
 
     use belt_drive::doorbell::Doorbell;
-    use belt_drive::drive::{Command, CommandError, Drive, Faults, Parts, Telemetry};
+    use belt_drive::drive::{
+        Command, CommandError, Drive, Faults, Output as DriveOutput, Parts, Telemetry,
+    };
     use belt_drive::events::{self, Event};
     use belt_drive::hardware::{self, ControlIo, IdleIo, LinkRx};
     use belt_drive::outbox::Outbox;
@@ -359,7 +361,7 @@ mod app {
         let permitted = AMP_PERMITTED.load(Ordering::Relaxed);
         let mut refused = false;
 
-        let (out, amplifier_on, instructions) = drive.lock(|d| {
+        let (current_a, amplifier_on, instructions) = drive.lock(|d| {
             // Faults found before the step latch now: this tick already writes zero current.
             d.missed_ticks(tick.missed);
             if clock_failed {
@@ -369,14 +371,17 @@ mod app {
                 refused = true;
                 let _ = d.command(Command::Disable);
             }
-            let (out, n) = io.measure(|| d.step(tick.sample));
-            let on = permitted && out.telemetry.amplifier_enabled;
-            (out, on, n)
+            let (current_a, n) = io.measure(|| d.control(tick.sample));
+            (current_a, permitted && d.amplifier_enabled(), n)
         });
-        io.write_current(&out, amplifier_on);
+        io.write_current(current_a, amplifier_on);
 
         // Everything below is reporting; the motor already has its current.
-        let t = out.telemetry;
+        let t = drive.lock(|d| d.telemetry());
+        let out = DriveOutput {
+            current_a,
+            telemetry: t,
+        };
         if let Some(seq) = tick.reply_seq {
             outbox.lock(|o| o.send(seq, &answer(&out, instructions)));
         }

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # On-target benchmark of the firmware under QEMU (netduinoplus2, -icount shift=0):
-# Drive::step instructions per control tick for each model (PIL runs checked tick by tick
+# Drive::control instructions per control tick for each model (PIL runs checked tick by tick
 # against the in-process core), flash and static RAM of the release ELF, peak stack.
 #   tools/bench-target.sh            # table on stdout, non-zero exit if a run fails or differs;
 #                                    # the last line is one JSON object with every figure

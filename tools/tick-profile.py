@@ -1,4 +1,4 @@
-"""Counts the instructions of a QEMU exec trace inside Drive::step (see tick-profile.sh)."""
+"""Counts the instructions of a QEMU exec trace inside Drive::control (see tick-profile.sh)."""
 import bisect
 import collections
 import re
@@ -23,7 +23,7 @@ def symbols(elf):
 def main(elf, trace, top=40):
     syms = symbols(elf)
     starts = [s[0] for s in syms]
-    step = next(s for s in syms if "Drive::step" in s[2])
+    step = next(s for s in syms if "Drive::control" in s[2])
     caller = next(s for s in syms if s[2] == "TIM7")
     pc_re = re.compile(r"\[[0-9a-f]+/([0-9a-f]+)/")
     counts, ticks, inside = collections.Counter(), 0, False
@@ -46,8 +46,8 @@ def main(elf, trace, top=40):
                 counts[pc] += 1
                 this[pc] += 1
     if ticks == 0:
-        sys.exit("tick-profile: no Drive::step call in the trace")
-    print(f"\n{ticks} ticks, {sum(counts.values()) / ticks:.1f} instructions per tick in Drive::step")
+        sys.exit("tick-profile: no Drive::control call in the trace")
+    print(f"\n{ticks} ticks, {sum(counts.values()) / ticks:.1f} instructions per tick in Drive::control")
 
     def name(pc):
         i = bisect.bisect_right(starts, pc) - 1
@@ -81,7 +81,7 @@ def main(elf, trace, top=40):
     for pc, n in heaviest.items():
         heavy_file[where_of[pc].split(":")[0]] += n
         heavy_line[where_of[pc]] += n
-    print(f"\nthe heaviest tick ({sum(heaviest.values())} instructions in Drive::step), per source file:")
+    print(f"\nthe heaviest tick ({sum(heaviest.values())} instructions in Drive::control), per source file:")
     for where, n in heavy_file.most_common(top):
         print(f"{n:8d}  {where}")
     print("\nthe heaviest tick, per source line:")

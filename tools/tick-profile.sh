@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Where a control tick's instructions go: runs the bench moves for one model under QEMU with a
 # per-instruction trace (QEMU 7.2: `-singlestep -d exec,nochain`), then counts every instruction
-# executed inside `Drive::step` by function and by source line (the innermost line of this
+# executed inside `Drive::control` by function and by source line (the innermost line of this
 # workspace in the inline chain, via addr2line). Mean per tick; the total matches the bench's
 # mean to within the call overhead.
 #   tools/tick-profile.sh [MODEL]      # MODEL: none, model1, ..., model4 (default model3); per

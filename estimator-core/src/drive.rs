@@ -728,6 +728,12 @@ impl Drive {
         self.enabled
     }
 
+    /// Whether the last tick left the amplifier's enable line high (its telemetry's
+    /// `amplifier_enabled`, without copying the telemetry).
+    pub fn amplifier_enabled(&self) -> bool {
+        self.last.amplifier_enabled
+    }
+
     /// Whether the drive has been homed since start.
     pub fn is_homed(&self) -> bool {
         self.homed
@@ -1067,8 +1073,19 @@ impl Drive {
         self.silent_ticks = 0;
     }
 
-    /// One control tick. Integer-only, allocation-free, bounded time; never panics.
+    /// One control tick and its telemetry: [`Drive::control`], then [`Drive::telemetry`].
     pub fn step(&mut self, sample: Sample) -> Output {
+        let current_a = self.control(sample);
+        Output {
+            current_a,
+            telemetry: self.last,
+        }
+    }
+
+    /// One control tick: the amplifier's current command (polarity applied), the tick's
+    /// telemetry kept for [`Drive::telemetry`] (the firmware copies it out only when it reports).
+    /// Integer-only, allocation-free, bounded time; never panics.
+    pub fn control(&mut self, sample: Sample) -> I16F16 {
         self.tick = self.tick.wrapping_add(1);
         let motor_raw = counting_up(sample.motor_counter, self.polarity.motor_encoder_inverted);
         let mut x = match self.motor.update(&mut self.motor_state, motor_raw) {
@@ -1114,9 +1131,7 @@ impl Drive {
                 // The floor of the I24F8 error (always within i32).
                 following_error_counts = out.following_error_counts.to_num::<i32>();
                 setpoint_counts = sp.position_floor_counts();
-                let limit = self
-                    .monitor
-                    .following_error_limit_counts(sp.velocity_counts_per_tick());
+                let limit = self.monitor.following_error_limit_counts(sp.velocity_q16());
                 if following_error_counts.unsigned_abs() > limit {
                     self.faults.0 |= Faults::FOLLOWING_ERROR;
                 } else {
@@ -1169,9 +1184,6 @@ impl Drive {
             amplifier_enabled: self.enabled && self.faults.is_clear(),
             homed: self.homed,
         };
-        Output {
-            current_a: command_a,
-            telemetry: self.last,
-        }
+        command_a
     }
 }

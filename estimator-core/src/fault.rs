@@ -11,7 +11,7 @@
 //! commanded on the previous tick (the current that produced this tick's motion).
 
 use crate::ConfigField;
-use fixed::types::{I16F16, I40F24};
+use fixed::types::I16F16;
 
 use crate::{BuildContext, ConfigError};
 
@@ -395,11 +395,12 @@ impl Coeffs {
         })
     }
 
-    /// The following-error limit, counts, at a set-point speed of `speed` (counts per tick, any
-    /// sign). 32-bit arithmetic: the speed to 1/16 count per tick.
+    /// The following-error limit, counts, at a set-point velocity of `velocity_q16` (counts per
+    /// tick in Q16.16, any sign: [`Setpoint::velocity_q16`](crate::trajectory::Setpoint::velocity_q16),
+    /// which the loop reads too). 32-bit arithmetic: the speed to 1/16 count per tick.
     #[inline]
-    pub fn following_error_limit_counts(&self, speed: I40F24) -> u32 {
-        let v_q4 = (speed.to_bits().unsigned_abs() >> (I40F24::FRAC_NBITS - 4)).min(1 << 15) as u32;
+    pub fn following_error_limit_counts(&self, velocity_q16: i32) -> u32 {
+        let v_q4 = (velocity_q16.unsigned_abs() >> 12).min(1 << 15);
         self.fe_rest_counts
             .saturating_add(v_q4.wrapping_mul(self.fe_slope_q8) >> 12)
     }

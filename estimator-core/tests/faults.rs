@@ -177,16 +177,17 @@ fn following_error_limit_grows_with_speed() {
         following_error_at_max_velocity_mm: 3.0,
         ..quiet()
     });
-    use estimator_core::fixed::types::I40F24;
-    let rest = c.following_error_limit_counts(I40F24::ZERO);
+    let rest = c.following_error_limit_counts(0);
     assert_eq!(rest, (1.0 * cpm()) as u32);
-    let vmax = I40F24::from_num(VMAX_MM_S * cpm() / RATE_HZ);
+    // The set-point velocity in Q16.16 counts per tick.
+    let vmax = (VMAX_MM_S * cpm() / RATE_HZ * 65536.0) as i32;
     let at_max = c.following_error_limit_counts(vmax);
     // The speed is taken to 1/16 count per tick: within 2 counts of the exact line.
     assert!(at_max.abs_diff((3.0 * cpm()) as u32) <= 2, "{at_max}");
     let half = c.following_error_limit_counts(-vmax / 2);
     assert!(half.abs_diff((2.0 * cpm()) as u32) <= 2, "{half}");
-    assert!(c.following_error_limit_counts(I40F24::MAX) > at_max);
+    assert!(c.following_error_limit_counts(i32::MAX) > at_max);
+    assert!(c.following_error_limit_counts(i32::MIN) > at_max);
 }
 
 // ---- drive level ----------------------------------------------------------------------------

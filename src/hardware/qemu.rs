@@ -20,13 +20,14 @@
 use core::ffi::CStr;
 use core::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 
+use estimator_core::fixed::types::I16F16;
 use heapless::spsc::{Consumer, Producer, Queue};
 use semihosting::fd::{AsFd, OwnedFd};
 use semihosting::sys::arm_compat::{sys_get_cmdline_uninit, sys_open, OpenMode};
 use stm32f4xx_hal::pac;
 
 use super::{link_usart, Board, Mono, UsartRx, UsartTx};
-use crate::drive::{Output as DriveOutput, Sample};
+use crate::drive::Sample;
 
 /// Board name for the boot log.
 pub const NAME: &str = "QEMU netduinoplus2 (STM32F405RG model, HSI, 168 MHz virtual)";
@@ -118,7 +119,7 @@ impl ControlIo {
 
     /// No amplifier under QEMU: the current travels back in the PIL answer.
     #[inline(always)]
-    pub fn write_current(&mut self, _out: &DriveOutput, _amplifier_on: bool) {}
+    pub fn write_current(&mut self, _current_a: I16F16, _amplifier_on: bool) {}
 
     /// No overrun: the plant waits for every answer.
     #[inline(always)]

@@ -38,7 +38,7 @@ use stm32f4xx_hal::pac;
 use super::gpio::{self, Pull};
 use super::{link_usart, Board, Mono};
 pub use super::{UsartRx as LinkRx, UsartTx as LinkTx};
-use crate::drive::{Output as DriveOutput, Sample};
+use crate::drive::Sample;
 use crate::postmortem::reset_cause;
 
 use clocks::Source as ClockSource;
@@ -195,12 +195,12 @@ impl ControlIo {
     /// Sends the tick's current to the amplifier, or zero current and a low enable when
     /// `amplifier_on` is false or the clock has failed meanwhile.
     #[inline(always)]
-    pub fn write_current(&mut self, out: &DriveOutput, amplifier_on: bool) {
+    pub fn write_current(&mut self, current_a: I16F16, amplifier_on: bool) {
         if amplifier_on && !CLOCK_FAILED.load(Ordering::Relaxed) {
             // Current first, then the enable: the amplifier never sees a stale command.
             self.dac
                 .dhr12r1()
-                .write(|w| unsafe { w.daccdhr().bits(dac_code(out.current_a)) });
+                .write(|w| unsafe { w.daccdhr().bits(dac_code(current_a)) });
             gpio::GPIOB.set_high(AMP_ENABLE_PIN);
         } else {
             // Enable first, then zero.

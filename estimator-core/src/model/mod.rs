@@ -259,7 +259,7 @@ pub struct ModelCoeffs {
 // The firmware keeps one `ModelCoeffs` in static RAM (budget 8 KiB) and moves it when a
 // calibration loads: any growth must be deliberate (3496 B with the host's closing distances,
 // the 256-row bidirectional table 1 KiB in I13F3, Model 3's even-axis bands 528 B and Model 4
-// 224 B of it; ModelState 152 B,
+// 224 B of it; ModelState 168 B,
 // Model 4's plays with their running sums and its Model 2 term 112 B of it). Exact: a
 // shrink shows here too.
 #[cfg(feature = "std")]
@@ -267,7 +267,7 @@ const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3496);
 // On the drive (no closing distances): what the static RAM figures count.
 #[cfg(not(feature = "std"))]
 const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3448);
-const _: () = assert!(core::mem::size_of::<ModelState>() == 152);
+const _: () = assert!(core::mem::size_of::<ModelState>() == 168);
 
 impl ModelCoeffs {
     /// Everything zero and no tables: a value to decode a calibration image into
@@ -430,7 +430,10 @@ pub struct ModelState {
     /// Model 3: the `g0` cell of the current transition.
     pub(crate) g0_cell: table::Cell,
     pub(crate) g0_valid: bool,
-    pub(crate) rows: table::RowCache,
+    /// Model 3: the band segment and the transition's row pair in use (empty after a
+    /// reversal, new coefficients and a new `g0`).
+    pub(crate) band: table::SegmentCache,
+    pub(crate) rows: table::SegmentCache,
     /// Model 4: the plays, valid while Model 4 has run every tick.
     pub(crate) plays: operator::Plays,
     /// Model 4's Model 2 term: its output at `x_ext` (valid if Model 4 ran there) and at the
@@ -456,7 +459,8 @@ impl ModelState {
             transition: false,
             g0_cell: table::Cell { lo: 0, hi: 0, t: 0 },
             g0_valid: false,
-            rows: table::RowCache::EMPTY,
+            band: table::SegmentCache::EMPTY,
+            rows: table::SegmentCache::EMPTY,
             plays: operator::Plays::NEW,
             base_y_ext_um: I16F16::ZERO,
             base_y_ext_valid: false,
@@ -506,13 +510,15 @@ impl ModelState {
     /// Eqs. 15-16 with the dead band: update the extreme, or register a reversal.
     #[inline]
     fn track(&mut self, deadband_counts: u32, x: i32) {
-        let back = match self.dir {
-            Direction::Forward => self.x_ext_counts as i64 - x as i64,
-            Direction::Reverse => x as i64 - self.x_ext_counts as i64,
+        // Ahead of the extreme: a new extreme. Behind it, the distance back (two `i32` apart:
+        // exact in `u32`) against the dead band.
+        let (ahead, back) = match self.dir {
+            Direction::Forward => (x > self.x_ext_counts, self.x_ext_counts.wrapping_sub(x)),
+            Direction::Reverse => (x < self.x_ext_counts, x.wrapping_sub(self.x_ext_counts)),
         };
-        if back < 0 {
+        if ahead {
             self.x_ext_counts = x;
-        } else if back > deadband_counts as i64 {
+        } else if back as u32 > deadband_counts {
             self.dir = match self.dir {
                 Direction::Forward => Direction::Reverse,
                 Direction::Reverse => Direction::Forward,
@@ -523,8 +529,9 @@ impl ModelState {
             self.base_y_d_um = self.base_y_ext_um;
             self.base_transition = self.base_y_ext_valid;
             self.x_ext_counts = x;
-            // Model 3's g0 cell is recomputed on its next tick.
+            // Model 3's g0 cell is recomputed on its next tick, on the other band.
             self.g0_valid = false;
+            self.band = table::SegmentCache::EMPTY;
         }
     }
 }

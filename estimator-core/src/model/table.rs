@@ -527,10 +527,71 @@ impl BandCoeffs {
     /// values outside it. Total on any coefficients (an empty table gives 0).
     #[inline(always)]
     pub(crate) fn eval(&self, x: i32) -> i32 {
-        // In [0, 2^32): times a Q0.32 below 2^31, the product stays below 2^63.
-        let d = (x as i64 - self.x0_counts as i64).clamp(0, u32::MAX as i64) as u64;
-        let cell = Cell::locate(d * self.points_q32 as u64, self.len);
+        let cell = Cell::locate(self.position_q32(x), self.len);
         lerp_q32(self.y(cell.lo), self.y(cell.hi), cell.t)
+    }
+
+    /// The position of `x` on the axis in Q32.32 (held at 0 before the first point). `x - x0`
+    /// of two `i32` lies in `[0, 2^32)` once `x >= x0`; times a Q0.32 below 2^31, below 2^63.
+    #[inline(always)]
+    fn position_q32(&self, x: i32) -> u64 {
+        let d = if x < self.x0_counts {
+            0
+        } else {
+            x.wrapping_sub(self.x0_counts) as u32
+        };
+        d as u64 * self.points_q32 as u64
+    }
+
+    /// [`BandCoeffs::eval`] with the cell's ends kept in `cache`: bit-identical, and a tick
+    /// that stays in the cell (nearly all) reloads nothing.
+    #[inline(always)]
+    pub(crate) fn eval_cached(&self, x: i32, cache: &mut SegmentCache) -> i32 {
+        let pos = self.position_q32(x);
+        let last = (self.len as u32).saturating_sub(1);
+        let i = ((pos >> 32) as u32).min(last);
+        if i != cache.index {
+            // Past the last point both ends are the last value: the hold of `Cell::locate`.
+            let lo = self.y(i as u8);
+            let hi = self.y(if i < last { i as u8 + 1 } else { i as u8 });
+            *cache = SegmentCache::new(i, lo, hi);
+        }
+        cache.at(pos as u32)
+    }
+}
+
+/// One segment of a piecewise-linear table in use: its index and its ends (Q16.16 um bits), so
+/// that the next tick in the same segment is one multiply. Invalid: an index no table has.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct SegmentCache {
+    index: u32,
+    lo: i32,
+    /// `hi - lo`, wrapping (as [`lerp_q32`] computes it).
+    diff: i32,
+}
+
+impl SegmentCache {
+    /// Nothing cached: the next use loads its segment.
+    pub(crate) const EMPTY: SegmentCache = SegmentCache {
+        index: u32::MAX,
+        lo: 0,
+        diff: 0,
+    };
+
+    #[inline(always)]
+    fn new(index: u32, lo: i32, hi: i32) -> SegmentCache {
+        SegmentCache {
+            index,
+            lo,
+            diff: hi.wrapping_sub(lo),
+        }
+    }
+
+    /// [`lerp_q32`] between the segment's ends at `t` (Q0.32), bit for bit.
+    #[inline(always)]
+    fn at(&self, t: u32) -> i32 {
+        let step = (self.diff as i64 * (t >> 1) as i64 + (1 << 30)) >> 31;
+        self.lo.wrapping_add(step as i32)
     }
 }
 
@@ -619,56 +680,37 @@ impl TransitionCoeffs {
         Cell::locate(g0_bits.max(0) as u64 * self.cols_q32 as u64, self.n_g0)
     }
 
-    #[inline]
-    fn g(&self, i: u8, j: u8) -> i32 {
-        // Rows: MAX_TRANSITION_D is a power of two, masking proves the bound; columns: checked.
+    /// Row `i` of the table interpolated at the column cell `col`, Q16.16 um bits. Both
+    /// indices are masked or capped into the array (no panic path, no branch): a cell from
+    /// [`TransitionCoeffs::g0_cell`] is always inside the table, and at the last column its
+    /// fraction is 0, so the value beside it (capped) does not count.
+    #[inline(always)]
+    fn row_at(&self, i: u8, col: Cell) -> i32 {
         let row = &self.gap_um[i as usize & (MAX_TRANSITION_D - 1)];
-        let raw = row.get(j as usize).map_or(0, |v| v.to_bits());
+        let j = col.lo as usize;
         // U11F5 -> Q16.16: < 2^27, no overflow.
-        (raw as i32) << 11
+        let a = (row[j.min(MAX_TRANSITION_G0 - 1)].to_bits() as i32) << 11;
+        let b = (row[(j + 1).min(MAX_TRANSITION_G0 - 1)].to_bits() as i32) << 11;
+        lerp_q32(a, b, col.t)
     }
 
     /// `G(d, g0)` in Q16.16 um bits for `d_counts` of travel and the column cell `col` of `g0`.
     ///
     /// `g0` is fixed during a transition, so the two rows around `d`, interpolated at `g0`, are
-    /// kept in `rows` and recomputed only when `d` enters another row pair: a typical tick is one
-    /// multiply (the row position) and one interpolation.
-    #[inline]
-    pub(crate) fn eval(&self, d_counts: u32, col: Cell, rows: &mut RowCache) -> i32 {
-        let row = Cell::locate(d_counts as u64 * self.rows_q32 as u64, self.n_d);
-        if !rows.valid || rows.lo != row.lo || rows.hi != row.hi {
-            *rows = RowCache {
-                valid: true,
-                lo: row.lo,
-                hi: row.hi,
-                near: lerp_q32(self.g(row.lo, col.lo), self.g(row.lo, col.hi), col.t),
-                far: lerp_q32(self.g(row.hi, col.lo), self.g(row.hi, col.hi), col.t),
-            };
+    /// kept in `rows` (empty whenever `g0` changes) and recomputed only when `d` enters another
+    /// row pair: a typical tick is one multiply (the row position) and one interpolation.
+    #[inline(always)]
+    pub(crate) fn eval(&self, d_counts: u32, col: Cell, rows: &mut SegmentCache) -> i32 {
+        let pos = d_counts as u64 * self.rows_q32 as u64;
+        let last = (self.n_d as u32).saturating_sub(1);
+        let r = ((pos >> 32) as u32).min(last);
+        if r != rows.index {
+            // Past the last row both rows are the last: the hold of `Cell::locate`.
+            let (lo, hi) = (r as u8, if r < last { r as u8 + 1 } else { r as u8 });
+            *rows = SegmentCache::new(r, self.row_at(lo, col), self.row_at(hi, col));
         }
-        lerp_q32(rows.near, rows.far, row.t)
+        rows.at(pos as u32)
     }
-}
-
-/// The two rows of the transition table around the current `d`, interpolated at the
-/// transition's `g0` (Q16.16 um bits).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub(crate) struct RowCache {
-    pub valid: bool,
-    lo: u8,
-    hi: u8,
-    near: i32,
-    far: i32,
-}
-
-impl RowCache {
-    /// Empty: recomputed on first use.
-    pub(crate) const EMPTY: RowCache = RowCache {
-        valid: false,
-        lo: 0,
-        hi: 0,
-        near: 0,
-        far: 0,
-    };
 }
 
 impl Model3Coeffs {
@@ -716,24 +758,113 @@ fn g0_cell(c: &Model3Coeffs, s: &mut ModelState) -> Cell {
 #[inline]
 pub(crate) fn eval(c: &Model3Coeffs, s: &mut ModelState, x_counts: i32) -> I16F16 {
     let dir = s.dir;
+    let edge = c.band(dir).eval_cached(x_counts, &mut s.band);
     if !s.transition {
-        return I16F16::from_bits(c.band(dir).eval(x_counts));
+        return I16F16::from_bits(edge);
     }
     if !s.g0_valid {
         s.g0_cell = g0_cell(c, s);
         s.g0_valid = true;
-        s.rows.valid = false;
+        s.rows = SegmentCache::EMPTY;
     }
-    let edge = c.band(dir).eval(x_counts);
-    let dx = x_counts as i64 - s.x_d_counts as i64;
-    let d = match dir {
-        Direction::Forward => dx,
-        Direction::Reverse => -dx,
+    // Travel since the turning point along `dir`, held at 0 before it: the difference of two
+    // `i32` lies in [0, 2^32) on the far side.
+    let (from, to) = match dir {
+        Direction::Forward => (s.x_d_counts, x_counts),
+        Direction::Reverse => (x_counts, s.x_d_counts),
     };
-    let d = d.clamp(0, u32::MAX as i64) as u32;
+    let d = if to <= from {
+        0
+    } else {
+        to.wrapping_sub(from) as u32
+    };
     let gap = c.transition(dir).eval(d, s.g0_cell, &mut s.rows);
     I16F16::from_bits(match dir {
         Direction::Forward => edge.saturating_add(gap),
         Direction::Reverse => edge.saturating_sub(gap),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn band() -> impl Strategy<Value = BandCoeffs> {
+        (
+            2u8..=MAX_BAND_POINTS as u8,
+            any::<i32>(),
+            (1u32 << 12)..(1u32 << 31),
+            prop::collection::vec(-(1i32 << 29)..(1i32 << 29), MAX_BAND_POINTS),
+        )
+            .prop_map(|(len, x0_counts, points_q32, y)| {
+                let mut b = BandCoeffs {
+                    len,
+                    x0_counts,
+                    points_q32,
+                    y_um: [I16F16::ZERO; MAX_BAND_POINTS],
+                };
+                for (dst, v) in b.y_um.iter_mut().zip(y) {
+                    *dst = I16F16::from_bits(v);
+                }
+                b
+            })
+    }
+
+    /// Positions that walk in small steps (most ticks stay in a segment) and jump anywhere.
+    fn walk() -> impl Strategy<Value = Vec<i32>> {
+        prop::collection::vec(
+            prop_oneof![4 => -3000i32..3000, 1 => any::<i32>().prop_map(|x| x | 1 << 31)],
+            1..400,
+        )
+    }
+
+    proptest! {
+        /// The cached band segment gives what a fresh lookup gives, bit for bit, wherever the
+        /// positions go (before the first point, across segments, past the last).
+        #[test]
+        fn cached_band_is_the_lookup(b in band(), start in any::<i32>(), steps in walk()) {
+            let mut cache = SegmentCache::EMPTY;
+            let mut x = start;
+            for s in steps {
+                x = if s & (1 << 31) != 0 { s ^ (1 << 31) } else { x.saturating_add(s) };
+                prop_assert_eq!(b.eval_cached(x, &mut cache), b.eval(x), "x = {}", x);
+            }
+        }
+
+        /// The cached row pair gives the interpolation of the four table values around
+        /// `(d, g0)`, bit for bit, for any travel sequence and initial gap.
+        #[test]
+        fn cached_rows_are_the_lookup(
+            n_d in 2u8..=MAX_TRANSITION_D as u8,
+            n_g0 in 2u8..=MAX_TRANSITION_G0 as u8,
+            rows_q32 in (1u32 << 12)..(1u32 << 31),
+            cols_q32 in (1u32 << 12)..(1u32 << 31),
+            gaps in prop::collection::vec(any::<u16>(), MAX_TRANSITION_D * MAX_TRANSITION_G0),
+            g0_bits in any::<i32>(),
+            steps in walk(),
+        ) {
+            let mut t = TransitionCoeffs {
+                n_d,
+                n_g0,
+                rows_q32,
+                cols_q32,
+                gap_um: [[U11F5::ZERO; MAX_TRANSITION_G0]; MAX_TRANSITION_D],
+            };
+            for (k, g) in gaps.into_iter().enumerate() {
+                t.gap_um[k / MAX_TRANSITION_G0][k % MAX_TRANSITION_G0] = U11F5::from_bits(g);
+            }
+            let col = t.g0_cell(g0_bits);
+            let g = |i: u8, j: u8| (t.gap_um[i as usize][j as usize].to_bits() as i32) << 11;
+            let mut rows = SegmentCache::EMPTY;
+            let mut d = 0u32;
+            for s in steps {
+                d = if s & (1 << 31) != 0 { (s ^ (1 << 31)) as u32 } else { d.saturating_add_signed(s) };
+                let row = Cell::locate(d as u64 * t.rows_q32 as u64, t.n_d);
+                let near = lerp_q32(g(row.lo, col.lo), g(row.lo, col.hi), col.t);
+                let far = lerp_q32(g(row.hi, col.lo), g(row.hi, col.hi), col.t);
+                prop_assert_eq!(t.eval(d, col, &mut rows), lerp_q32(near, far, row.t), "d = {}", d);
+            }
+        }
+    }
 }

@@ -171,7 +171,7 @@ fn run_bench(
         opts.elf.display(),
         opts.icount_shift
     );
-    println!("Drive::step instructions per control tick (TIM2 instruction counter), each tick");
+    println!("Drive::control instructions per control tick (TIM2 instruction counter), each tick");
     println!("compared with the same core run in-process on the host:\n");
     println!(
         "{:<12} {:>7} {:>6} {:>8} {:>6}  {:<12} {:>11}",

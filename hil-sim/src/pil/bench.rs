@@ -1,6 +1,6 @@
 //! PIL runs that check and measure the firmware: the same plant, samples and commands drive the
 //! core in-process and the firmware under QEMU; every tick's output must be identical, and the
-//! firmware reports how many instructions each `Drive::step` took.
+//! firmware reports how many instructions each `Drive::control` took.
 
 use std::path::{Path, PathBuf};
 
@@ -29,7 +29,7 @@ pub struct RunReport {
     pub model: ModelKind,
     /// Ticks run.
     pub ticks: u64,
-    /// `Drive::step` instruction counts.
+    /// `Drive::control` instruction counts.
     pub counts: StepCounts,
     /// First tick whose firmware output differed from the in-process core's, if any.
     pub first_mismatch: Option<u64>,

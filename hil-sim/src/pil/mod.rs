@@ -1,7 +1,7 @@
 //! Processor-in-the-loop: the real firmware under QEMU, paced by the simulated plant.
 //!
 //! [`PilController`] implements [`Controller`]: each `step` sends the plant's raw counters as a
-//! [`Request::Sample`] over the link, the firmware's `control` task runs `Drive::step` and
+//! [`Request::Sample`] over the link, the firmware's `control` task runs `Drive::control` and
 //! answers with the current and telemetry, and only then does the simulator integrate the plant
 //! for one tick.
 //!
@@ -302,7 +302,7 @@ impl PilOptions {
     }
 }
 
-/// Instruction counts of `Drive::step` over a session (QEMU's TIM2 counter).
+/// Instruction counts of `Drive::control` over a session (QEMU's TIM2 counter).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct StepCounts {
     /// Ticks measured.
@@ -343,7 +343,7 @@ pub struct PilController {
     rx: Receiver,
     seq: u8,
     reply_timeout: Duration,
-    /// `Drive::step` instruction counts, all ticks so far.
+    /// `Drive::control` instruction counts, all ticks so far.
     pub counts: StepCounts,
     /// Frames the firmware sent that this side could not decode.
     pub bad_replies: u32,
