@@ -524,8 +524,9 @@ impl BandCoeffs {
     }
 
     /// `Λ(x)` as Q16.16 um bits: the cell on the even axis by one multiply, held at the end
-    /// values outside it. Total on any coefficients (an empty table gives 0).
-    #[inline(always)]
+    /// values outside it. Total on any coefficients (an empty table gives 0). The definition
+    /// [`BandCoeffs::eval_cached`] is tested against; the drive calls only that.
+    #[cfg(test)]
     pub(crate) fn eval(&self, x: i32) -> i32 {
         let cell = Cell::locate(self.position_q32(x), self.len);
         lerp_q32(self.y(cell.lo), self.y(cell.hi), cell.t)
@@ -744,7 +745,8 @@ impl Model3Coeffs {
 #[inline(never)]
 fn g0_cell(c: &Model3Coeffs, s: &mut ModelState) -> Cell {
     let dir = s.dir;
-    let edge = c.band(dir).eval(s.x_d_counts);
+    // Through the (emptied) band cache: the tick goes on at x near x_d, mostly in this segment.
+    let edge = c.band(dir).eval_cached(s.x_d_counts, &mut s.band);
     let y_d = s.y_d_um.to_bits() as i64;
     let g0 = match dir {
         Direction::Forward => y_d - edge as i64,
