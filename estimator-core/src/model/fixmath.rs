@@ -156,7 +156,12 @@ pub fn frac_q32(num: u32, den: u32) -> u32 {
 /// contract the arithmetic wraps (a wrong value, never a panic).
 #[inline]
 pub fn lerp_q32(a: i32, b: i32, t: u32) -> i32 {
-    let diff = b.wrapping_sub(a);
+    lerp_diff_q32(a, b.wrapping_sub(a), t)
+}
+
+/// [`lerp_q32`] from `a` and `diff = b - a` (wrapping): for a caller that keeps the difference.
+#[inline(always)]
+pub fn lerp_diff_q32(a: i32, diff: i32, t: u32) -> i32 {
     let step = (diff as i64 * (t >> 1) as i64 + (1 << 30)) >> 31;
     a.wrapping_add(step as i32)
 }
