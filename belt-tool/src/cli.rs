@@ -173,7 +173,7 @@ fn connect(a: &LinkArgs) -> Result<Link, ToolError> {
 }
 
 fn print_json(v: &serde_json::Value) {
-    println!("{v}");
+    hil_sim::outln!("{v}");
 }
 
 /// Runs the command line.
@@ -223,7 +223,7 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
             if json {
                 print_json(&status::to_json(&s, rig.as_ref()));
             } else {
-                print!("{}", status::to_table(link.name(), &s, rig.as_ref()));
+                hil_sim::out!("{}", status::to_table(link.name(), &s, rig.as_ref()));
             }
         }
         Cmd::Enable => simple(link, Command::Enable, "enabled")?,
@@ -248,7 +248,7 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
             if json {
                 print_json(&status::to_json(&s, None));
             } else {
-                println!(
+                hil_sim::outln!(
                     "homed: carriage at {:.3} mm, scale {:.1} um",
                     s.carriage_estimate_um as f64 / 1000.0,
                     status::scale_um(&s)
@@ -289,7 +289,7 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
                         let staged = v.staged_change().map_or(String::new(), |s| {
                             format!("  (staged: {})", config::format_value(v.field, s))
                         });
-                        println!(
+                        hil_sim::outln!(
                             "{:<42} {:>14}  {}{staged}",
                             v.field.name(),
                             config::format_value(v.field, v.active),
@@ -300,11 +300,11 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
             }
             ConfigCmd::Set { .. } => {
                 config::set_and_apply(link, &set_values, "config set")?;
-                println!("applied {}", values(set_values.len()));
+                hil_sim::outln!("applied {}", values(set_values.len()));
             }
             ConfigCmd::Load { file } => {
                 config::set_and_apply(link, &load, &file.display().to_string())?;
-                println!("applied {} from {}", values(load.len()), file.display());
+                hil_sim::outln!("applied {} from {}", values(load.len()), file.display());
             }
             ConfigCmd::Save => {
                 config::require_disabled(link, "saving")?;
@@ -312,12 +312,12 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
                 if json {
                     print_json(&json!({"seq": seq, "crc": format!("{crc:08x}")}));
                 } else {
-                    println!("saved: record {seq}, crc {crc:08x}");
+                    hil_sim::outln!("saved: record {seq}, crc {crc:08x}");
                 }
             }
             ConfigCmd::Dump => {
                 let values = config::get_all(link)?;
-                print!("{}", config::dump(link.name(), &values));
+                hil_sim::out!("{}", config::dump(link.name(), &values));
             }
         },
         Cmd::Record {
@@ -333,7 +333,7 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
                     "missing_samples": stats.missing_samples,
                 }));
             } else {
-                println!("wrote {written} samples to {}", out.display());
+                hil_sim::outln!("wrote {written} samples to {}", out.display());
             }
             stats.check().map_err(|e| {
                 ToolError::Drive(format!("{e} ({} holds what arrived)", out.display()))
@@ -366,11 +366,11 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
                 .map(|(k, v)| (k.as_str().to_string(), json!(v)))
                 .collect();
             if !json {
-                println!("| model | fit RMS (um) |\n|---|---:|");
+                hil_sim::outln!("| model | fit RMS (um) |\n|---|---:|");
                 for (k, v) in &o.calibration.fit_rms_um {
-                    println!("| {} | {v:.2} |", k.as_str());
+                    hil_sim::outln!("| {} | {v:.2} |", k.as_str());
                 }
-                println!(
+                hil_sim::outln!(
                     "\n{} samples; blob {} bytes, crc {:08x}, uploaded and verified; {} selected{}",
                     o.calibration.samples,
                     o.blob_len,
@@ -380,7 +380,7 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
                         .map_or(String::new(), |c| format!("; saved, crc {c:08x}"))
                 );
                 for f in &o.files {
-                    println!("wrote {}", f.display());
+                    hil_sim::outln!("wrote {}", f.display());
                 }
             } else {
                 print_json(&json!({
@@ -401,7 +401,7 @@ fn values(n: usize) -> String {
 
 fn simple(link: &mut Link, cmd: Command, done: &str) -> Result<(), ToolError> {
     link.command(cmd)?;
-    println!("{done}");
+    hil_sim::outln!("{done}");
     Ok(())
 }
 
@@ -444,7 +444,7 @@ fn moves(
                 "scale_minus_target_um": a.error_um(),
             }));
         } else {
-            println!(
+            hil_sim::outln!(
                 "target {:>10.3} mm   estimate {:>10.3} mm   scale {:>10.4} mm   scale - target \
                  {:>8.1} um",
                 a.target_mm,
@@ -460,7 +460,7 @@ fn moves(
     if json {
         print_json(&json!({"count": errors.len(), "rms_um": rms, "max_um": max}));
     } else if errors.len() > 1 {
-        println!(
+        hil_sim::outln!(
             "{} moves: |scale - target| RMS {rms:.1} um, max {max:.1} um",
             errors.len()
         );

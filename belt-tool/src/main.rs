@@ -6,11 +6,11 @@ use clap::Parser;
 
 fn main() -> ExitCode {
     let cli = belt_tool::cli::Cli::parse();
-    match belt_tool::cli::run(cli) {
+    hil_sim::stdout::exit_code(match belt_tool::cli::run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("beltctl: {e}");
             ExitCode::FAILURE
         }
-    }
+    })
 }

@@ -26,6 +26,7 @@ pub mod report;
 pub mod run;
 pub mod scenario;
 pub mod stats;
+pub mod stdout;
 pub mod tables;
 pub mod workloads;
 

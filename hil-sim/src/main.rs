@@ -330,12 +330,12 @@ fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), Error> {
         .collect();
     progress.finish();
     if json {
-        println!(
+        hil_sim::outln!(
             "{}",
             eval::to_json(&trace.scenario, trace.records.len(), &table, &placed)?
         );
     } else {
-        print!(
+        hil_sim::out!(
             "{}",
             report::table_markdown(
                 &trace.scenario,
@@ -344,7 +344,7 @@ fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), Error> {
                 eval::paper_setting(&scenario, &plant)
             )
         );
-        print!("\n{}", report::placement_markdown(&placed));
+        hil_sim::out!("\n{}", report::placement_markdown(&placed));
     }
     Ok(())
 }
@@ -368,7 +368,11 @@ fn run_csv(scenario: &str, common: &Common, model: &str, out: &str) -> Result<()
             std::fs::File::create(out).map_err(|e| Error::io(out, e))?,
         ))
     };
-    report::write_csv(&mut w, &trace).map_err(|e| Error::io(out, e))
+    match report::write_csv(&mut w, &trace) {
+        // The reader has gone (`| head`): the output it took is all it wanted.
+        Err(e) if out == "-" && hil_sim::stdout::is_reader_gone(&e) => Ok(()),
+        r => r.map_err(|e| Error::io(out, e)),
+    }
 }
 
 fn faults_campaign(
@@ -428,13 +432,13 @@ fn faults_campaign(
         eprintln!("false trip: {w}");
     }
     if json {
-        println!("{}", faults::to_json(&results, &pil_same, trips, checked));
+        hil_sim::outln!("{}", faults::to_json(&results, &pil_same, trips, checked));
     } else {
-        println!("| class | expected (any) | raised | detected | latency (ticks) | current after (A) | latched | PIL |");
-        println!("|---|---|---|---|---:|---:|---|---|");
+        hil_sim::outln!("| class | expected (any) | raised | detected | latency (ticks) | current after (A) | latched | PIL |");
+        hil_sim::outln!("|---|---|---|---|---:|---:|---|---|");
         for r in &results {
             let p = pil_same.iter().find(|(i, _)| *i == r.injection);
-            println!(
+            hil_sim::outln!(
                 "| {} | {} | {} | {} | {} | {} | {} | {} |",
                 r.injection.name(),
                 estimator_core::drive::Faults(r.injection.expected()),
@@ -451,7 +455,7 @@ fn faults_campaign(
                 }
             );
         }
-        println!(
+        hil_sim::outln!(
             "
 false trips: {trips} on {checked} scenario presets"
         );
@@ -579,7 +583,7 @@ fn main() -> ExitCode {
             );
             let end = hil_sim::pil::virtual_drive::run(&opts, &mut |tty| {
                 // stdout: the port, for scripts.
-                println!("{}", tty.display());
+                hil_sim::outln!("{}", tty.display());
                 eprintln!("virtual drive: link on {}", tty.display());
             })?;
             eprintln!(
@@ -614,7 +618,7 @@ fn main() -> ExitCode {
                 })?);
             }
             progress.finish();
-            print!("{}", generalise::markdown(&tables));
+            hil_sim::out!("{}", generalise::markdown(&tables));
             Ok(())
         })(),
         Cmd::Report {
@@ -653,7 +657,7 @@ fn main() -> ExitCode {
             Ok(())
         })(),
     };
-    match result {
+    hil_sim::stdout::exit_code(match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("hil-sim: {e}");
@@ -663,5 +667,5 @@ fn main() -> ExitCode {
             }
             ExitCode::FAILURE
         }
-    }
+    })
 }

@@ -119,6 +119,54 @@ fn scenario_with(dir: &Path, name: &str, text: &str) -> String {
     p.to_str().unwrap().to_string()
 }
 
+/// Runs `hil-sim args` with standard output on `stdout`; the exit code and stderr.
+fn run_to(args: &[&str], stdout: Stdio) -> Outcome {
+    let out = Command::new(env!("CARGO_BIN_EXE_hil-sim"))
+        .args(args)
+        .stdin(Stdio::null())
+        .stdout(stdout)
+        .output()
+        .expect("run hil-sim");
+    Outcome {
+        code: out.status.code(),
+        stderr: String::from_utf8_lossy(&out.stderr).into_owned(),
+    }
+}
+
+/// A pipe whose reader has already gone: every write to it fails with a broken pipe.
+fn pipe_without_reader() -> Stdio {
+    let (reader, writer) = std::io::pipe().expect("pipe");
+    drop(reader);
+    writer.into()
+}
+
+#[test]
+fn output_to_a_closed_pipe_or_a_full_disk_is_no_panic() {
+    let dir = scratch("stdout");
+    let cal = good_calibration().to_str().unwrap().to_string();
+    let scenario = scenario_with(&dir, "short.toml", SCENARIO);
+    let evaluate = ["evaluate", "--scenario", &scenario, "--calibration", &cal];
+    let csv = ["run", "--scenario", &scenario, "--calibration", &cal];
+    // `| head`: the reader took what it wanted; quiet, and a success.
+    for args in [&evaluate[..], &csv[..]] {
+        let out = run_to(args, pipe_without_reader());
+        assert_eq!(
+            out.code,
+            Some(0),
+            "{args:?} into a closed pipe: {}",
+            out.stderr
+        );
+        assert!(!out.stderr.contains("panicked"), "{args:?}: {}", out.stderr);
+    }
+    // A full disk loses output: said on stderr, and a failure.
+    if let Ok(full) = std::fs::OpenOptions::new().write(true).open("/dev/full") {
+        let out = run_to(&evaluate, full.into());
+        assert_eq!(out.code, Some(1), "evaluate into /dev/full: {}", out.stderr);
+        assert!(out.stderr.contains("standard output: "), "{}", out.stderr);
+        assert!(!out.stderr.contains("panicked"), "{}", out.stderr);
+    }
+}
+
 #[test]
 fn the_reported_inputs_are_refused_by_file_move_and_field() {
     let dir = scratch("reported");

@@ -1,0 +1,76 @@
+//! Standard output for the command-line tools (`hil-sim`, `qemu-run`, `beltctl`).
+//!
+//! `println!` panics when the reader has gone (`qemu-run --bench | head`). These writes instead
+//! note it and drop the rest of the output; the tool ends its work normally (so a running QEMU is
+//! still killed by its guard) and long loops stop early on [`closed`]. Any other write error (a
+//! full disk) is reported once on stderr and makes the exit status a failure ([`exit_code`]).
+
+use std::fmt;
+use std::io::{self, Write};
+use std::process::ExitCode;
+use std::sync::atomic::{AtomicU8, Ordering};
+
+const OPEN: u8 = 0;
+const READER_GONE: u8 = 1;
+const FAILED: u8 = 2;
+
+static STATE: AtomicU8 = AtomicU8::new(OPEN);
+
+/// Writes `args` to standard output unless an earlier write failed. Use [`out!`](crate::out) and
+/// [`outln!`](crate::outln).
+pub fn write(args: fmt::Arguments<'_>) {
+    if STATE.load(Ordering::Relaxed) != OPEN {
+        return;
+    }
+    if let Err(e) = io::stdout().lock().write_fmt(args) {
+        note_error(&e);
+    }
+}
+
+/// Records a failed write to standard output (from [`write`] or a writer of the caller's).
+pub fn note_error(e: &io::Error) {
+    if is_reader_gone(e) {
+        let _ = STATE.compare_exchange(OPEN, READER_GONE, Ordering::Relaxed, Ordering::Relaxed);
+    } else if STATE.swap(FAILED, Ordering::Relaxed) != FAILED {
+        eprintln!("standard output: {e}");
+    }
+}
+
+/// The reader of standard output has gone (a closed pipe).
+pub fn is_reader_gone(e: &io::Error) -> bool {
+    e.kind() == io::ErrorKind::BrokenPipe
+}
+
+/// Nothing more reaches standard output: the caller may stop producing it.
+pub fn closed() -> bool {
+    STATE.load(Ordering::Relaxed) != OPEN
+}
+
+/// The tool's exit status: `code`, or a failure if standard output failed for another reason
+/// than its reader going away.
+pub fn exit_code(code: ExitCode) -> ExitCode {
+    if STATE.load(Ordering::Relaxed) == FAILED {
+        ExitCode::FAILURE
+    } else {
+        code
+    }
+}
+
+/// `print!` that never panics (see the [module](crate::stdout)).
+#[macro_export]
+macro_rules! out {
+    ($($arg:tt)*) => {
+        $crate::stdout::write(::std::format_args!($($arg)*))
+    };
+}
+
+/// `println!` that never panics (see the [module](crate::stdout)).
+#[macro_export]
+macro_rules! outln {
+    () => {
+        $crate::stdout::write(::std::format_args!("\n"))
+    };
+    ($($arg:tt)*) => {
+        $crate::stdout::write(::std::format_args!("{}\n", ::std::format_args!($($arg)*)))
+    };
+}
