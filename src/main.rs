@@ -42,8 +42,8 @@ mod app {
     use belt_drive::postmortem::{self, reset_cause};
     use belt_drive::stack;
     use belt_link::{
-        LinkError, Message, ModelKind, Receiver, RecordSample, Reply, Request, WireTelemetry,
-        RECORD_BATCH,
+        LinkError, Message, ModelKind, MotorCounts, Receiver, RecordSample, Reply, Request,
+        ScaleCounts, WireTelemetry, RECORD_BATCH,
     };
     use estimator_core::blob::BlobError;
     use estimator_core::endpoint::{answer, Effect, Endpoint, Event as LinkEvent};
@@ -460,9 +460,9 @@ mod app {
             first_tick: 0,
             count: 0,
             samples: [RecordSample {
-                motor_counts: 0,
-                scale_counts: 0,
-                setpoint_counts: 0,
+                motor_counts: MotorCounts(0),
+                scale_counts: ScaleCounts(0),
+                setpoint_counts: MotorCounts(0),
                 current_ma: 0,
             }; RECORD_BATCH],
         };
@@ -474,9 +474,9 @@ mod app {
             }
             let ma = (t.current_a.to_bits() as i64 * 1000) >> 16;
             self.samples[self.count as usize % RECORD_BATCH] = RecordSample {
-                motor_counts: t.motor_counts.0,
-                scale_counts: t.scale_counts.0,
-                setpoint_counts: t.setpoint_counts.0,
+                motor_counts: t.motor_counts,
+                scale_counts: t.scale_counts,
+                setpoint_counts: t.setpoint_counts,
                 current_ma: ma.clamp(i16::MIN as i64, i16::MAX as i64) as i16,
             };
             self.count += 1;

@@ -10,9 +10,12 @@ use belt_drive as _;
 
 #[cfg(target_os = "none")]
 use belt_link::{
-    cobs_encode, crc32, encode, kind, Command, Frame, LinkError, Message, Receiver, Reply, Request,
-    WireStatus, WireTelemetry, CHUNK_MAX, MAX_ENCODED, MAX_FRAME, MAX_RAW, MODEL_MAX,
+    cobs_encode, crc32, encode, kind, Command, Frame, LinkError, Message, MotorCounts, Receiver,
+    Reply, Request, ScaleCounts, WireStatus, WireTelemetry, CHUNK_MAX, MAX_ENCODED, MAX_FRAME,
+    MAX_RAW, MODEL_MAX,
 };
+#[cfg(target_os = "none")]
+use estimator_core::fixed::types::I16F16;
 
 /// The same bytes as the host test `known_wire_bytes` (computed independently in Python).
 #[cfg(target_os = "none")]
@@ -70,12 +73,12 @@ mod tests {
     fn replies_round_trip() {
         let t = WireTelemetry {
             tick: 7,
-            motor_counts: -1,
-            scale_counts: i32::MIN,
-            setpoint_counts: i32::MAX,
-            following_error_counts: 3,
-            est_error_um_bits: -65536,
-            current_a_bits: 32768,
+            motor_counts: MotorCounts(-1),
+            scale_counts: ScaleCounts(i32::MIN),
+            setpoint_counts: MotorCounts(i32::MAX),
+            following_error_counts: MotorCounts(3),
+            est_error_um: I16F16::from_bits(-65536),
+            current_a: I16F16::from_bits(32768),
             faults: 0x0212,
             model: 3,
             moving: true,
@@ -95,7 +98,7 @@ mod tests {
             }),
             Reply::Telemetry(t),
             Reply::Answer {
-                current_a_bits: -5,
+                current_a: I16F16::from_bits(-5),
                 telemetry: t,
                 step_instructions: 300,
             },

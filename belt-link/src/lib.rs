@@ -10,7 +10,8 @@
 //! - [`frame`]: CRC-32 over the raw frame, COBS, [`encode`], [`decode_raw`] and the streaming
 //!   [`Receiver`];
 //! - [`crc`] (also the calibration blob's checksum) and [`bytes`] (the one little-endian reader
-//!   and writer, also the blob's).
+//!   and writer, also the blob's);
+//! - [`units`]: motor and scale counts as types, the drive's too.
 //!
 //! The codec is written by hand: `postcard` with `serde` measured +2 to +5 KB of firmware flash,
 //! and the payloads are few and fixed-size.
@@ -31,7 +32,8 @@
 //!   ([`Reply`]).
 //! - Every payload has one exact length, except [`Request::CalChunk`], whose data length is the
 //!   payload length minus 4 (1 to [`CHUNK_MAX`] bytes).
-//! - Fixed-point values (`I16F16`) travel as the `i32` of their bits.
+//! - Fixed-point values travel as the `i32` of their bits and are typed (`fixed::types::I16F16`)
+//!   on both sides; positions are [`MotorCounts`] or [`ScaleCounts`].
 //!
 //! A frame that fails any check (COBS, size, CRC, kind, length, value range) is rejected whole:
 //! the decoder returns [`Rejected`] naming the reason, and the receiver counts it and answers
@@ -47,12 +49,14 @@ pub mod crc;
 pub mod frame;
 #[cfg(feature = "testing")]
 pub mod testing;
+pub mod units;
 pub mod wire;
 
 pub use cobs::{cobs_decode_in_place, cobs_encode};
 pub use command::{Command, CommandError, ModelKind, UnknownModel};
 pub use crc::{crc32, Crc32};
 pub use frame::{decode_raw, encode, Frame, Receiver, Rejected};
+pub use units::{MotorCounts, ScaleCounts};
 pub use wire::*;
 
 #[cfg(test)]

@@ -2,6 +2,7 @@
 
 use super::*;
 use crate::command::*;
+use fixed::types::I16F16;
 use proptest::prelude::*;
 
 fn wire<M: Message>(seq: u8, m: &M) -> ([u8; MAX_FRAME], usize) {
@@ -17,12 +18,12 @@ fn feed<M: Message>(rx: &mut Receiver, bytes: &[u8]) -> Vec<Result<Frame<M>, Rej
 fn telemetry() -> WireTelemetry {
     WireTelemetry {
         tick: 0xDEAD_BEEF,
-        motor_counts: -123_456,
-        scale_counts: 7_654_321,
-        setpoint_counts: i32::MIN,
-        following_error_counts: i32::MAX,
-        est_error_um_bits: -(3 << 16) - 0x8000,
-        current_a_bits: 0x0001_8000,
+        motor_counts: MotorCounts(-123_456),
+        scale_counts: ScaleCounts(7_654_321),
+        setpoint_counts: MotorCounts(i32::MIN),
+        following_error_counts: MotorCounts(i32::MAX),
+        est_error_um: I16F16::from_bits(-(3 << 16) - 0x8000),
+        current_a: I16F16::from_bits(0x0001_8000),
         faults: 0b10_0000_1010,
         model: 3,
         moving: true,
@@ -128,7 +129,7 @@ fn all_replies() -> Vec<Reply> {
         },
         Reply::Status(WireStatus {
             tick: 1,
-            motor_counts: -2,
+            motor_counts: MotorCounts(-2),
             faults: 0x0204,
             model: 2,
             flags: status_flags::ALL,
@@ -141,13 +142,13 @@ fn all_replies() -> Vec<Reply> {
             stack_peak_bytes: 1500,
             carriage_target_um: -300_000,
             carriage_estimate_um: i32::MAX,
-            scale_counts: -7,
+            scale_counts: ScaleCounts(-7),
             record_crc: 0xdead_beef,
         }),
         Reply::Telemetry(telemetry()),
         Reply::Telemetry(WireTelemetry::default()),
         Reply::Answer {
-            current_a_bits: -1,
+            current_a: I16F16::from_bits(-1),
             telemetry: telemetry(),
             step_instructions: 321,
         },
@@ -167,16 +168,16 @@ fn all_replies() -> Vec<Reply> {
             count: 3,
             samples: [
                 RecordSample {
-                    motor_counts: -1,
-                    scale_counts: 2,
-                    setpoint_counts: i32::MIN,
+                    motor_counts: MotorCounts(-1),
+                    scale_counts: ScaleCounts(2),
+                    setpoint_counts: MotorCounts(i32::MIN),
                     current_ma: -8000,
                 },
                 RecordSample::default(),
                 RecordSample {
-                    motor_counts: 0x7f00_0000,
-                    scale_counts: 0,
-                    setpoint_counts: 5,
+                    motor_counts: MotorCounts(0x7f00_0000),
+                    scale_counts: ScaleCounts(0),
+                    setpoint_counts: MotorCounts(5),
                     current_ma: i16::MAX,
                 },
                 RecordSample::default(),
@@ -293,7 +294,7 @@ fn layout_is_fixed() {
         ),
         (
             Reply::Answer {
-                current_a_bits: 0,
+                current_a: I16F16::ZERO,
                 telemetry: telemetry(),
                 step_instructions: 0,
             }

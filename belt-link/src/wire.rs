@@ -2,6 +2,8 @@
 
 use crate::bytes::{Fields, Reader, Short, Writer};
 use crate::command::{Command, ModelKind};
+use crate::units::{MotorCounts, ScaleCounts};
+use fixed::types::I16F16;
 
 /// Largest payload of any message (a calibration read-back: offset, total length and
 /// [`CHUNK_MAX`] bytes).
@@ -242,12 +244,12 @@ pub enum Request {
 /// One recorded sample in wire form ([`RECORD_SAMPLE_LEN`] bytes).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct RecordSample {
-    /// Unwrapped motor position, counts.
-    pub motor_counts: i32,
-    /// Unwrapped linear-scale position, scale counts.
-    pub scale_counts: i32,
-    /// Trajectory set-point, counts.
-    pub setpoint_counts: i32,
+    /// Unwrapped motor position.
+    pub motor_counts: MotorCounts,
+    /// Unwrapped linear-scale position.
+    pub scale_counts: ScaleCounts,
+    /// Trajectory set-point.
+    pub setpoint_counts: MotorCounts,
     /// Current command, milliamperes (saturating).
     pub current_ma: i16,
 }
@@ -262,18 +264,18 @@ pub const RECORD_BATCH: usize = 4;
 pub struct WireTelemetry {
     /// Tick counter since start.
     pub tick: u32,
-    /// Unwrapped motor position, counts.
-    pub motor_counts: i32,
-    /// Unwrapped linear-scale position, scale counts.
-    pub scale_counts: i32,
-    /// Trajectory set-point, counts.
-    pub setpoint_counts: i32,
-    /// Following error, counts.
-    pub following_error_counts: i32,
-    /// Estimated transmission error, micrometres, bits of an `I16F16`.
-    pub est_error_um_bits: i32,
-    /// Current command, amperes, bits of an `I16F16`.
-    pub current_a_bits: i32,
+    /// Unwrapped motor position.
+    pub motor_counts: MotorCounts,
+    /// Unwrapped linear-scale position.
+    pub scale_counts: ScaleCounts,
+    /// Trajectory set-point.
+    pub setpoint_counts: MotorCounts,
+    /// Following error.
+    pub following_error_counts: MotorCounts,
+    /// Estimated transmission error, micrometres.
+    pub est_error_um: I16F16,
+    /// Current command, amperes.
+    pub current_a: I16F16,
     /// Fault bits (`Faults` in the drive names them).
     pub faults: u16,
     /// Active model number.
@@ -334,8 +336,8 @@ pub mod reset_cause {
 pub struct WireStatus {
     /// Control ticks since start.
     pub tick: u32,
-    /// Unwrapped motor position, counts.
-    pub motor_counts: i32,
+    /// Unwrapped motor position.
+    pub motor_counts: MotorCounts,
     /// Fault bits (`Faults` in the drive names them).
     pub faults: u16,
     /// Active model number.
@@ -356,8 +358,8 @@ pub struct WireStatus {
     pub frames_bad: u32,
     /// Deepest stack use seen so far, bytes (0 where not measured).
     pub stack_peak_bytes: u32,
-    /// Unwrapped linear-scale position, scale counts (0 without a scale).
-    pub scale_counts: i32,
+    /// Unwrapped linear-scale position (0 without a scale).
+    pub scale_counts: ScaleCounts,
     /// CRC-32 of the stored record the drive booted from or last saved (0 = none).
     pub record_crc: u32,
     /// Where the last move sends the carriage, micrometres of travel.
@@ -416,11 +418,11 @@ pub enum Reply {
     Telemetry(WireTelemetry),
     /// PIL: answer to [`Request::Sample`] (payload 4 + [`TELEMETRY_LEN`] + 4).
     Answer {
-        /// Current command, amperes, bits of an `I16F16`.
-        current_a_bits: i32,
+        /// Current command, amperes.
+        current_a: I16F16,
         /// The tick's telemetry.
         telemetry: WireTelemetry,
-        /// Instructions `Drive::step` took (QEMU instruction counter; 0 where not measured).
+        /// Instructions `Drive::control` took (QEMU instruction counter; 0 where not measured).
         step_instructions: u32,
     },
     /// Answer to [`Request::ConfigGet`] (payload 17).
@@ -506,12 +508,12 @@ fn expect_len(payload: &[u8], len: usize) -> Result<Reader<'_>, LinkError> {
 impl WireTelemetry {
     fn write(&self, w: &mut Writer<'_>) {
         w.u32(self.tick);
-        w.i32(self.motor_counts);
-        w.i32(self.scale_counts);
-        w.i32(self.setpoint_counts);
-        w.i32(self.following_error_counts);
-        w.i32(self.est_error_um_bits);
-        w.i32(self.current_a_bits);
+        w.i32(self.motor_counts.0);
+        w.i32(self.scale_counts.0);
+        w.i32(self.setpoint_counts.0);
+        w.i32(self.following_error_counts.0);
+        w.i32(self.est_error_um.to_bits());
+        w.i32(self.current_a.to_bits());
         w.u16(self.faults);
         w.u8(self.model);
         let mut flags = 0;
@@ -529,12 +531,12 @@ impl WireTelemetry {
     fn read(r: &mut Reader<'_>) -> Result<Self, LinkError> {
         Ok(WireTelemetry {
             tick: r.u32()?,
-            motor_counts: r.i32()?,
-            scale_counts: r.i32()?,
-            setpoint_counts: r.i32()?,
-            following_error_counts: r.i32()?,
-            est_error_um_bits: r.i32()?,
-            current_a_bits: r.i32()?,
+            motor_counts: MotorCounts(r.i32()?),
+            scale_counts: ScaleCounts(r.i32()?),
+            setpoint_counts: MotorCounts(r.i32()?),
+            following_error_counts: MotorCounts(r.i32()?),
+            est_error_um: I16F16::from_bits(r.i32()?),
+            current_a: I16F16::from_bits(r.i32()?),
             faults: r.u16()?,
             model: r.u8()?,
             moving: false,
@@ -788,7 +790,7 @@ impl Message for Reply {
             }
             Reply::Status(s) => {
                 w.u32(s.tick);
-                w.i32(s.motor_counts);
+                w.i32(s.motor_counts.0);
                 w.u16(s.faults);
                 w.u8(s.model);
                 w.u8(s.flags);
@@ -801,16 +803,16 @@ impl Message for Reply {
                 w.u32(s.stack_peak_bytes);
                 w.i32(s.carriage_target_um);
                 w.i32(s.carriage_estimate_um);
-                w.i32(s.scale_counts);
+                w.i32(s.scale_counts.0);
                 w.u32(s.record_crc);
             }
             Reply::Telemetry(t) => t.write(&mut w),
             Reply::Answer {
-                current_a_bits,
+                current_a,
                 telemetry,
                 step_instructions,
             } => {
-                w.i32(current_a_bits);
+                w.i32(current_a.to_bits());
                 telemetry.write(&mut w);
                 w.u32(step_instructions);
             }
@@ -840,9 +842,9 @@ impl Message for Reply {
                 let n = (count as usize).min(RECORD_BATCH);
                 w.u8(n as u8);
                 for s in &samples[..n] {
-                    w.i32(s.motor_counts);
-                    w.i32(s.scale_counts);
-                    w.i32(s.setpoint_counts);
+                    w.i32(s.motor_counts.0);
+                    w.i32(s.scale_counts.0);
+                    w.i32(s.setpoint_counts.0);
                     w.u16(s.current_ma as u16);
                 }
             }
@@ -879,7 +881,7 @@ impl Message for Reply {
                 let mut r = expect_len(payload, STATUS_LEN)?;
                 let s = WireStatus {
                     tick: r.u32()?,
-                    motor_counts: r.i32()?,
+                    motor_counts: MotorCounts(r.i32()?),
                     faults: r.u16()?,
                     model: r.u8()?,
                     flags: r.u8()?,
@@ -892,7 +894,7 @@ impl Message for Reply {
                     stack_peak_bytes: r.u32()?,
                     carriage_target_um: r.i32()?,
                     carriage_estimate_um: r.i32()?,
-                    scale_counts: r.i32()?,
+                    scale_counts: ScaleCounts(r.i32()?),
                     record_crc: r.u32()?,
                 };
                 // Every bit of `flags` is defined (`status_flags::ALL` is 0xff).
@@ -904,10 +906,10 @@ impl Message for Reply {
             )?)?),
             kind::ANSWER => {
                 let mut r = expect_len(payload, 4 + TELEMETRY_LEN + 4)?;
-                let current_a_bits = r.i32()?;
+                let current_a = I16F16::from_bits(r.i32()?);
                 let telemetry = WireTelemetry::read(&mut r)?;
                 Reply::Answer {
-                    current_a_bits,
+                    current_a,
                     telemetry,
                     step_instructions: r.u32()?,
                 }
@@ -943,9 +945,9 @@ impl Message for Reply {
                 let mut samples = [RecordSample::default(); RECORD_BATCH];
                 for s in &mut samples[..n] {
                     *s = RecordSample {
-                        motor_counts: r.i32()?,
-                        scale_counts: r.i32()?,
-                        setpoint_counts: r.i32()?,
+                        motor_counts: MotorCounts(r.i32()?),
+                        scale_counts: ScaleCounts(r.i32()?),
+                        setpoint_counts: MotorCounts(r.i32()?),
                         current_ma: r.u16()? as i16,
                     };
                 }

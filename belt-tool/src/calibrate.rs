@@ -15,7 +15,7 @@ use estimator_core::fixed::types::I16F16;
 use estimator_core::model::ModelParams;
 use estimator_core::rig::Rig;
 use estimator_core::settings::Settings;
-use estimator_core::units::{MotorCounts, ScaleCounts};
+use estimator_core::units::MotorCounts;
 use hil_sim::calibrate::Calibration;
 use hil_sim::run::{Record, Trace};
 use hil_sim::scenario::{Move, Scenario};
@@ -116,7 +116,7 @@ pub fn to_trace(
 ) -> Trace {
     let t0 = samples.first().map_or(0, |s| s.tick);
     let mut cmd_dir: i8 = 1;
-    let mut last_sp: Option<i32> = None;
+    let mut last_sp: Option<MotorCounts> = None;
     let records = samples
         .iter()
         .map(|s| {
@@ -132,19 +132,19 @@ pub fn to_trace(
             let current_a = polarity.current_frame(command_a);
             Record {
                 t_s: s.tick.wrapping_sub(t0) as f64 / rate_hz,
-                motor_counts: MotorCounts(r.motor_counts),
-                x_ls_mm: r.scale_counts as f64 / (SCALE_COUNTS_PER_UM as f64 * 1000.0),
-                setpoint_counts: MotorCounts(r.setpoint_counts),
+                motor_counts: r.motor_counts,
+                x_ls_mm: r.scale_counts.0 as f64 / (SCALE_COUNTS_PER_UM as f64 * 1000.0),
+                setpoint_counts: r.setpoint_counts,
                 cmd_dir,
                 out: Output {
                     current_a,
                     telemetry: Telemetry {
                         tick: s.tick,
-                        motor_counts: MotorCounts(r.motor_counts),
-                        scale_counts: ScaleCounts(r.scale_counts),
-                        setpoint_counts: MotorCounts(r.setpoint_counts),
+                        motor_counts: r.motor_counts,
+                        scale_counts: r.scale_counts,
+                        setpoint_counts: r.setpoint_counts,
                         following_error_counts: MotorCounts(
-                            r.setpoint_counts.wrapping_sub(r.motor_counts),
+                            r.setpoint_counts.0.wrapping_sub(r.motor_counts.0),
                         ),
                         current_a,
                         faults: Faults::NONE,
@@ -540,7 +540,7 @@ fn plots(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use belt_link::RecordSample;
+    use belt_link::{RecordSample, ScaleCounts};
 
     #[test]
     fn the_plan_fits_the_drive() {
@@ -587,9 +587,9 @@ mod tests {
             .map(|(i, &s)| TickSample {
                 tick: 1000 + 2 * i as u32,
                 sample: RecordSample {
-                    motor_counts: s,
-                    scale_counts: 2000 * i as i32,
-                    setpoint_counts: s,
+                    motor_counts: MotorCounts(s),
+                    scale_counts: ScaleCounts(2000 * i as i32),
+                    setpoint_counts: MotorCounts(s),
                     current_ma: -1500,
                 },
             })
@@ -630,9 +630,9 @@ mod tests {
                 .map(|i| TickSample {
                     tick: i,
                     sample: RecordSample {
-                        motor_counts: i as i32 * 100,
-                        scale_counts: (i as f64 * 100.0 * scale_per_count) as i32,
-                        setpoint_counts: 0,
+                        motor_counts: MotorCounts(i as i32 * 100),
+                        scale_counts: ScaleCounts((i as f64 * 100.0 * scale_per_count) as i32),
+                        setpoint_counts: MotorCounts(0),
                         current_ma: 0,
                     },
                 })
@@ -744,9 +744,9 @@ mod tests {
             .map(|r| TickSample {
                 tick: r.out.telemetry.tick,
                 sample: RecordSample {
-                    motor_counts: r.motor_counts.0,
-                    scale_counts: (r.x_ls_mm * 2000.0).round() as i32,
-                    setpoint_counts: r.setpoint_counts.0,
+                    motor_counts: r.motor_counts,
+                    scale_counts: ScaleCounts((r.x_ls_mm * 2000.0).round() as i32),
+                    setpoint_counts: r.setpoint_counts,
                     current_ma: (r.out.current_a.to_num::<f64>() * 1000.0).round() as i16,
                 },
             })

@@ -152,7 +152,7 @@ impl Arrival {
         Arrival {
             target_mm,
             estimate_mm: s.carriage_estimate_um as f64 / 1000.0,
-            motor_mm: counts_per_mm.map(|c| s.motor_counts as f64 / c),
+            motor_mm: counts_per_mm.map(|c| s.motor_counts.to_mm(c)),
             scale_mm: scale_um(s) / 1000.0,
         }
     }

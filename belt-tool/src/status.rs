@@ -56,12 +56,12 @@ pub fn model_name(model: u8) -> String {
 
 /// The linear scale's reading, micrometres.
 pub fn scale_um(s: &WireStatus) -> f64 {
-    s.scale_counts as f64 / SCALE_COUNTS_PER_UM as f64
+    s.scale_counts.0 as f64 / SCALE_COUNTS_PER_UM as f64
 }
 
 /// The motor's position in millimetres of nominal travel, where the geometry is known.
 pub fn motor_mm(s: &WireStatus, rig: Option<&Rig>) -> Option<f64> {
-    rig.map(|r| s.motor_counts as f64 / r.counts_per_mm())
+    rig.map(|r| s.motor_counts.to_mm(r.counts_per_mm()))
 }
 
 fn last_error(code: u8) -> Value {
@@ -82,9 +82,9 @@ pub fn to_json(s: &WireStatus, rig: Option<&Rig>) -> Value {
         "flags": flag_names(s.flags),
         "faults": fault_names(s.faults),
         "model": model_name(s.model),
-        "motor_counts": s.motor_counts,
+        "motor_counts": s.motor_counts.0,
         "motor_mm": motor_mm(s, rig),
-        "scale_counts": s.scale_counts,
+        "scale_counts": s.scale_counts.0,
         "scale_um": scale_um(s),
         "carriage_estimate_um": s.carriage_estimate_um,
         "carriage_target_um": s.carriage_target_um,
@@ -176,6 +176,7 @@ pub fn to_table(port: &str, s: &WireStatus, rig: Option<&Rig>) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use belt_link::{MotorCounts, ScaleCounts};
 
     #[test]
     fn bits_are_named() {
@@ -183,8 +184,8 @@ mod tests {
             flags: status_flags::ENABLED | status_flags::HOMED | status_flags::HOMING,
             faults: Faults::STALL | Faults::FOLLOWING_ERROR | 1 << 15,
             reset_cause: reset_cause::POWER_ON,
-            motor_counts: 18679,
-            scale_counts: 20001,
+            motor_counts: MotorCounts(18679),
+            scale_counts: ScaleCounts(20001),
             record_crc: 0xab,
             model: 3,
             ..WireStatus::default()

@@ -6,7 +6,6 @@ use belt_link::{
     kind, status_flags, Command, CommandError, Crc32, LinkError, Message, ModelKind, Receiver,
     Reply, Request, WireStatus, WireTelemetry,
 };
-use fixed::types::I16F16;
 
 use crate::blob::BlobError;
 use crate::drive::{
@@ -16,7 +15,6 @@ use crate::image;
 use crate::settings::{self, RawSettings, Settings};
 pub use crate::staging::BlobBuffer;
 use crate::staging::{Staged, Staging};
-use crate::units::{MotorCounts, ScaleCounts};
 use crate::ConfigError;
 
 /// `detail` codes of [`LinkError::Calibration`].
@@ -83,12 +81,12 @@ impl From<&Telemetry> for WireTelemetry {
     fn from(t: &Telemetry) -> Self {
         WireTelemetry {
             tick: t.tick,
-            motor_counts: t.motor_counts.0,
-            scale_counts: t.scale_counts.0,
-            setpoint_counts: t.setpoint_counts.0,
-            following_error_counts: t.following_error_counts.0,
-            est_error_um_bits: t.est_error_um.to_bits(),
-            current_a_bits: t.current_a.to_bits(),
+            motor_counts: t.motor_counts,
+            scale_counts: t.scale_counts,
+            setpoint_counts: t.setpoint_counts,
+            following_error_counts: t.following_error_counts,
+            est_error_um: t.est_error_um,
+            current_a: t.current_a,
             faults: t.faults.0,
             model: t.model as u8,
             moving: t.moving,
@@ -103,12 +101,12 @@ impl TryFrom<WireTelemetry> for Telemetry {
     fn try_from(w: WireTelemetry) -> Result<Self, LinkError> {
         Ok(Telemetry {
             tick: w.tick,
-            motor_counts: MotorCounts(w.motor_counts),
-            scale_counts: ScaleCounts(w.scale_counts),
-            setpoint_counts: MotorCounts(w.setpoint_counts),
-            following_error_counts: MotorCounts(w.following_error_counts),
-            est_error_um: I16F16::from_bits(w.est_error_um_bits),
-            current_a: I16F16::from_bits(w.current_a_bits),
+            motor_counts: w.motor_counts,
+            scale_counts: w.scale_counts,
+            setpoint_counts: w.setpoint_counts,
+            following_error_counts: w.following_error_counts,
+            est_error_um: w.est_error_um,
+            current_a: w.current_a,
             faults: Faults(w.faults),
             model: ModelKind::from_u8(w.model).ok_or(LinkError::OutOfRange)?,
             moving: w.moving,
@@ -121,7 +119,7 @@ impl TryFrom<WireTelemetry> for Telemetry {
 /// The PIL answer for one tick's output.
 pub fn answer(out: &Output, step_instructions: u32) -> Reply {
     Reply::Answer {
-        current_a_bits: out.current_a.to_bits(),
+        current_a: out.current_a,
         telemetry: WireTelemetry::from(&out.telemetry),
         step_instructions,
     }
@@ -131,12 +129,12 @@ pub fn answer(out: &Output, step_instructions: u32) -> Reply {
 pub fn output_of(reply: &Reply) -> Option<(Output, u32)> {
     match *reply {
         Reply::Answer {
-            current_a_bits,
+            current_a,
             telemetry,
             step_instructions,
         } => Some((
             Output {
-                current_a: I16F16::from_bits(current_a_bits),
+                current_a,
                 telemetry: Telemetry::try_from(telemetry).ok()?,
             },
             step_instructions,
@@ -727,7 +725,7 @@ impl<B: Staging> Endpoint<B> {
         .fold(0, |acc, (_, bit)| acc | bit);
         WireStatus {
             tick: last.tick,
-            motor_counts: last.motor_counts.0,
+            motor_counts: last.motor_counts,
             faults: last.faults.0,
             model: last.model as u8,
             flags,
@@ -740,7 +738,7 @@ impl<B: Staging> Endpoint<B> {
             stack_peak_bytes,
             carriage_target_um: drive.carriage_target_um(),
             carriage_estimate_um: drive.carriage_estimate_um(),
-            scale_counts: last.scale_counts.0,
+            scale_counts: last.scale_counts,
             record_crc: self.record_crc,
         }
     }

@@ -1,6 +1,6 @@
 //! The link against an in-memory fake drive: matching, retries, the error classes, records.
 
-use belt_link::{CommandError, RECORD_BATCH};
+use belt_link::{CommandError, MotorCounts, RECORD_BATCH};
 
 use super::*;
 use crate::testing::{wire, Fake};
@@ -15,7 +15,7 @@ fn status(tick: u32) -> Reply {
 fn records(seq: u32, first_tick: u32, every: u16, count: u8) -> Reply {
     let mut samples = [RecordSample::default(); RECORD_BATCH];
     for (i, s) in samples.iter_mut().enumerate() {
-        s.motor_counts = (first_tick + i as u32 * every as u32) as i32;
+        s.motor_counts = MotorCounts((first_tick + i as u32 * every as u32) as i32);
     }
     Reply::Records {
         seq,
@@ -230,7 +230,7 @@ fn records_are_collected_while_other_requests_wait() {
     assert!(samples
         .iter()
         .enumerate()
-        .all(|(i, s)| s.tick == 2 * i as u32 && s.sample.motor_counts == s.tick as i32));
+        .all(|(i, s)| s.tick == 2 * i as u32 && s.sample.motor_counts.0 == s.tick as i32));
     assert_eq!((stats.frames, stats.lost_frames, stats.foreign), (6, 0, 1));
     stats.check().unwrap();
 }

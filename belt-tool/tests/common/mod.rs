@@ -13,8 +13,8 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use belt_link::{
-    encode, kind, status_flags, LinkError, Message, Receiver, RecordSample, Reply, Request,
-    WireStatus, MAX_FRAME, RECORD_BATCH,
+    encode, kind, status_flags, LinkError, Message, MotorCounts, Receiver, RecordSample, Reply,
+    Request, ScaleCounts, WireStatus, MAX_FRAME, RECORD_BATCH,
 };
 use estimator_core::settings::Settings;
 use rustix::event::{poll, PollFd, PollFlags, Timespec};
@@ -137,10 +137,10 @@ impl FakeDrive {
         };
         WireStatus {
             tick: self.tick,
-            motor_counts: (at as f64 * rig.counts_per_mm() / 1000.0).round() as i32,
+            motor_counts: MotorCounts((at as f64 * rig.counts_per_mm() / 1000.0).round() as i32),
             flags,
             model: 3,
-            scale_counts: at * 2 + self.arrival_offset_counts,
+            scale_counts: ScaleCounts(at * 2 + self.arrival_offset_counts),
             carriage_target_um: self.target_um,
             carriage_estimate_um: at,
             record_crc: 0x1234_abcd,
@@ -216,9 +216,9 @@ impl FakeDrive {
         let mut samples = [RecordSample::default(); RECORD_BATCH];
         for (i, s) in samples.iter_mut().enumerate() {
             *s = RecordSample {
-                motor_counts: (first_tick + i as u32) as i32,
-                scale_counts: 2 * (first_tick + i as u32) as i32,
-                setpoint_counts: 7,
+                motor_counts: MotorCounts((first_tick + i as u32) as i32),
+                scale_counts: ScaleCounts(2 * (first_tick + i as u32) as i32),
+                setpoint_counts: MotorCounts(7),
                 current_ma: -120,
             };
         }
