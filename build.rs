@@ -101,7 +101,7 @@ fn closed_loop_vectors(out: &mut String) {
 /// The paper's parameters as a calibration blob, encoded on the host.
 fn blob_vectors(out: &mut String) {
     use estimator_core::{blob, drive::DriveConfig, model::ModelParams};
-    let rig = DriveConfig::paper_rig().rig;
+    let rig = DriveConfig::paper_rig().settings.rig;
     let mut buf = vec![0u8; blob::MAX_BYTES];
     let n = blob::encode(&ModelParams::PAPER, &rig, &mut buf).unwrap();
     writeln!(

@@ -71,7 +71,7 @@ fn endpoint_transfer(drive: &mut estimator_core::drive::Drive, blob: &[u8]) -> b
 #[inline(never)]
 fn blob_round_trips(good: &[u8]) {
     use estimator_core::{blob, drive::DriveConfig};
-    let rig = DriveConfig::paper_rig().rig;
+    let rig = DriveConfig::paper_rig().settings.rig;
     let Ok(params) = blob::decode(good, &rig) else {
         defmt::panic!("host blob refused on target")
     };

@@ -18,6 +18,7 @@ pub use crate::fault::Faults;
 use crate::model::{self, ModelCoeffs, ModelKind, ModelParams, ModelState};
 use crate::rig::Rig;
 pub use crate::settings::HomingConfig;
+use crate::settings::Settings;
 use crate::staging::Source;
 use crate::trajectory::{self, Trajectory};
 use crate::units::{MotorCounts, ScaleCounts};
@@ -90,57 +91,27 @@ pub enum Models<'a> {
     Image(&'a [u8]),
 }
 
-/// The whole drive in SI units; `Drive::new` checks it and converts it once.
+/// The whole drive in SI units; `Drive::new` checks it and converts it once: the machine
+/// builder's [`Settings`] (one list of fields, the same on the link and in storage) and the
+/// error models' parameters.
 ///
 /// The model parameters are borrowed: they are large, and the firmware keeps them in flash.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DriveConfig<'a> {
-    /// Drive-train geometry.
-    pub rig: Rig,
-    /// Control rate (ticks per second): the build context of every part (trajectory, PID,
-    /// fault monitors), none of which carries a rate of its own.
-    pub rate_hz: f64,
-    /// Lowest target a move may ask for, mm of nominal travel.
-    pub travel_min_mm: f64,
-    /// Highest target a move may ask for, mm of nominal travel.
-    pub travel_max_mm: f64,
-    /// The motor may overshoot the travel by this much before `TRAVEL_LIMIT` trips, mm.
-    pub travel_margin_mm: f64,
-    /// Fastest move a command may ask for, mm/s.
-    pub max_velocity_mm_s: f64,
-    /// Steepest acceleration a command may ask for, mm/s^2.
-    pub max_accel_mm_s2: f64,
-    /// Fault detector thresholds.
-    pub faults: fault::Config,
-    /// Wiring polarity of the encoders and the motor.
-    pub polarity: Polarity,
-    /// Fastest believable motion between two samples (encoder plausibility), mm/s.
-    pub encoder_max_speed_mm_s: f64,
-    /// Position-loop gains (built for the drive's rig and `rate_hz`).
-    pub pid: pid::Config,
+    /// Geometry, rate, travel and limits, polarity, gains, fault thresholds, the model at start
+    /// and homing.
+    pub settings: Settings,
     /// Error-model parameters (Table 2 presets or a calibration).
     pub model: Models<'a>,
-    /// Model in use at start.
-    pub initial_model: ModelKind,
 }
 
 impl DriveConfig<'static> {
-    /// The paper's rig (Table 1) at 2 kHz, 0-300 mm of travel, Table 2 models, Model 1 active.
+    /// The paper's rig (Table 1) at 2 kHz, 0-300 mm of travel, Table 2 models, Model 1 active
+    /// ([`Settings::PAPER`]).
     pub fn paper_rig() -> DriveConfig<'static> {
         DriveConfig {
-            rig: Rig::PAPER,
-            rate_hz: 2000.0,
-            travel_min_mm: 0.0,
-            travel_max_mm: 300.0,
-            travel_margin_mm: 5.0,
-            max_velocity_mm_s: 250.0,
-            max_accel_mm_s2: 5000.0,
-            faults: fault::Config::PAPER_RIG,
-            polarity: Polarity::NORMAL,
-            encoder_max_speed_mm_s: 1000.0,
-            pid: pid::Config::PAPER_RIG,
+            settings: Settings::PAPER,
             model: Models::Params(&ModelParams::PAPER),
-            initial_model: ModelKind::Linear,
         }
     }
 }
@@ -333,10 +304,10 @@ struct HomingCoeffs {
 }
 
 impl Parts {
-    /// Checks `cfg` and `homing` as [`Drive::new`] does and converts them; a refusal names the
-    /// field. `cfg.model` is not looked at.
-    pub fn build(cfg: &DriveConfig, homing: &HomingConfig) -> Result<Parts, ConfigError> {
+    /// Checks `cfg` as [`Drive::new`] does and converts it; a refusal names the field.
+    pub fn build(cfg: &Settings) -> Result<Parts, ConfigError> {
         use ConfigError as E;
+        let homing = &cfg.homing;
         // The geometry and the rate, checked once; every builder below takes them from here.
         let ctx = BuildContext::new(cfg.rig, cfg.rate_hz)?;
         let rate_hz = ctx.rate_hz();
@@ -470,9 +441,9 @@ impl Parts {
 
 impl Drive {
     /// Checks `cfg` and builds a disabled, configured drive at position 0 (home it with
-    /// `Command::Home` or `Command::Homing`), with the default homing routine.
+    /// `Command::Home` or `Command::Homing`).
     pub fn new(cfg: &DriveConfig) -> Result<Drive, ConfigError> {
-        let mut drive = Drive::assemble(Parts::build(cfg, &HomingConfig::DEFAULT)?);
+        let mut drive = Drive::assemble(Parts::build(&cfg.settings)?);
         drive.install_models(cfg)?;
         Ok(drive)
     }
@@ -483,7 +454,7 @@ impl Drive {
         slot: &'a mut MaybeUninit<Drive>,
         cfg: &DriveConfig,
     ) -> Result<&'a mut Drive, ConfigError> {
-        let parts = Parts::build(cfg, &HomingConfig::DEFAULT)?;
+        let parts = Parts::build(&cfg.settings)?;
         let drive = slot.write(Drive::assemble(parts));
         drive.install_models(cfg)?;
         Ok(drive)
@@ -518,14 +489,13 @@ impl Drive {
     /// the firmware boots).
     fn install_models(&mut self, cfg: &DriveConfig) -> Result<(), ConfigError> {
         match cfg.model {
-            Models::Params(p) => self.models = p.build(&cfg.rig)?,
+            Models::Params(p) => self.models = p.build(&cfg.settings.rig)?,
             Models::Image([]) => self.uncalibrated(),
-            Models::Image(b) => {
-                crate::image::decode_into(b, &cfg.rig, &mut self.models).map_err(|e| match e {
-                    BlobError::Invalid(e) => e,
-                    _ => ConfigError::OutOfRange(ConfigField::CalibrationImage),
-                })?
-            }
+            Models::Image(b) => crate::image::decode_into(b, &cfg.settings.rig, &mut self.models)
+                .map_err(|e| match e {
+                BlobError::Invalid(e) => e,
+                _ => ConfigError::OutOfRange(ConfigField::CalibrationImage),
+            })?,
         }
         Ok(())
     }

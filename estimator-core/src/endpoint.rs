@@ -885,7 +885,7 @@ mod tests {
     fn paper_image() -> Vec<u8> {
         crate::image::of_params(
             &crate::model::ModelParams::PAPER,
-            &DriveConfig::paper_rig().rig,
+            &DriveConfig::paper_rig().settings.rig,
         )
         .unwrap()
     }

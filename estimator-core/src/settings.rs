@@ -79,7 +79,8 @@ pub struct Settings {
 }
 
 impl Settings {
-    /// The paper's rig (`DriveConfig::paper_rig`) with the default homing.
+    /// The paper's rig (Table 1) at 2 kHz, 0-300 mm of travel, Model 1 active, the default
+    /// homing.
     pub const PAPER: Settings = Settings {
         rig: Rig::PAPER,
         rate_hz: 2000.0,
@@ -97,21 +98,10 @@ impl Settings {
     };
 
     /// The drive configuration with these settings and `model`.
-    pub fn drive_config<'a>(&self, model: Models<'a>) -> DriveConfig<'a> {
+    pub fn drive_config<'a>(self, model: Models<'a>) -> DriveConfig<'a> {
         DriveConfig {
-            rig: self.rig,
-            rate_hz: self.rate_hz,
-            travel_min_mm: self.travel_min_mm,
-            travel_max_mm: self.travel_max_mm,
-            travel_margin_mm: self.travel_margin_mm,
-            max_velocity_mm_s: self.max_velocity_mm_s,
-            max_accel_mm_s2: self.max_accel_mm_s2,
-            faults: self.faults,
-            polarity: self.polarity,
-            encoder_max_speed_mm_s: self.encoder_max_speed_mm_s,
-            pid: self.pid,
+            settings: self,
             model,
-            initial_model: self.initial_model,
         }
     }
 
@@ -123,7 +113,7 @@ impl Settings {
     /// The configuration image of these settings for the drive ([`Parts::encode`]): built
     /// with `f64` arithmetic, so on the host; a refusal names the field.
     pub fn parts_image(&self) -> Result<PartsImage, ConfigError> {
-        let parts = Parts::build(&self.drive_config(Models::Image(&[])), &self.homing)?;
+        let parts = Parts::build(self)?;
         Ok(parts.encode(self.crc32()))
     }
 

@@ -254,7 +254,7 @@ fn stall_fault_when_the_motor_is_seized() {
 fn following_error_fault_when_the_motor_lags() {
     // Saturation off: at 8 A for 30 ms it would otherwise name this lag first.
     let mut cfg = DriveConfig::paper_rig();
-    cfg.faults.saturation_time_s = 0.0;
+    cfg.settings.faults.saturation_time_s = 0.0;
     let (mut d, m) = homed_with(&cfg, 50.0);
     d.command(Command::Enable).unwrap();
     d.command(mv(100.0)).unwrap();
@@ -326,13 +326,13 @@ fn home_is_refused_while_moving_and_model_select_applies() {
 #[test]
 fn bad_configuration_names_the_field() {
     let mut c = DriveConfig::paper_rig();
-    c.travel_max_mm = f64::NAN;
+    c.settings.travel_max_mm = f64::NAN;
     assert_eq!(Drive::new(&c).unwrap_err().field(), "drive.travel_max_mm");
     let mut c = DriveConfig::paper_rig();
-    c.rate_hz = 0.0;
+    c.settings.rate_hz = 0.0;
     assert_eq!(Drive::new(&c).unwrap_err().field(), "drive.rate_hz");
     let mut c = DriveConfig::paper_rig();
-    c.faults.following_error_at_rest_mm = -1.0;
+    c.settings.faults.following_error_at_rest_mm = -1.0;
     assert_eq!(
         Drive::new(&c).unwrap_err().field(),
         "faults.following_error_at_rest_mm"
@@ -501,11 +501,11 @@ fn moves_to_the_travel_ends_are_accepted_and_one_um_past_refused() {
     d.command(Command::Enable).unwrap();
     let cfg = DriveConfig::paper_rig();
     let (lo_um, hi_um) = (
-        (cfg.travel_min_mm * 1000.0).round() as i32,
-        (cfg.travel_max_mm * 1000.0).round() as i32,
+        (cfg.settings.travel_min_mm * 1000.0).round() as i32,
+        (cfg.settings.travel_max_mm * 1000.0).round() as i32,
     );
-    let v = (cfg.max_velocity_mm_s * 1000.0) as u32;
-    let a = (cfg.max_accel_mm_s2 * 1000.0) as u32;
+    let v = (cfg.settings.max_velocity_mm_s * 1000.0) as u32;
+    let a = (cfg.settings.max_accel_mm_s2 * 1000.0) as u32;
     for um in [lo_um, hi_um] {
         assert_eq!(d.check_move(um, v, a), Ok(()), "{um} um");
     }
@@ -541,7 +541,7 @@ fn a_drive_built_in_place_is_the_drive_built_by_value() {
     use estimator_core::drive::Models;
     let image = estimator_core::image::of_params(
         &estimator_core::model::ModelParams::PAPER,
-        &DriveConfig::paper_rig().rig,
+        &DriveConfig::paper_rig().settings.rig,
     )
     .unwrap();
     let cfg = DriveConfig {

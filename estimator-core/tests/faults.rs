@@ -6,6 +6,7 @@ use estimator_core::drive::{Command, CommandError, Drive, DriveConfig, Faults, P
 use estimator_core::fault::{self, Inputs, State, WINDOW};
 use estimator_core::fixed::types::I16F16;
 use estimator_core::rig::Rig;
+use estimator_core::settings::Settings;
 use estimator_core::units::MotorCounts;
 
 const RATE_HZ: f64 = 2000.0;
@@ -325,9 +326,12 @@ fn reversed_motor_wires_trip_runaway_and_polarity_setting_fixes_them() {
     assert!(f.has(Faults::RUNAWAY), "{f} after {k} ticks");
     // The same reversed wiring with `current_inverted`: the move completes.
     let cfg = DriveConfig {
-        polarity: Polarity {
-            current_inverted: true,
-            ..Polarity::NORMAL
+        settings: Settings {
+            polarity: Polarity {
+                current_inverted: true,
+                ..Polarity::NORMAL
+            },
+            ..Settings::PAPER
         },
         ..DriveConfig::paper_rig()
     };
@@ -349,9 +353,12 @@ fn reversed_motor_wires_trip_runaway_and_polarity_setting_fixes_them() {
 #[test]
 fn inverted_encoder_counts_the_other_way() {
     let cfg = DriveConfig {
-        polarity: Polarity {
-            motor_encoder_inverted: true,
-            ..Polarity::NORMAL
+        settings: Settings {
+            polarity: Polarity {
+                motor_encoder_inverted: true,
+                ..Polarity::NORMAL
+            },
+            ..Settings::PAPER
         },
         ..DriveConfig::paper_rig()
     };

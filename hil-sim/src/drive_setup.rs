@@ -5,21 +5,26 @@
 use estimator_core::drive::{DriveConfig, Models};
 use estimator_core::model::{ModelKind, ModelParams};
 use estimator_core::rig::Rig;
+use estimator_core::settings::Settings;
 
 /// The paper rig's limits, gains and thresholds (all in millimetres and seconds) with the
 /// plant's geometry (`rig`: encoder lines, gearbox, pulley, pitch).
 pub fn drive_limits(rig: Rig) -> DriveConfig<'static> {
     DriveConfig {
-        rig,
+        settings: Settings {
+            rig,
+            ..Settings::PAPER
+        },
         ..DriveConfig::paper_rig()
     }
 }
 
 /// [`drive_limits`] with `params` loaded and `model` active.
 pub fn drive_config(params: &ModelParams, model: ModelKind, rig: Rig) -> DriveConfig<'_> {
-    DriveConfig {
-        model: Models::Params(params),
+    Settings {
+        rig,
         initial_model: model,
-        ..drive_limits(rig)
+        ..Settings::PAPER
     }
+    .drive_config(Models::Params(params))
 }

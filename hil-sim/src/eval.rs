@@ -61,7 +61,7 @@ pub fn run_in_process(
     let cfg = drive_config(params, model, plant.rig());
     let drive = Drive::new(&cfg).map_err(RunError::Drive)?;
     let mut c = InProcess(drive);
-    run_with(scenario, plant, &cfg.rig, &mut c, seed, progress)
+    run_with(scenario, plant, &cfg.settings.rig, &mut c, seed, progress)
 }
 
 /// Runs `scenario` through any controller (in-process or PIL).

@@ -337,7 +337,13 @@ pub fn run_class_in_process(
 ) -> Result<ClassResult, Error> {
     let cfg = drive_config(&ModelParams::PAPER, ModelKind::None, plant.rig());
     let drive = Drive::new(&cfg).context(|| "drive configuration".into())?;
-    run_class(injection, plant, &cfg.rig, &mut InProcess(drive), seed)
+    run_class(
+        injection,
+        plant,
+        &cfg.settings.rig,
+        &mut InProcess(drive),
+        seed,
+    )
 }
 
 /// Runs every scenario preset with no injection; returns (scenarios run, faults raised, what

@@ -89,7 +89,7 @@ pub fn arrival_errors_in_process(
     arrival_errors(
         &mut InProcess(drive),
         plant,
-        &cfg.rig,
+        &cfg.settings.rig,
         model,
         start_mm,
         moves,
@@ -299,7 +299,7 @@ pub fn run_carriage_space(
     crate::run::run(
         scenario,
         plant,
-        &cfg.rig,
+        &cfg.settings.rig,
         &mut InProcess(drive),
         &rc,
         progress,

@@ -276,7 +276,7 @@ impl Scenario {
                         m.to_mm,
                         format!(
                             "mm is outside the drive's travel {}..={} mm",
-                            drive.travel_min_mm, drive.travel_max_mm
+                            drive.settings.travel_min_mm, drive.settings.travel_max_mm
                         ),
                     ))
                 }
@@ -286,7 +286,7 @@ impl Scenario {
                         m.velocity_mm_s,
                         format!(
                             "must be in 0.001..={} mm/s (the drive's limit; it takes whole um/s)",
-                            drive.max_velocity_mm_s
+                            drive.settings.max_velocity_mm_s
                         ),
                     ))
                 }
@@ -297,7 +297,7 @@ impl Scenario {
                         format!(
                             "must be in 0.001..={} mm/s^2 (the drive's limit; it takes whole \
                              um/s^2)",
-                            drive.max_accel_mm_s2
+                            drive.settings.max_accel_mm_s2
                         ),
                     ))
                 }
@@ -472,7 +472,7 @@ mod tests {
         let plant = PlantParams::paper_rig();
         let drive = crate::drive_setup::drive_limits(plant.rig());
         let mut s = Scenario::load("fig18").unwrap();
-        s.moves[2].velocity_mm_s = drive.max_velocity_mm_s * 2.0;
+        s.moves[2].velocity_mm_s = drive.settings.max_velocity_mm_s * 2.0;
         let e = s.check_against(&drive, &plant).unwrap_err();
         assert!(
             matches!(

@@ -24,6 +24,7 @@ pub struct Limits {
 impl Limits {
     /// The limits of a drive configuration.
     pub fn of(cfg: &estimator_core::drive::DriveConfig) -> Limits {
+        let cfg = &cfg.settings;
         Limits {
             travel_min_mm: cfg.travel_min_mm,
             travel_max_mm: cfg.travel_max_mm,

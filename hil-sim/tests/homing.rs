@@ -22,9 +22,7 @@ fn settings() -> Settings {
 
 fn drive(s: &Settings) -> Drive {
     let mut d = Drive::new(&DriveConfig::paper_rig()).unwrap();
-    let cfg = s.drive_config(estimator_core::drive::Models::Image(&[]));
-    d.reconfigure(Parts::build(&cfg, &s.homing).unwrap())
-        .unwrap();
+    d.reconfigure(Parts::build(s).unwrap()).unwrap();
     d
 }
 
@@ -125,7 +123,10 @@ fn an_unconfigured_drive_refuses_to_enable_and_bad_homing_is_refused_by_name() {
     let mut d = Drive::new(&DriveConfig::paper_rig()).unwrap();
     d.forget_configuration();
     assert_eq!(d.command(Command::Enable), Err(CommandError::Unconfigured));
-    let cfg = DriveConfig::paper_rig();
+    let settings = |homing| Settings {
+        homing,
+        ..Settings::PAPER
+    };
     for (h, field) in [
         (
             HomingConfig {
@@ -156,9 +157,9 @@ fn an_unconfigured_drive_refuses_to_enable_and_bad_homing_is_refused_by_name() {
             "homing.velocity_mm_s",
         ),
     ] {
-        assert_eq!(Parts::build(&cfg, &h).unwrap_err().field(), field);
+        assert_eq!(Parts::build(&settings(h)).unwrap_err().field(), field);
     }
-    d.reconfigure(Parts::build(&cfg, &HomingConfig::DEFAULT).unwrap())
+    d.reconfigure(Parts::build(&settings(HomingConfig::DEFAULT)).unwrap())
         .unwrap();
     assert_eq!(d.command(Command::Enable), Ok(()));
 }

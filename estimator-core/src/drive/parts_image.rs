@@ -310,11 +310,11 @@ fn remap_trajectory(e: ConfigError) -> ConfigError {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::drive::{DriveConfig, Models};
-    use crate::settings::{HomingConfig, Settings};
+    use crate::drive::DriveConfig;
+    use crate::settings::Settings;
 
     fn paper() -> Parts {
-        Parts::build(&DriveConfig::paper_rig(), &HomingConfig::DEFAULT).unwrap()
+        Parts::build(&Settings::PAPER).unwrap()
     }
 
     /// The image with `edit` applied to its body and the CRC made valid again: what a buggy
@@ -341,11 +341,7 @@ mod tests {
         let image = Settings::PAPER.parts_image().unwrap();
         let (p, crc) = Parts::decode(&image).unwrap();
         assert_eq!(crc, Settings::PAPER.crc32());
-        let cfg = DriveConfig {
-            model: Models::Image(&[]),
-            ..DriveConfig::paper_rig()
-        };
-        assert_eq!(p, Parts::build(&cfg, &HomingConfig::DEFAULT).unwrap());
+        assert_eq!(p, Parts::build(&DriveConfig::paper_rig().settings).unwrap());
     }
 
     #[test]
@@ -564,8 +560,7 @@ mod tests {
         /// What the host builds, the drive accepts, bit for bit.
         #[test]
         fn every_built_image_is_accepted_unchanged(s in settings()) {
-            let cfg = s.drive_config(Models::Image(&[]));
-            if let Ok(p) = Parts::build(&cfg, &s.homing) {
+            if let Ok(p) = Parts::build(&s) {
                 let image = s.parts_image().unwrap();
                 let (back, crc) = Parts::decode(&image).unwrap();
                 prop_assert_eq!(crc, s.crc32());

@@ -49,7 +49,7 @@ pub fn paper_image() -> Result<Vec<u8>, PilError> {
     let cfg = DriveConfig::paper_rig();
     Ok(estimator_core::image::of_params(
         &ModelParams::PAPER,
-        &cfg.rig,
+        &cfg.settings.rig,
     )?)
 }
 
@@ -117,7 +117,7 @@ pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilEr
         host,
         fw,
         plant,
-        dt: 1.0 / cfg.rate_hz,
+        dt: 1.0 / cfg.settings.rate_hz,
         ticks: 0,
         first_mismatch: None,
     };
