@@ -2,8 +2,8 @@
 //!
 //! One `no_std`, allocation-free definition used by both ends, so the firmware, the simulator and
 //! the host tools cannot disagree about a byte. It depends on nothing of the drive: the drive
-//! (`estimator-core`) depends on it for [`Command`] and [`ModelKind`], and its endpoint (what a
-//! request does to the drive) lives beside `Drive`.
+//! (`estimator-core`) depends on it for [`Command`], [`ModelKind`] and the count units, and its
+//! endpoint (what a request does to the drive) lives beside `Drive`.
 //!
 //! - [`command`]: [`Command`], [`CommandError`], [`ModelKind`];
 //! - [`wire`]: message kinds, [`Request`], [`Reply`], their payloads and the codec;
@@ -33,7 +33,8 @@
 //! - Every payload has one exact length, except [`Request::CalChunk`], whose data length is the
 //!   payload length minus 4 (1 to [`CHUNK_MAX`] bytes).
 //! - Fixed-point values travel as the `i32` of their bits and are typed (`fixed::types::I16F16`)
-//!   on both sides; positions are [`MotorCounts`] or [`ScaleCounts`].
+//!   on both sides; counts are [`MotorCounts`] or [`ScaleCounts`] (micrometres stay `i32` with
+//!   `_um` in the name).
 //!
 //! A frame that fails any check (COBS, size, CRC, kind, length, value range) is rejected whole:
 //! the decoder returns [`Rejected`] naming the reason, and the receiver counts it and answers

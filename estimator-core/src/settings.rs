@@ -563,9 +563,14 @@ mod tests {
     }
 
     #[test]
-    fn paper_settings_are_the_paper_drive() {
-        let cfg = Settings::PAPER.drive_config(Models::Params(&crate::model::ModelParams::PAPER));
-        assert_eq!(cfg, DriveConfig::paper_rig());
+    fn the_paper_drive_keeps_its_defaults() {
+        // What every simulation and test built on `DriveConfig::paper_rig` had before the
+        // settings became its field list: the default homing, Model 1 at start, 2 kHz.
+        let s = DriveConfig::paper_rig().settings;
+        assert_eq!(s.homing, HomingConfig::DEFAULT);
+        assert_eq!(s.initial_model, ModelKind::Linear);
+        assert_eq!(s.rate_hz, 2000.0);
+        assert_eq!(s.rig, Rig::PAPER);
     }
 
     #[test]

@@ -4,6 +4,7 @@
 //! note it and drop the rest of the output; the tool ends its work normally (so a running QEMU is
 //! still killed by its guard) and long loops stop early on [`closed`]. Any other write error (a
 //! full disk) is reported once on stderr and makes the exit status a failure ([`exit_code`]).
+//! [`Sink`] is the same for code that takes an [`io::Write`].
 
 use std::fmt;
 use std::io::{self, Write};
@@ -37,7 +38,7 @@ pub fn note_error(e: &io::Error) {
 }
 
 /// The reader of standard output has gone (a closed pipe).
-pub fn is_reader_gone(e: &io::Error) -> bool {
+fn is_reader_gone(e: &io::Error) -> bool {
     e.kind() == io::ErrorKind::BrokenPipe
 }
 
@@ -46,9 +47,34 @@ pub fn closed() -> bool {
     STATE.load(Ordering::Relaxed) != OPEN
 }
 
+/// Standard output as an [`io::Write`] for code that takes a writer (a CSV, the firmware's
+/// log): the same rules as [`write`]. It never returns an error; [`exit_code`] reports one.
+pub struct Sink;
+
+impl Write for Sink {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        if !closed() {
+            if let Err(e) = io::stdout().lock().write_all(buf) {
+                note_error(&e);
+            }
+        }
+        Ok(buf.len())
+    }
+
+    fn flush(&mut self) -> io::Result<()> {
+        if !closed() {
+            if let Err(e) = io::stdout().lock().flush() {
+                note_error(&e);
+            }
+        }
+        Ok(())
+    }
+}
+
 /// The tool's exit status: `code`, or a failure if standard output failed for another reason
-/// than its reader going away.
+/// than its reader going away. Flushes first: what is still buffered counts too.
 pub fn exit_code(code: ExitCode) -> ExitCode {
+    let _ = Sink.flush();
     if STATE.load(Ordering::Relaxed) == FAILED {
         ExitCode::FAILURE
     } else {

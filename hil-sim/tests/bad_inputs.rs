@@ -62,10 +62,15 @@ struct Outcome {
 }
 
 fn run(args: &[&str]) -> Outcome {
+    run_to(args, Stdio::null())
+}
+
+/// [`run`] with standard output on `stdout`.
+fn run_to(args: &[&str], stdout: Stdio) -> Outcome {
     let mut child = Command::new(env!("CARGO_BIN_EXE_hil-sim"))
         .args(args)
         .stdin(Stdio::null())
-        .stdout(Stdio::null())
+        .stdout(stdout)
         .stderr(Stdio::piped())
         .spawn()
         .expect("spawn hil-sim");
@@ -119,20 +124,6 @@ fn scenario_with(dir: &Path, name: &str, text: &str) -> String {
     p.to_str().unwrap().to_string()
 }
 
-/// Runs `hil-sim args` with standard output on `stdout`; the exit code and stderr.
-fn run_to(args: &[&str], stdout: Stdio) -> Outcome {
-    let out = Command::new(env!("CARGO_BIN_EXE_hil-sim"))
-        .args(args)
-        .stdin(Stdio::null())
-        .stdout(stdout)
-        .output()
-        .expect("run hil-sim");
-    Outcome {
-        code: out.status.code(),
-        stderr: String::from_utf8_lossy(&out.stderr).into_owned(),
-    }
-}
-
 /// A pipe whose reader has already gone: every write to it fails with a broken pipe.
 fn pipe_without_reader() -> Stdio {
     let (reader, writer) = std::io::pipe().expect("pipe");
@@ -159,9 +150,12 @@ fn output_to_a_closed_pipe_or_a_full_disk_is_no_panic() {
         assert!(!out.stderr.contains("panicked"), "{args:?}: {}", out.stderr);
     }
     // A full disk loses output: said on stderr, and a failure.
-    if let Ok(full) = std::fs::OpenOptions::new().write(true).open("/dev/full") {
-        let out = run_to(&evaluate, full.into());
-        assert_eq!(out.code, Some(1), "evaluate into /dev/full: {}", out.stderr);
+    for args in [&evaluate[..], &csv[..]] {
+        let Ok(full) = std::fs::OpenOptions::new().write(true).open("/dev/full") else {
+            break;
+        };
+        let out = run_to(args, full.into());
+        assert_eq!(out.code, Some(1), "{args:?} into /dev/full: {}", out.stderr);
         assert!(out.stderr.contains("standard output: "), "{}", out.stderr);
         assert!(!out.stderr.contains("panicked"), "{}", out.stderr);
     }

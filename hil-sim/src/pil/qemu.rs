@@ -231,7 +231,8 @@ impl Qemu {
 
         let sink: Box<dyn Write + Send> = match &opts.log {
             LogSink::Stderr => Box::new(io::stderr()),
-            LogSink::Stdout => Box::new(io::stdout()),
+            // Through the tools' standard output: a closed pipe or a full disk is noted.
+            LogSink::Stdout => Box::new(crate::stdout::Sink),
             LogSink::File(p) => Box::new(File::create(p)?),
             LogSink::Discard => Box::new(io::sink()),
         };
