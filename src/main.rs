@@ -43,7 +43,7 @@ mod app {
     use belt_drive::stack;
     use belt_link::{
         LinkError, Message, ModelKind, MotorCounts, Receiver, RecordSample, Reply, Request,
-        ScaleCounts, WireTelemetry, RECORD_BATCH,
+        ScaleCounts, RECORD_BATCH,
     };
     use estimator_core::blob::BlobError;
     use estimator_core::endpoint::{answer, Effect, Endpoint, Event as LinkEvent};
@@ -389,7 +389,7 @@ mod app {
         *since_stream += 1;
         if every != 0 && *since_stream >= every {
             *since_stream = 0;
-            outbox.lock(|o| o.send(0, &Reply::Telemetry(WireTelemetry::from(&t))));
+            outbox.lock(|o| o.send(0, &Reply::Telemetry(t)));
         }
         let record_every = RECORD_EVERY.load(Ordering::Relaxed);
         if RECORD_RESTART.swap(false, Ordering::Relaxed) {

@@ -10,9 +10,9 @@ use belt_drive as _;
 
 #[cfg(target_os = "none")]
 use belt_link::{
-    cobs_encode, crc32, encode, kind, Command, Frame, LinkError, Message, MotorCounts, Receiver,
-    Reply, Request, ScaleCounts, WireStatus, WireTelemetry, CHUNK_MAX, MAX_ENCODED, MAX_FRAME,
-    MAX_RAW, MODEL_MAX,
+    cobs_encode, crc32, encode, kind, Command, Faults, Frame, LinkError, Message, ModelKind,
+    MotorCounts, Receiver, Reply, Request, ScaleCounts, Telemetry, WireStatus, CHUNK_MAX,
+    MAX_ENCODED, MAX_FRAME, MAX_RAW, MODEL_MAX,
 };
 #[cfg(target_os = "none")]
 use estimator_core::fixed::types::I16F16;
@@ -71,7 +71,7 @@ mod tests {
 
     #[test]
     fn replies_round_trip() {
-        let t = WireTelemetry {
+        let t = Telemetry {
             tick: 7,
             motor_counts: MotorCounts(-1),
             scale_counts: ScaleCounts(i32::MIN),
@@ -79,8 +79,8 @@ mod tests {
             following_error_counts: MotorCounts(3),
             est_error_um: I16F16::from_bits(-65536),
             current_a: I16F16::from_bits(32768),
-            faults: 0x0212,
-            model: 3,
+            faults: Faults(0x0212),
+            model: ModelKind::Table,
             moving: true,
             amplifier_enabled: false,
             homed: true,

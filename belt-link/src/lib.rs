@@ -6,6 +6,7 @@
 //! endpoint (what a request does to the drive) lives beside `Drive`.
 //!
 //! - [`command`]: [`Command`], [`CommandError`], [`ModelKind`];
+//! - [`faults`]: the fault bits and their names ([`Faults`]);
 //! - [`wire`]: message kinds, [`Request`], [`Reply`], their payloads and the codec;
 //! - [`frame`]: CRC-32 over the raw frame, COBS, [`encode`], [`decode_raw`] and the streaming
 //!   [`Receiver`];
@@ -47,6 +48,7 @@ pub mod bytes;
 pub mod cobs;
 pub mod command;
 pub mod crc;
+pub mod faults;
 pub mod frame;
 #[cfg(feature = "testing")]
 pub mod testing;
@@ -56,6 +58,7 @@ pub mod wire;
 pub use cobs::{cobs_decode_in_place, cobs_encode};
 pub use command::{Command, CommandError, ModelKind, UnknownModel};
 pub use crc::{crc32, Crc32};
+pub use faults::Faults;
 pub use frame::{decode_raw, encode, Frame, Receiver, Rejected};
 pub use units::{MotorCounts, ScaleCounts};
 pub use wire::*;

@@ -15,8 +15,8 @@ fn feed<M: Message>(rx: &mut Receiver, bytes: &[u8]) -> Vec<Result<Frame<M>, Rej
     bytes.iter().filter_map(|&b| rx.push(b)).collect()
 }
 
-fn telemetry() -> WireTelemetry {
-    WireTelemetry {
+fn telemetry() -> Telemetry {
+    Telemetry {
         tick: 0xDEAD_BEEF,
         motor_counts: MotorCounts(-123_456),
         scale_counts: ScaleCounts(7_654_321),
@@ -24,8 +24,8 @@ fn telemetry() -> WireTelemetry {
         following_error_counts: MotorCounts(i32::MAX),
         est_error_um: I16F16::from_bits(-(3 << 16) - 0x8000),
         current_a: I16F16::from_bits(0x0001_8000),
-        faults: 0b10_0000_1010,
-        model: 3,
+        faults: Faults(0b10_0000_1010),
+        model: ModelKind::Table,
         moving: true,
         amplifier_enabled: false,
         homed: true,
@@ -130,8 +130,8 @@ fn all_replies() -> Vec<Reply> {
         Reply::Status(WireStatus {
             tick: 1,
             motor_counts: MotorCounts(-2),
-            faults: 0x0204,
-            model: 2,
+            faults: Faults(0x0204),
+            model: ModelKind::Exponential,
             flags: status_flags::ALL,
             last_error: LinkError::NotSupported as u8,
             reset_cause: reset_cause::INDEPENDENT_WATCHDOG | reset_cause::PANIC_RECORD,
@@ -146,7 +146,7 @@ fn all_replies() -> Vec<Reply> {
             record_crc: 0xdead_beef,
         }),
         Reply::Telemetry(telemetry()),
-        Reply::Telemetry(WireTelemetry::default()),
+        Reply::Telemetry(Telemetry::default()),
         Reply::Answer {
             current_a: I16F16::from_bits(-1),
             telemetry: telemetry(),
@@ -433,6 +433,27 @@ fn bad_frames_are_rejected_with_a_reason() {
     let mut rx = Receiver::new();
     let got = feed::<Reply>(&mut rx, &frame_with_crc(&body));
     assert_eq!(got[0].unwrap_err().error, LinkError::OutOfRange);
+    // Telemetry, an answer and a status naming a model the drive does not have. The model
+    // byte sits after the tick, four counts, estimate, current and fault bits (30 bytes in);
+    // in a status after the tick, position and fault bits.
+    for (k, len, at) in [
+        (kind::TELEMETRY_FRAME, TELEMETRY_LEN, 30),
+        (kind::ANSWER, 4 + TELEMETRY_LEN + 4, 4 + 30),
+        (kind::STATUS_REPLY, STATUS_LEN, 10),
+    ] {
+        let mut body = vec![k, 1];
+        body.extend(vec![0u8; len]);
+        let mut rx = Receiver::new();
+        assert!(feed::<Reply>(&mut rx, &frame_with_crc(&body))[0].is_ok());
+        body[2 + at] = MODEL_MAX + 1;
+        let mut rx = Receiver::new();
+        let got = feed::<Reply>(&mut rx, &frame_with_crc(&body));
+        assert_eq!(
+            got[0].unwrap_err().error,
+            LinkError::OutOfRange,
+            "kind {k:#04x}"
+        );
+    }
 }
 
 #[test]

@@ -2,6 +2,7 @@
 
 use crate::bytes::{Fields, Reader, Short, Writer};
 use crate::command::{Command, ModelKind};
+use crate::faults::Faults;
 use crate::units::{MotorCounts, ScaleCounts};
 use fixed::types::I16F16;
 
@@ -259,36 +260,38 @@ pub const RECORD_SAMPLE_LEN: usize = 14;
 /// Samples in one [`Reply::Records`] frame.
 pub const RECORD_BATCH: usize = 4;
 
-/// One tick's telemetry in wire form ([`TELEMETRY_LEN`] bytes).
+/// Everything a control tick reports, in integer units: the drive keeps one per tick (the
+/// drive's `Telemetry` is this type) and the link carries it as is ([`TELEMETRY_LEN`] bytes).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct WireTelemetry {
+pub struct Telemetry {
     /// Tick counter since start.
     pub tick: u32,
-    /// Unwrapped motor position.
+    /// Unwrapped motor position (x_PE).
     pub motor_counts: MotorCounts,
-    /// Unwrapped linear-scale position.
+    /// Unwrapped linear-scale position (x_LS).
     pub scale_counts: ScaleCounts,
-    /// Trajectory set-point.
+    /// Trajectory set-point, whole motor counts.
     pub setpoint_counts: MotorCounts,
-    /// Following error.
+    /// Set-point minus measured position, whole motor counts.
     pub following_error_counts: MotorCounts,
-    /// Estimated transmission error, micrometres.
+    /// Estimated transmission error y = x_LS - x_PE, micrometres.
     pub est_error_um: I16F16,
-    /// Current command, amperes.
+    /// Current command sent to the amplifier, amperes.
     pub current_a: I16F16,
-    /// Fault bits (`Faults` in the drive names them).
-    pub faults: u16,
-    /// Active model number.
-    pub model: u8,
+    /// Latched fault bits.
+    pub faults: Faults,
+    /// Active error model (an unknown number on the wire is refused as out of range).
+    pub model: ModelKind,
     /// A move is in progress.
     pub moving: bool,
-    /// The amplifier enable line is high.
+    /// The amplifier's enable line: high only while the drive is enabled and no fault is
+    /// latched.
     pub amplifier_enabled: bool,
-    /// The drive is homed.
+    /// The position has been homed since start (moves are refused before).
     pub homed: bool,
 }
 
-/// Wire size of [`WireTelemetry`].
+/// Wire size of [`Telemetry`].
 pub const TELEMETRY_LEN: usize = 32;
 
 /// Bits of the last telemetry byte.
@@ -338,10 +341,10 @@ pub struct WireStatus {
     pub tick: u32,
     /// Unwrapped motor position.
     pub motor_counts: MotorCounts,
-    /// Fault bits (`Faults` in the drive names them).
-    pub faults: u16,
-    /// Active model number.
-    pub model: u8,
+    /// Latched fault bits.
+    pub faults: Faults,
+    /// Active error model.
+    pub model: ModelKind,
     /// [`status_flags`] bits.
     pub flags: u8,
     /// Code of the last [`LinkError`] (0 = none yet).
@@ -415,13 +418,13 @@ pub enum Reply {
     /// Answer to [`Request::Status`] (payload [`STATUS_LEN`]).
     Status(WireStatus),
     /// Streamed telemetry (payload [`TELEMETRY_LEN`]).
-    Telemetry(WireTelemetry),
+    Telemetry(Telemetry),
     /// PIL: answer to [`Request::Sample`] (payload 4 + [`TELEMETRY_LEN`] + 4).
     Answer {
         /// Current command, amperes.
         current_a: I16F16,
         /// The tick's telemetry.
-        telemetry: WireTelemetry,
+        telemetry: Telemetry,
         /// Instructions `Drive::control` took (QEMU instruction counter; 0 where not measured).
         step_instructions: u32,
     },
@@ -505,7 +508,12 @@ fn expect_len(payload: &[u8], len: usize) -> Result<Reader<'_>, LinkError> {
     }
 }
 
-impl WireTelemetry {
+/// A model number the drive defines; any other is out of range.
+fn read_model(r: &mut Reader<'_>) -> Result<ModelKind, LinkError> {
+    ModelKind::from_u8(r.u8()?).ok_or(LinkError::OutOfRange)
+}
+
+impl Telemetry {
     fn write(&self, w: &mut Writer<'_>) {
         w.u32(self.tick);
         w.i32(self.motor_counts.0);
@@ -514,8 +522,8 @@ impl WireTelemetry {
         w.i32(self.following_error_counts.0);
         w.i32(self.est_error_um.to_bits());
         w.i32(self.current_a.to_bits());
-        w.u16(self.faults);
-        w.u8(self.model);
+        w.u16(self.faults.0);
+        w.u8(self.model as u8);
         let mut flags = 0;
         if self.moving {
             flags |= telemetry_flags::MOVING;
@@ -529,7 +537,7 @@ impl WireTelemetry {
         w.u8(flags);
     }
     fn read(r: &mut Reader<'_>) -> Result<Self, LinkError> {
-        Ok(WireTelemetry {
+        Ok(Telemetry {
             tick: r.u32()?,
             motor_counts: MotorCounts(r.i32()?),
             scale_counts: ScaleCounts(r.i32()?),
@@ -537,8 +545,8 @@ impl WireTelemetry {
             following_error_counts: MotorCounts(r.i32()?),
             est_error_um: I16F16::from_bits(r.i32()?),
             current_a: I16F16::from_bits(r.i32()?),
-            faults: r.u16()?,
-            model: r.u8()?,
+            faults: Faults(r.u16()?),
+            model: read_model(r)?,
             moving: false,
             amplifier_enabled: false,
             homed: false,
@@ -791,8 +799,8 @@ impl Message for Reply {
             Reply::Status(s) => {
                 w.u32(s.tick);
                 w.i32(s.motor_counts.0);
-                w.u16(s.faults);
-                w.u8(s.model);
+                w.u16(s.faults.0);
+                w.u8(s.model as u8);
                 w.u8(s.flags);
                 w.u8(s.last_error);
                 w.u8(s.reset_cause);
@@ -882,8 +890,8 @@ impl Message for Reply {
                 let s = WireStatus {
                     tick: r.u32()?,
                     motor_counts: MotorCounts(r.i32()?),
-                    faults: r.u16()?,
-                    model: r.u8()?,
+                    faults: Faults(r.u16()?),
+                    model: read_model(&mut r)?,
                     flags: r.u8()?,
                     last_error: r.u8()?,
                     reset_cause: r.u8()?,
@@ -900,14 +908,13 @@ impl Message for Reply {
                 // Every bit of `flags` is defined (`status_flags::ALL` is 0xff).
                 Reply::Status(s)
             }
-            kind::TELEMETRY_FRAME => Reply::Telemetry(WireTelemetry::read(&mut expect_len(
-                payload,
-                TELEMETRY_LEN,
-            )?)?),
+            kind::TELEMETRY_FRAME => {
+                Reply::Telemetry(Telemetry::read(&mut expect_len(payload, TELEMETRY_LEN)?)?)
+            }
             kind::ANSWER => {
                 let mut r = expect_len(payload, 4 + TELEMETRY_LEN + 4)?;
                 let current_a = I16F16::from_bits(r.i32()?);
-                let telemetry = WireTelemetry::read(&mut r)?;
+                let telemetry = Telemetry::read(&mut r)?;
                 Reply::Answer {
                     current_a,
                     telemetry,

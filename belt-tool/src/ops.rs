@@ -3,7 +3,6 @@
 use std::time::{Duration, Instant};
 
 use belt_link::{status_flags, Command, WireStatus};
-use estimator_core::drive::Faults;
 
 use crate::error::ToolError;
 use crate::link::Link;
@@ -34,7 +33,7 @@ pub fn wait_for(
                 "{what}: the drive restarted (it sent its boot status)"
             )));
         }
-        if s.faults != 0 {
+        if !s.faults.is_clear() {
             return Err(ToolError::Drive(format!(
                 "{what}: the drive latched faults: {} (`beltctl clear-faults`, then `beltctl \
                  enable`)",
@@ -178,7 +177,7 @@ pub fn home(link: &mut Link, timeout: Duration) -> Result<WireStatus, ToolError>
     if s.flags & status_flags::HOMED == 0 {
         return Err(ToolError::Drive(format!(
             "homing ended without homing the drive (faults: {})",
-            Faults(s.faults)
+            s.faults
         )));
     }
     Ok(s)
@@ -187,7 +186,7 @@ pub fn home(link: &mut Link, timeout: Duration) -> Result<WireStatus, ToolError>
 /// Fails unless the drive is enabled, homed and free of faults: what moves need.
 pub fn require_ready(s: &WireStatus, what: &str) -> Result<(), ToolError> {
     let mut missing = Vec::new();
-    if s.faults != 0 {
+    if !s.faults.is_clear() {
         missing.push(format!(
             "its faults cleared ({}: `beltctl clear-faults`)",
             fault_names(s.faults).join(", ")

@@ -1,7 +1,7 @@
 //! The drive's status for people (a table) and programs (one JSON object), every bit by name.
 
-use belt_link::{reset_cause, status_flags, LinkError, ModelKind, WireStatus};
-use estimator_core::drive::{Faults, SCALE_COUNTS_PER_UM};
+use belt_link::{reset_cause, status_flags, Faults, LinkError, WireStatus};
+use estimator_core::drive::SCALE_COUNTS_PER_UM;
 use estimator_core::rig::Rig;
 use serde_json::{json, Value};
 
@@ -29,10 +29,10 @@ pub fn flag_names(flags: u8) -> Vec<&'static str> {
 }
 
 /// Names of the set fault bits; unknown bits as `bit N`.
-pub fn fault_names(faults: u16) -> Vec<String> {
+pub fn fault_names(faults: Faults) -> Vec<String> {
     (0..16)
         .map(|i| 1u16 << i)
-        .filter(|b| faults & b != 0)
+        .filter(|&b| faults.has(b))
         .map(|b| match Faults::NAMES.iter().find(|(f, _)| *f == b) {
             Some((_, n)) => n.to_string(),
             None => format!("bit {}", b.trailing_zeros()),
@@ -47,11 +47,6 @@ pub fn reset_names(cause: u8) -> Vec<&'static str> {
         .filter(|(b, _)| cause & b != 0)
         .map(|(_, n)| *n)
         .collect()
-}
-
-/// The model's name, or `unknown (N)`.
-pub fn model_name(model: u8) -> String {
-    ModelKind::from_u8(model).map_or(format!("unknown ({model})"), |m| m.as_str().to_string())
 }
 
 /// The linear scale's reading, micrometres.
@@ -81,7 +76,7 @@ pub fn to_json(s: &WireStatus, rig: Option<&Rig>) -> Value {
         "tick": s.tick,
         "flags": flag_names(s.flags),
         "faults": fault_names(s.faults),
-        "model": model_name(s.model),
+        "model": s.model.as_str(),
         "motor_counts": s.motor_counts.0,
         "motor_mm": motor_mm(s, rig),
         "scale_counts": s.scale_counts.0,
@@ -125,7 +120,7 @@ pub fn to_table(port: &str, s: &WireStatus, rig: Option<&Rig>) -> String {
         ("port", port.to_string()),
         ("flags", or_none(strings(flag_names(s.flags)))),
         ("faults", or_none(fault_names(s.faults))),
-        ("model", model_name(s.model)),
+        ("model", s.model.as_str().to_string()),
         ("motor", motor),
         (
             "scale",
@@ -182,12 +177,12 @@ mod tests {
     fn bits_are_named() {
         let s = WireStatus {
             flags: status_flags::ENABLED | status_flags::HOMED | status_flags::HOMING,
-            faults: Faults::STALL | Faults::FOLLOWING_ERROR | 1 << 15,
+            faults: Faults(Faults::STALL | Faults::FOLLOWING_ERROR | 1 << 15),
             reset_cause: reset_cause::POWER_ON,
             motor_counts: MotorCounts(18679),
             scale_counts: ScaleCounts(20001),
             record_crc: 0xab,
-            model: 3,
+            model: belt_link::ModelKind::Table,
             ..WireStatus::default()
         };
         let j = to_json(&s, Some(&Rig::PAPER));

@@ -38,35 +38,8 @@ pub struct Sample {
     pub scale_counter: u16,
 }
 
-/// Everything a tick reports, in integer units.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct Telemetry {
-    /// Tick counter since start.
-    pub tick: u32,
-    /// Unwrapped motor position (x_PE).
-    pub motor_counts: MotorCounts,
-    /// Unwrapped linear-scale position (x_LS).
-    pub scale_counts: ScaleCounts,
-    /// Trajectory set-point, whole motor counts.
-    pub setpoint_counts: MotorCounts,
-    /// Set-point minus measured position, whole motor counts.
-    pub following_error_counts: MotorCounts,
-    /// Estimated transmission error y = x_LS - x_PE, micrometres.
-    pub est_error_um: I16F16,
-    /// Current command sent to the amplifier, amperes.
-    pub current_a: I16F16,
-    /// Active fault bits.
-    pub faults: Faults,
-    /// Active error model.
-    pub model: ModelKind,
-    /// A move is in progress.
-    pub moving: bool,
-    /// The amplifier's enable line: high only while the drive is enabled and no fault is
-    /// latched.
-    pub amplifier_enabled: bool,
-    /// The position has been homed since start (moves are refused before).
-    pub homed: bool,
-}
+/// Everything a tick reports: the link's type, so the drive and the wire cannot disagree.
+pub use belt_link::wire::Telemetry;
 
 /// Result of one tick.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]

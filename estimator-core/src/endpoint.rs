@@ -3,14 +3,12 @@
 //! (wire types, codec, framing) is the `belt-link` crate, which knows nothing of the drive.
 
 use belt_link::{
-    kind, status_flags, Command, CommandError, Crc32, LinkError, Message, ModelKind, Receiver,
-    Reply, Request, WireStatus, WireTelemetry,
+    kind, status_flags, Command, CommandError, Crc32, LinkError, Message, Receiver, Reply, Request,
+    WireStatus,
 };
 
 use crate::blob::BlobError;
-use crate::drive::{
-    Drive, Faults, Output, Parts, PartsImage, Sample, Telemetry, IMAGE_FIELD, PARTS_IMAGE_LEN,
-};
+use crate::drive::{Drive, Output, Parts, PartsImage, Sample, IMAGE_FIELD, PARTS_IMAGE_LEN};
 use crate::image;
 use crate::settings::{self, RawSettings, Settings};
 pub use crate::staging::BlobBuffer;
@@ -77,50 +75,11 @@ pub fn blob_error_code(e: BlobError) -> u8 {
     }
 }
 
-impl From<&Telemetry> for WireTelemetry {
-    fn from(t: &Telemetry) -> Self {
-        WireTelemetry {
-            tick: t.tick,
-            motor_counts: t.motor_counts,
-            scale_counts: t.scale_counts,
-            setpoint_counts: t.setpoint_counts,
-            following_error_counts: t.following_error_counts,
-            est_error_um: t.est_error_um,
-            current_a: t.current_a,
-            faults: t.faults.0,
-            model: t.model as u8,
-            moving: t.moving,
-            amplifier_enabled: t.amplifier_enabled,
-            homed: t.homed,
-        }
-    }
-}
-
-impl TryFrom<WireTelemetry> for Telemetry {
-    type Error = LinkError;
-    fn try_from(w: WireTelemetry) -> Result<Self, LinkError> {
-        Ok(Telemetry {
-            tick: w.tick,
-            motor_counts: w.motor_counts,
-            scale_counts: w.scale_counts,
-            setpoint_counts: w.setpoint_counts,
-            following_error_counts: w.following_error_counts,
-            est_error_um: w.est_error_um,
-            current_a: w.current_a,
-            faults: Faults(w.faults),
-            model: ModelKind::from_u8(w.model).ok_or(LinkError::OutOfRange)?,
-            moving: w.moving,
-            amplifier_enabled: w.amplifier_enabled,
-            homed: w.homed,
-        })
-    }
-}
-
 /// The PIL answer for one tick's output.
 pub fn answer(out: &Output, step_instructions: u32) -> Reply {
     Reply::Answer {
         current_a: out.current_a,
-        telemetry: WireTelemetry::from(&out.telemetry),
+        telemetry: out.telemetry,
         step_instructions,
     }
 }
@@ -135,7 +94,7 @@ pub fn output_of(reply: &Reply) -> Option<(Output, u32)> {
         } => Some((
             Output {
                 current_a,
-                telemetry: Telemetry::try_from(telemetry).ok()?,
+                telemetry,
             },
             step_instructions,
         )),
@@ -726,8 +685,8 @@ impl<B: Staging> Endpoint<B> {
         WireStatus {
             tick: last.tick,
             motor_counts: last.motor_counts,
-            faults: last.faults.0,
-            model: last.model as u8,
+            faults: last.faults,
+            model: last.model,
             flags,
             last_error: rx.last_error.map_or(0, |e| e as u8),
             reset_cause,
@@ -751,7 +710,7 @@ mod tests {
     // ---- the endpoint, against the real drive ----
 
     use crate::drive::{DriveConfig, Output as DriveOutput};
-    use belt_link::{crc32, CHUNK_MAX, MODEL_MAX};
+    use belt_link::{crc32, CHUNK_MAX};
 
     fn drive() -> Drive {
         Drive::new(&DriveConfig::paper_rig()).unwrap()
@@ -788,9 +747,6 @@ mod tests {
         });
         let reply = answer(&out, 42);
         assert_eq!(output_of(&reply), Some((out, 42)));
-        let mut w = WireTelemetry::from(&out.telemetry);
-        w.model = MODEL_MAX + 1;
-        assert_eq!(Telemetry::try_from(w), Err(LinkError::OutOfRange));
         assert_eq!(output_of(&Reply::Ack { of: 1 }), None::<(DriveOutput, u32)>);
     }
 

@@ -139,7 +139,7 @@ impl FakeDrive {
             tick: self.tick,
             motor_counts: MotorCounts((at as f64 * rig.counts_per_mm() / 1000.0).round() as i32),
             flags,
-            model: 3,
+            model: belt_link::ModelKind::Table,
             scale_counts: ScaleCounts(at * 2 + self.arrival_offset_counts),
             carriage_target_um: self.target_um,
             carriage_estimate_um: at,
