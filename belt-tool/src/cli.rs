@@ -357,7 +357,7 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
             let o = calibrate::run(link, &opts, &mut progress)?;
             progress.finish();
             for w in &o.plot_warnings {
-                eprintln!("beltctl: warning: plot not drawn: {w}");
+                hil_sim::errln!("beltctl: warning: plot not drawn: {w}");
             }
             let rms: serde_json::Map<_, _> = o
                 .calibration

@@ -11,6 +11,8 @@
 //! - [`status`], [`config`], [`ops`], [`record`], [`calibrate`]: what the commands do;
 //! - [`cli`]: the command line.
 #![forbid(unsafe_code)]
+// Output only through `stdout` (`out!`, `outln!`, `errln!`): the std macros panic on a closed pipe.
+#![deny(clippy::print_stdout, clippy::print_stderr)]
 #![warn(missing_docs)]
 
 pub mod calibrate;

@@ -1,4 +1,6 @@
 //! `beltctl`: the command line; everything else is in the library.
+// Output only through `stdout` (`out!`, `outln!`, `errln!`): the std macros panic on a closed pipe.
+#![deny(clippy::print_stdout, clippy::print_stderr)]
 
 use std::process::ExitCode;
 
@@ -9,7 +11,7 @@ fn main() -> ExitCode {
     hil_sim::stdout::exit_code(match belt_tool::cli::run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("beltctl: {e}");
+            hil_sim::errln!("beltctl: {e}");
             ExitCode::FAILURE
         }
     })

@@ -36,6 +36,36 @@ fn a_port_that_does_not_exist_is_named() {
 }
 
 #[test]
+fn a_failure_with_stdout_and_stderr_closed_is_no_panic() {
+    // `beltctl ... 2>&1 | head` after the reader has gone: the message cannot be written, the
+    // exit status still says it failed (101 would be a panic).
+    let closed = || {
+        let (reader, writer) = std::io::pipe().expect("pipe");
+        drop(reader);
+        std::process::Stdio::from(writer)
+    };
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_beltctl"))
+        .args(["--port", "/dev/ttyNOSUCH9", "status"])
+        .stdin(std::process::Stdio::null())
+        .stdout(closed())
+        .stderr(closed())
+        .spawn()
+        .expect("spawn beltctl");
+    let start = std::time::Instant::now();
+    let code = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status.code();
+        }
+        if start.elapsed() > LIMIT {
+            let _ = child.kill();
+            panic!("beltctl: no exit after {LIMIT:?}");
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    };
+    assert_eq!(code, Some(1));
+}
+
+#[test]
 fn a_file_is_not_a_serial_port() {
     let f = std::env::temp_dir().join(format!("beltctl-not-a-port-{}", std::process::id()));
     std::fs::write(&f, b"x").unwrap();

@@ -3,6 +3,8 @@
 //! * [`params`]: the plant's physical constants (SI, serde, TOML presets; `paper-rig` embedded).
 //! * [`plant`]: the simulated rig of the paper's section 2, stepped once per control tick.
 #![forbid(unsafe_code)]
+// Output only through `stdout` (`out!`, `outln!`, `errln!`): the std macros panic on a closed pipe.
+#![deny(clippy::print_stdout, clippy::print_stderr)]
 #![warn(missing_docs)]
 
 pub mod baseline;

@@ -1,4 +1,6 @@
 //! `hil-sim`: the belt-drive simulator's command line.
+// Output only through `stdout` (`out!`, `outln!`, `errln!`): the std macros panic on a closed pipe.
+#![deny(clippy::print_stdout, clippy::print_stderr)]
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -256,11 +258,11 @@ fn calibration(
 ) -> Result<Calibration, Error> {
     match &common.calibration {
         Some(dir) => {
-            eprintln!("model parameters: {}", dir.display());
+            hil_sim::errln!("model parameters: {}", dir.display());
             Ok(calfile::load(dir, &plant.rig())?)
         }
         None => {
-            eprintln!(
+            hil_sim::errln!(
                 "model parameters: calibrating on {} now (give --calibration DIR to reuse one)",
                 plant.name()
             );
@@ -413,7 +415,7 @@ fn faults_campaign(
             }
             pil_same.push((host.injection, Some(r == **host)));
             if r != **host {
-                eprintln!(
+                hil_sim::errln!(
                     "PIL {} differs: host {:?}, firmware {:?}",
                     host.injection.name(),
                     host,
@@ -425,7 +427,7 @@ fn faults_campaign(
     let (checked, trips, what) = faults::false_trips(&plant, &mut |s, f| progress.stage(s, f))?;
     progress.finish();
     for w in &what {
-        eprintln!("false trip: {w}");
+        hil_sim::errln!("false trip: {w}");
     }
     if json {
         hil_sim::outln!("{}", faults::to_json(&results, &pil_same, trips, checked));
@@ -486,7 +488,7 @@ fn main() -> ExitCode {
             let cal = eval::calibrate_plant(&plant, &mut |s, f| progress.stage(s, f))?;
             progress.finish();
             calfile::save(&out, &cal, &plant.rig())?;
-            eprintln!(
+            hil_sim::errln!(
                 "reversal dead band: {} counts",
                 cal.params.reversal_deadband_counts
             );
@@ -498,8 +500,8 @@ fn main() -> ExitCode {
             ] {
                 for (dir, d) in [("forward", c.forward_mm), ("reverse", c.reverse_mm)] {
                     match d {
-                        Some(mm) => eprintln!("{name} {dir} transition closes after {mm} mm"),
-                        None => eprintln!(
+                        Some(mm) => hil_sim::errln!("{name} {dir} transition closes after {mm} mm"),
+                        None => hil_sim::errln!(
                             "warning: {name}'s {dir} transition never meets the far band edge \
                              within {} mm: its estimate stays inside the band after long strokes",
                             estimator_core::model::Closing::LIMIT_MM
@@ -508,14 +510,14 @@ fn main() -> ExitCode {
                 }
             }
             for (k, rms) in cal.fit_rms_um {
-                eprintln!(
+                hil_sim::errln!(
                     "fit {:<7} RMS {:6.2} um on {} calibration samples",
                     k.as_str(),
                     rms,
                     cal.samples
                 );
             }
-            eprintln!(
+            hil_sim::errln!(
                 "wrote {} and {}",
                 out.join("calibration.bin").display(),
                 out.join("calibration.toml").display()
@@ -572,7 +574,7 @@ fn main() -> ExitCode {
                 link,
                 speed,
             };
-            eprintln!(
+            hil_sim::errln!(
                 "virtual drive: plant {}, storage {}",
                 opts.plant.name(),
                 storage.display()
@@ -580,9 +582,9 @@ fn main() -> ExitCode {
             let end = hil_sim::pil::virtual_drive::run(&opts, &mut |tty| {
                 // stdout: the port, for scripts.
                 hil_sim::outln!("{}", tty.display());
-                eprintln!("virtual drive: link on {}", tty.display());
+                hil_sim::errln!("virtual drive: link on {}", tty.display());
             })?;
-            eprintln!(
+            hil_sim::errln!(
                 "virtual drive: stopped after {} ticks{}",
                 end.ticks,
                 end.exit_code
@@ -649,17 +651,17 @@ fn main() -> ExitCode {
                 &mut progress,
             )?;
             progress.finish();
-            eprintln!("wrote {}", out.join("report.md").display());
+            hil_sim::errln!("wrote {}", out.join("report.md").display());
             Ok(())
         })(),
     };
     hil_sim::stdout::exit_code(match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("hil-sim: {e}");
+            hil_sim::errln!("hil-sim: {e}");
             let e = e.to_string();
             if e.contains("No such file") && !e.contains(&preset_names()) {
-                eprintln!("presets: {}", preset_names());
+                hil_sim::errln!("presets: {}", preset_names());
             }
             ExitCode::FAILURE
         }

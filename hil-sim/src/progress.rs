@@ -52,7 +52,7 @@ impl Progress {
                 b.set_message(stage.to_string());
                 self.bar = Some(b);
             } else {
-                eprintln!("{}: {stage}", self.program);
+                crate::errln!("{}: {stage}", self.program);
             }
         }
         if let Some(b) = &self.bar {
@@ -63,8 +63,8 @@ impl Progress {
     /// Prints a line without tearing the bar.
     pub fn println(&self, line: &str) {
         match &self.bar {
-            Some(b) => b.suspend(|| eprintln!("{line}")),
-            None => eprintln!("{line}"),
+            Some(b) => b.suspend(|| crate::errln!("{line}")),
+            None => crate::errln!("{line}"),
         }
     }
 

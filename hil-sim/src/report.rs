@@ -311,7 +311,7 @@ pub fn write(
     let md_path = dir.join("report.md");
     std::fs::write(&md_path, md).map_err(|e| Error::io(&md_path, e))?;
     for f in &failures {
-        eprintln!("hil-sim: figure not drawn: {f}");
+        crate::errln!("hil-sim: figure not drawn: {f}");
     }
     Ok(())
 }

@@ -5,6 +5,10 @@
 //! still killed by its guard) and long loops stop early on [`closed`]. Any other write error (a
 //! full disk) is reported once on stderr and makes the exit status a failure ([`exit_code`]).
 //! [`Sink`] is the same for code that takes an [`io::Write`].
+//!
+//! Standard error goes through [`errln!`](crate::errln), which drops a failed write: `eprintln!`
+//! panics when stderr is a closed pipe (`2>&1 | head`), and there is no channel left to report
+//! on; the exit status still says how the tool ended.
 
 use std::fmt;
 use std::io::{self, Write};
@@ -33,8 +37,14 @@ pub fn note_error(e: &io::Error) {
     if is_reader_gone(e) {
         let _ = STATE.compare_exchange(OPEN, READER_GONE, Ordering::Relaxed, Ordering::Relaxed);
     } else if STATE.swap(FAILED, Ordering::Relaxed) != FAILED {
-        eprintln!("standard output: {e}");
+        write_err(format_args!("standard output: {e}\n"));
     }
+}
+
+/// Writes `args` to standard error; a failure there is dropped (see the
+/// [module](crate::stdout)). Use [`errln!`](crate::errln).
+pub fn write_err(args: fmt::Arguments<'_>) {
+    let _ = io::stderr().lock().write_fmt(args);
 }
 
 /// The reader of standard output has gone (a closed pipe).
@@ -98,5 +108,13 @@ macro_rules! outln {
     };
     ($($arg:tt)*) => {
         $crate::stdout::write(::std::format_args!("{}\n", ::std::format_args!($($arg)*)))
+    };
+}
+
+/// `eprintln!` that never panics (see the [module](crate::stdout)).
+#[macro_export]
+macro_rules! errln {
+    ($($arg:tt)*) => {
+        $crate::stdout::write_err(::std::format_args!("{}\n", ::std::format_args!($($arg)*)))
     };
 }

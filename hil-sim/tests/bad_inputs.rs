@@ -80,6 +80,26 @@ fn run_to(args: &[&str], stdout: Stdio) -> Outcome {
         let _ = std::io::Read::read_to_string(&mut err, &mut s);
         s
     });
+    Outcome {
+        code: wait_within_limit(&mut child, args),
+        stderr: reader.join().unwrap(),
+    }
+}
+
+/// The exit code of `hil-sim args` with both standard output and standard error into pipes
+/// whose readers have gone (`2>&1 | head`).
+fn run_into_closed_pipes(args: &[&str]) -> Option<i32> {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_hil-sim"))
+        .args(args)
+        .stdin(Stdio::null())
+        .stdout(pipe_without_reader())
+        .stderr(pipe_without_reader())
+        .spawn()
+        .expect("spawn hil-sim");
+    wait_within_limit(&mut child, args)
+}
+
+fn wait_within_limit(child: &mut std::process::Child, args: &[&str]) -> Option<i32> {
     let start = Instant::now();
     let code = loop {
         if let Some(status) = child.try_wait().unwrap() {
@@ -92,10 +112,7 @@ fn run_to(args: &[&str], stdout: Stdio) -> Outcome {
         }
         std::thread::sleep(Duration::from_millis(5));
     };
-    Outcome {
-        code,
-        stderr: reader.join().unwrap(),
-    }
+    code
 }
 
 /// The verdict every input must get: success, or a clean refusal naming one of `files`.
@@ -159,6 +176,11 @@ fn output_to_a_closed_pipe_or_a_full_disk_is_no_panic() {
         assert!(out.stderr.contains("standard output: "), "{}", out.stderr);
         assert!(!out.stderr.contains("panicked"), "{}", out.stderr);
     }
+    // Standard error closed too: a refusal still exits 1 and a good run 0, with no panic (101)
+    // where the message or the progress could not be written.
+    let missing = ["evaluate", "--scenario", "/nonexistent/scenario.toml"];
+    assert_eq!(run_into_closed_pipes(&missing), Some(1));
+    assert_eq!(run_into_closed_pipes(&evaluate), Some(0));
 }
 
 #[test]

@@ -14,6 +14,8 @@
 //! ```
 //! `.cargo/qemu-runner.sh` calls it for `cargo test-target` / `cargo run-qemu`; ELF defaults to
 //! the `cargo fw-qemu` output for `--bench` and `--pil-fuzz`.
+// Output only through `stdout` (`out!`, `outln!`, `errln!`): the std macros panic on a closed pipe.
+#![deny(clippy::print_stdout, clippy::print_stderr)]
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -81,7 +83,7 @@ fn run() -> ExitCode {
         }
     };
     if !(args.timeout.is_finite() && args.timeout > 0.0) {
-        eprintln!(
+        hil_sim::errln!(
             "qemu-run: --timeout {}: must be a positive number of seconds",
             args.timeout
         );
@@ -92,7 +94,7 @@ fn run() -> ExitCode {
         v => match v.parse::<u8>() {
             Ok(s) => Some(s),
             Err(_) => {
-                eprintln!("qemu-run: --icount {v}: use a shift of 0-255 or `off`");
+                hil_sim::errln!("qemu-run: --icount {v}: use a shift of 0-255 or `off`");
                 return ExitCode::from(2);
             }
         },
@@ -108,7 +110,7 @@ fn run() -> ExitCode {
         None => LogSink::Stdout,
     };
     if args.check.is_some() && !(args.bench || args.footprint) {
-        eprintln!("qemu-run: --check needs --bench or --footprint");
+        hil_sim::errln!("qemu-run: --check needs --bench or --footprint");
         return ExitCode::from(2);
     }
     // clap requires the ELF with --footprint.
@@ -136,7 +138,7 @@ fn run() -> ExitCode {
         };
     }
     let Some(elf) = args.elf else {
-        eprintln!("qemu-run: no firmware ELF given (see --help)");
+        hil_sim::errln!("qemu-run: no firmware ELF given (see --help)");
         return ExitCode::from(2);
     };
 
@@ -150,16 +152,16 @@ fn run() -> ExitCode {
     match result {
         Ok(code) => {
             if code != 0 {
-                eprintln!("qemu-run: firmware exited with status {code}");
+                hil_sim::errln!("qemu-run: firmware exited with status {code}");
             }
             ExitCode::from(code.clamp(0, 255) as u8)
         }
         Err(e @ QemuError::Timeout(_)) => {
-            eprintln!("qemu-run: {e}");
+            hil_sim::errln!("qemu-run: {e}");
             ExitCode::from(124)
         }
         Err(e) => {
-            eprintln!("qemu-run: {e}");
+            hil_sim::errln!("qemu-run: {e}");
             ExitCode::from(2)
         }
     }
@@ -276,7 +278,7 @@ fn run_footprint(elf: &std::path::Path, check: Option<&std::path::Path>) -> Exit
     let f = match bench::footprint(elf) {
         Ok(f) => f,
         Err(e) => {
-            eprintln!("qemu-run: {e}");
+            hil_sim::errln!("qemu-run: {e}");
             return ExitCode::FAILURE;
         }
     };
@@ -371,7 +373,7 @@ fn run_fuzz(opts: &PilOptions, n: u32) -> ExitCode {
             }
         }
         Err(e) => {
-            eprintln!("qemu-run: PIL fuzz: {e}");
+            hil_sim::errln!("qemu-run: PIL fuzz: {e}");
             hil_sim::outln!("0 passed, 1 failed");
             ExitCode::FAILURE
         }

@@ -219,7 +219,7 @@ impl Qemu {
                     use std::io::BufRead;
                     for line in io::BufReader::new(err).lines().map_while(Result::ok) {
                         if !line.contains("QEMU waiting for connection") {
-                            eprintln!("{line}");
+                            crate::errln!("{line}");
                         }
                     }
                 })?;
