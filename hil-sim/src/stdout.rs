@@ -52,6 +52,26 @@ fn is_reader_gone(e: &io::Error) -> bool {
     e.kind() == io::ErrorKind::BrokenPipe
 }
 
+/// Asks, without writing, whether the reader of standard output has gone: the write end of a
+/// pipe whose read end is closed reports an error condition to `poll` (a file or a terminal
+/// never does). Marks it like a failed write, so [`closed`] says so too. For a tool that may sit
+/// silent for long (`qemu-run ELF | head` waits for the firmware's next line otherwise).
+pub fn reader_gone() -> bool {
+    use rustix::event::{poll, PollFd, PollFlags, Timespec};
+    let out = io::stdout();
+    let mut fds = [PollFd::new(&out, PollFlags::empty())];
+    let now = Timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    if matches!(poll(&mut fds, Some(&now)), Ok(n) if n > 0)
+        && fds[0].revents().contains(PollFlags::ERR)
+    {
+        let _ = STATE.compare_exchange(OPEN, READER_GONE, Ordering::Relaxed, Ordering::Relaxed);
+    }
+    STATE.load(Ordering::Relaxed) == READER_GONE
+}
+
 /// Nothing more reaches standard output: the caller may stop producing it.
 pub fn closed() -> bool {
     STATE.load(Ordering::Relaxed) != OPEN

@@ -251,3 +251,28 @@ accel_mm_s2 = 2000.0
         "no estimate"
     );
 }
+
+#[test]
+#[ignore = "needs the QEMU firmware ELF (cargo fw-qemu); run by .ci/test"]
+fn qemu_run_stops_when_the_reader_of_its_log_goes() {
+    // `qemu-run ELF | head -1`: the firmware idles silently after its boot lines, so only a check
+    // that does not wait for the next write notices the reader has gone. Without it the run
+    // lasts until the deadline and exits 124.
+    use std::io::BufRead;
+    let (reader, writer) = std::io::pipe().expect("pipe");
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_qemu-run"))
+        .args(["--timeout", "20"])
+        .arg(elf())
+        .stdin(std::process::Stdio::null())
+        .stdout(writer)
+        .spawn()
+        .expect("spawn qemu-run");
+    let mut first = String::new();
+    std::io::BufReader::new(reader)
+        .read_line(&mut first)
+        .expect("the first log line");
+    assert!(first.contains("belt-drive"), "{first}");
+    // The reader is dropped here, as `head` exits.
+    let status = child.wait().expect("qemu-run ends");
+    assert_eq!(status.code(), Some(141));
+}

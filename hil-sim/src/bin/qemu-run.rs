@@ -1,6 +1,8 @@
 //! Cargo runner for `thumbv7em-none-eabihf`: runs a firmware ELF under QEMU (netduinoplus2) with
 //! semihosting, prints its defmt log decoded with the ELF's own table, and exits with the
-//! firmware's semihosting exit status (124 on timeout, 2 on a runner error).
+//! firmware's semihosting exit status (124 on timeout, 2 on a runner error, 141 when the reader
+//! of the log went away first: QEMU is stopped then, and the firmware's verdict is unknown, as
+//! for a writer the shell saw ended by SIGPIPE).
 //!
 //! ```text
 //! qemu-run [--timeout SECS] [--icount SHIFT] [--log-level LEVEL] [--log-file PATH] ELF [ignored...]
@@ -148,9 +150,13 @@ fn run() -> ExitCode {
     opts.log = log;
     opts.min_level = level_of("trace");
     opts.keep_lines = 0;
-    let result = Qemu::spawn(&opts).and_then(|mut q| q.wait());
+    let to_stdout = args.log_file.is_none();
+    let result = Qemu::spawn(&opts)
+        .and_then(|mut q| q.wait_unless(|| to_stdout && hil_sim::stdout::reader_gone()));
     match result {
-        Ok(code) => {
+        // `qemu-run ELF | head`: the reader took what it wanted; quiet, but no success either.
+        Ok(None) => ExitCode::from(141),
+        Ok(Some(code)) => {
             if code != 0 {
                 hil_sim::errln!("qemu-run: firmware exited with status {code}");
             }

@@ -292,6 +292,19 @@ impl Qemu {
         Ok(code)
     }
 
+    /// [`Qemu::wait`], but gives up early when `stop` says so (checked every 5 ms): then QEMU is
+    /// killed and `Ok(None)` returned.
+    pub fn wait_unless(&mut self, stop: impl Fn() -> bool) -> Result<Option<i32>, QemuError> {
+        while self.status.is_none() && self.is_running() && self.remaining() > Duration::ZERO {
+            if stop() {
+                self.kill();
+                return Ok(None);
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        self.wait().map(Some)
+    }
+
     /// Kills QEMU (idempotent).
     pub fn kill(&mut self) {
         let _ = self.child.kill();
