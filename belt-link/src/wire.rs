@@ -145,8 +145,9 @@ impl LinkError {
     }
 }
 
-/// Highest compensator number a `SelectModel` command may carry (0 none, 1-3 Models 1-3, 4
-/// constant backlash, 5 bidirectional table; see [`ModelKind`]).
+/// Highest compensator number a `SelectModel` command, a status or a telemetry frame may carry
+/// (0 none, 1-3 Models 1-3, 4 constant backlash, 5 bidirectional table, 6 Model 4; see
+/// [`ModelKind`]).
 pub const MODEL_MAX: u8 = ModelKind::ALL.len() as u8 - 1;
 
 /// Host -> drive messages.

@@ -53,6 +53,21 @@ pub enum ToolError {
         /// Bytes received that belonged to no valid frame.
         bytes: u64,
     },
+    /// The drive's answer arrived intact but could not be read: another protocol version.
+    #[error(
+        "{port}: the drive answered {request}, but beltctl cannot read the answer (reply kind \
+         {kind:#04x}: {reason}); are the firmware and beltctl from the same release?"
+    )]
+    Unreadable {
+        /// The port.
+        port: String,
+        /// The request.
+        request: String,
+        /// The reply's kind byte.
+        kind: u8,
+        /// Why it was refused (a field out of range, a wrong payload length, a kind unknown).
+        reason: &'static str,
+    },
     /// Every request comes straight back: TX is wired to RX.
     #[error(
         "{port} echoes every request back instead of answering (a loopback plug, or the \

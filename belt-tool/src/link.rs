@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 
 use belt_link::{
     cobs_decode_in_place, decode_raw, encode, kind, Command, Frame, LinkError, Message, Receiver,
-    RecordSample, Reply, Request, WireStatus, MAX_FRAME,
+    RecordSample, Rejected, Reply, Request, WireStatus, MAX_FRAME,
 };
 
 use crate::error::{is_damage, link_error_name, refusal, ToolError};
@@ -275,6 +275,10 @@ pub struct Link {
     recording: Option<Collector>,
     /// The last request frame sent (to recognise an echo).
     last_sent: Vec<u8>,
+    /// The sequence number `call_raw` waits for.
+    awaited_seq: Option<u8>,
+    /// A reply to the awaited request that arrived intact but could not be read.
+    unreadable: Option<Rejected>,
 }
 
 impl Link {
@@ -297,6 +301,8 @@ impl Link {
             stats: LinkStats::default(),
             recording: None,
             last_sent: Vec::new(),
+            awaited_seq: None,
+            unreadable: None,
         }
     }
 
@@ -337,7 +343,8 @@ impl Link {
             })
     }
 
-    /// The next valid frame, or `None` when `deadline` passes first. Frames that fail to decode
+    /// The next valid frame, or `None` when `deadline` passes first (or, while `call_raw` waits,
+    /// when its answer arrives unreadable: then `unreadable` holds why). Frames that fail to decode
     /// are counted as garbage.
     fn next_frame(&mut self, deadline: Instant) -> Result<Option<Frame<Reply>>, ToolError> {
         loop {
@@ -358,7 +365,7 @@ impl Link {
                         self.stats.frames += 1;
                         return Ok(Some(f));
                     }
-                    Some(Err(_)) => {
+                    Some(Err(r)) => {
                         if self.is_echo() {
                             self.stats.echoes += 1;
                         } else {
@@ -367,6 +374,12 @@ impl Link {
                         }
                         self.pending.clear();
                         self.pending_len = 0;
+                        // The answer came through intact (its CRC holds) but says something
+                        // this beltctl cannot read: no use waiting or asking again.
+                        if is_reply_unreadable(&r) && self.awaited_seq == Some(r.seq) {
+                            self.unreadable = Some(r);
+                            return Ok(None);
+                        }
                     }
                 }
             }
@@ -445,7 +458,22 @@ impl Link {
             self.send(seq, req)?;
             let deadline = Instant::now() + self.opts.timeout;
             damage = None;
-            while let Some(f) = self.next_frame(deadline)? {
+            self.awaited_seq = Some(seq);
+            self.unreadable = None;
+            loop {
+                let next = self.next_frame(deadline);
+                if let Some(r) = self.unreadable.take() {
+                    return Err(ToolError::Unreadable {
+                        port: self.name.clone(),
+                        request: describe(req),
+                        kind: r.kind,
+                        reason: match r.error {
+                            LinkError::UnknownKind => "a kind this beltctl does not know",
+                            e => link_error_name(e),
+                        },
+                    });
+                }
+                let Some(f) = next? else { break };
                 let ours = f.seq == seq && answers(req, &f.msg);
                 // The drive could not read the seq of a damaged frame: it answers with 0.
                 let damaged_unread = f.seq == 0
@@ -574,6 +602,8 @@ impl Link {
     /// Listens for `duration`, collecting records (and dropping anything else).
     pub fn pump(&mut self, duration: Duration) -> Result<(), ToolError> {
         let deadline = Instant::now() + duration;
+        // No request awaits its answer while listening.
+        self.awaited_seq = None;
         while let Some(f) = self.next_frame(deadline)? {
             self.other(f);
         }
@@ -609,3 +639,14 @@ impl Link {
 
 #[cfg(test)]
 mod tests;
+
+/// A reply whose frame arrived intact (the CRC holds) but whose content this side refuses: a
+/// field out of range, a length or a kind it does not know. A drive and a `beltctl` of
+/// different protocol versions; asking again cannot help.
+fn is_reply_unreadable(r: &Rejected) -> bool {
+    r.kind >= 0x80
+        && matches!(
+            r.error,
+            LinkError::OutOfRange | LinkError::BadLength | LinkError::UnknownKind
+        )
+}

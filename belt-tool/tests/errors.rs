@@ -58,6 +58,7 @@ fn a_failure_with_stdout_and_stderr_closed_is_no_panic() {
         }
         if start.elapsed() > LIMIT {
             let _ = child.kill();
+            let _ = child.wait();
             panic!("beltctl: no exit after {LIMIT:?}");
         }
         std::thread::sleep(Duration::from_millis(5));

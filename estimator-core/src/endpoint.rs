@@ -84,7 +84,8 @@ pub fn answer(out: &Output, step_instructions: u32) -> Reply {
     }
 }
 
-/// The output a PIL answer carries, or `None` if the reply is not an answer or is invalid.
+/// The output a PIL answer carries, or `None` if the reply is not an answer (the decoder
+/// already refused an answer with an unknown model or flag).
 pub fn output_of(reply: &Reply) -> Option<(Output, u32)> {
     match *reply {
         Reply::Answer {
@@ -739,7 +740,7 @@ mod tests {
     }
 
     #[test]
-    fn telemetry_and_answers_convert_exactly() {
+    fn answers_carry_the_output() {
         let mut d = drive();
         let out = d.step(Sample {
             motor_counter: 7,

@@ -263,3 +263,33 @@ fn sequence_gaps_and_tick_jumps_are_losses() {
     c.push(3, 0, 1, &s);
     assert_eq!(c.stats.lost_frames, 3);
 }
+
+#[test]
+fn an_answer_from_another_protocol_version_is_named_at_once() {
+    // A status that names a model this beltctl does not know (a newer firmware): intact on the
+    // wire, refused by the decoder. Said at the first answer, not after every try as garbage.
+    let mut link = Fake::link(|seq, _| {
+        let mut f = wire(seq, &status(5));
+        f.pop(); // the delimiter
+        let n = belt_link::cobs_decode_in_place(&mut f).unwrap();
+        f.truncate(n);
+        f[2 + 10] = belt_link::MODEL_MAX + 1; // kind, seq, then the status's model byte
+        let body = f.len() - 4;
+        let crc = belt_link::crc32(&f[..body]);
+        f[body..].copy_from_slice(&crc.to_le_bytes());
+        let mut out = vec![0; f.len() + f.len() / 254 + 2];
+        let n = belt_link::cobs_encode(&f, &mut out).unwrap();
+        out.truncate(n);
+        out.push(0);
+        out
+    });
+    let e = link.status().unwrap_err();
+    assert!(matches!(e, ToolError::Unreadable { .. }), "{e}");
+    assert!(
+        e.to_string()
+            .contains("the drive answered status, but beltctl cannot read")
+            && e.to_string().contains("a field out of range"),
+        "{e}"
+    );
+    assert_eq!(link.stats().resent, 0);
+}
