@@ -71,6 +71,18 @@ fn seal(raw: &mut [u8; crate::MAX_RAW + 8], body_len: usize) -> usize {
     body_len + 4
 }
 
+/// The frame on the wire for the raw body `raw[..body_len]` (kind, seq, payload): CRC appended,
+/// COBS, one delimiter; returns the wire length. Also for a host test that needs a frame the
+/// typed encoder cannot write (a reply with a field out of range).
+pub fn sealed_frame(
+    raw: &mut [u8; crate::MAX_RAW + 8],
+    body_len: usize,
+    out: &mut [u8; crate::MAX_FRAME + 16],
+) -> usize {
+    let n = seal(raw, body_len);
+    wrap(&raw[..n], out)
+}
+
 /// One bad frame on the wire (exactly one delimiter, at the end).
 pub fn bad_frame(rng: &mut Rng, out: &mut [u8; crate::MAX_FRAME + 16]) -> usize {
     use crate::{
@@ -115,8 +127,7 @@ pub fn bad_frame(rng: &mut Rng, out: &mut [u8; crate::MAX_FRAME + 16]) -> usize 
             for b in raw[2 + good.min(len)..2 + len].iter_mut() {
                 *b = rng.next_u32() as u8;
             }
-            let n = seal(&mut raw, 2 + len);
-            wrap(&raw[..n], out)
+            sealed_frame(&mut raw, 2 + len, out)
         }
         // Correct CRC, a kind the drive does not accept (unused or a reply kind).
         3 => {
@@ -131,8 +142,7 @@ pub fn bad_frame(rng: &mut Rng, out: &mut [u8; crate::MAX_FRAME + 16]) -> usize 
             for b in raw[2..2 + len].iter_mut() {
                 *b = rng.next_u32() as u8;
             }
-            let n = seal(&mut raw, 2 + len);
-            wrap(&raw[..n], out)
+            sealed_frame(&mut raw, 2 + len, out)
         }
         // Correct CRC and length, a value out of range.
         4 => {
@@ -164,8 +174,7 @@ pub fn bad_frame(rng: &mut Rng, out: &mut [u8; crate::MAX_FRAME + 16]) -> usize 
                 raw[1] = 0;
                 req.write_payload(&mut raw[2..2 + MAX_RAW - 6])
             };
-            let n = seal(&mut raw, 2 + len);
-            wrap(&raw[..n], out)
+            sealed_frame(&mut raw, 2 + len, out)
         }
         // A valid frame whose first COBS code points past the end.
         _ => {

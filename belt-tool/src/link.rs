@@ -275,10 +275,16 @@ pub struct Link {
     recording: Option<Collector>,
     /// The last request frame sent (to recognise an echo).
     last_sent: Vec<u8>,
-    /// The sequence number `call_raw` waits for.
-    awaited_seq: Option<u8>,
-    /// A reply to the awaited request that arrived intact but could not be read.
-    unreadable: Option<Rejected>,
+}
+
+/// What [`Link::next_frame`] found.
+enum Next {
+    /// A valid frame.
+    Frame(Frame<Reply>),
+    /// The deadline passed first.
+    Deadline,
+    /// The awaited answer arrived intact (its CRC holds) but could not be read.
+    Unreadable(Rejected),
 }
 
 impl Link {
@@ -301,8 +307,6 @@ impl Link {
             stats: LinkStats::default(),
             recording: None,
             last_sent: Vec::new(),
-            awaited_seq: None,
-            unreadable: None,
         }
     }
 
@@ -343,10 +347,9 @@ impl Link {
             })
     }
 
-    /// The next valid frame, or `None` when `deadline` passes first (or, while `call_raw` waits,
-    /// when its answer arrives unreadable: then `unreadable` holds why). Frames that fail to decode
-    /// are counted as garbage.
-    fn next_frame(&mut self, deadline: Instant) -> Result<Option<Frame<Reply>>, ToolError> {
+    /// The next valid frame, the deadline, or the answer with sequence number `awaited` arriving
+    /// unreadable. Frames that fail to decode are counted as garbage.
+    fn next_frame(&mut self, deadline: Instant, awaited: Option<u8>) -> Result<Next, ToolError> {
         loop {
             while self.inpos < self.inlen {
                 let b = self.inbuf[self.inpos];
@@ -363,7 +366,7 @@ impl Link {
                         self.pending.clear();
                         self.pending_len = 0;
                         self.stats.frames += 1;
-                        return Ok(Some(f));
+                        return Ok(Next::Frame(f));
                     }
                     Some(Err(r)) => {
                         if self.is_echo() {
@@ -376,16 +379,15 @@ impl Link {
                         self.pending_len = 0;
                         // The answer came through intact (its CRC holds) but says something
                         // this beltctl cannot read: no use waiting or asking again.
-                        if is_reply_unreadable(&r) && self.awaited_seq == Some(r.seq) {
-                            self.unreadable = Some(r);
-                            return Ok(None);
+                        if is_reply_unreadable(&r) && awaited == Some(r.seq) {
+                            return Ok(Next::Unreadable(r));
                         }
                     }
                 }
             }
             let now = Instant::now();
             if now >= deadline {
-                return Ok(None);
+                return Ok(Next::Deadline);
             }
             let idle = Duration::from_millis(1).min(deadline - now);
             match self.port.read(&mut self.inbuf) {
@@ -458,22 +460,22 @@ impl Link {
             self.send(seq, req)?;
             let deadline = Instant::now() + self.opts.timeout;
             damage = None;
-            self.awaited_seq = Some(seq);
-            self.unreadable = None;
             loop {
-                let next = self.next_frame(deadline);
-                if let Some(r) = self.unreadable.take() {
-                    return Err(ToolError::Unreadable {
-                        port: self.name.clone(),
-                        request: describe(req),
-                        kind: r.kind,
-                        reason: match r.error {
-                            LinkError::UnknownKind => "a kind this beltctl does not know",
-                            e => link_error_name(e),
-                        },
-                    });
-                }
-                let Some(f) = next? else { break };
+                let f = match self.next_frame(deadline, Some(seq))? {
+                    Next::Frame(f) => f,
+                    Next::Deadline => break,
+                    Next::Unreadable(r) => {
+                        return Err(ToolError::Unreadable {
+                            port: self.name.clone(),
+                            request: describe(req),
+                            kind: r.kind,
+                            reason: match r.error {
+                                LinkError::UnknownKind => "a kind this beltctl does not know",
+                                e => link_error_name(e),
+                            },
+                        })
+                    }
+                };
                 let ours = f.seq == seq && answers(req, &f.msg);
                 // The drive could not read the seq of a damaged frame: it answers with 0.
                 let damaged_unread = f.seq == 0
@@ -603,8 +605,7 @@ impl Link {
     pub fn pump(&mut self, duration: Duration) -> Result<(), ToolError> {
         let deadline = Instant::now() + duration;
         // No request awaits its answer while listening.
-        self.awaited_seq = None;
-        while let Some(f) = self.next_frame(deadline)? {
+        while let Next::Frame(f) = self.next_frame(deadline, None)? {
             self.other(f);
         }
         Ok(())

@@ -6,7 +6,7 @@ mod common;
 use std::time::Duration;
 
 use belt_link::Request;
-use common::{beltctl, pty, serve, text, FakeDrive, Faults};
+use common::{beltctl, beltctl_into, pty, serve, text, FakeDrive, Faults};
 
 const LIMIT: Duration = Duration::from_secs(20);
 
@@ -44,26 +44,13 @@ fn a_failure_with_stdout_and_stderr_closed_is_no_panic() {
         drop(reader);
         std::process::Stdio::from(writer)
     };
-    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_beltctl"))
-        .args(["--port", "/dev/ttyNOSUCH9", "status"])
-        .stdin(std::process::Stdio::null())
-        .stdout(closed())
-        .stderr(closed())
-        .spawn()
-        .expect("spawn beltctl");
-    let start = std::time::Instant::now();
-    let code = loop {
-        if let Some(status) = child.try_wait().unwrap() {
-            break status.code();
-        }
-        if start.elapsed() > LIMIT {
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!("beltctl: no exit after {LIMIT:?}");
-        }
-        std::thread::sleep(Duration::from_millis(5));
-    };
-    assert_eq!(code, Some(1));
+    let (out, _) = beltctl_into(
+        &["--port", "/dev/ttyNOSUCH9", "status"],
+        LIMIT,
+        closed(),
+        closed(),
+    );
+    assert_eq!(out.status.code(), Some(1));
 }
 
 #[test]

@@ -269,19 +269,13 @@ fn an_answer_from_another_protocol_version_is_named_at_once() {
     // A status that names a model this beltctl does not know (a newer firmware): intact on the
     // wire, refused by the decoder. Said at the first answer, not after every try as garbage.
     let mut link = Fake::link(|seq, _| {
-        let mut f = wire(seq, &status(5));
-        f.pop(); // the delimiter
-        let n = belt_link::cobs_decode_in_place(&mut f).unwrap();
-        f.truncate(n);
-        f[2 + 10] = belt_link::MODEL_MAX + 1; // kind, seq, then the status's model byte
-        let body = f.len() - 4;
-        let crc = belt_link::crc32(&f[..body]);
-        f[body..].copy_from_slice(&crc.to_le_bytes());
-        let mut out = vec![0; f.len() + f.len() / 254 + 2];
-        let n = belt_link::cobs_encode(&f, &mut out).unwrap();
-        out.truncate(n);
-        out.push(0);
-        out
+        let mut raw = [0; belt_link::MAX_RAW + 8];
+        raw[..2].copy_from_slice(&[kind::STATUS_REPLY, seq]);
+        let len = status(5).write_payload(&mut raw[2..]);
+        raw[2 + 10] = belt_link::MODEL_MAX + 1; // the status's model byte
+        let mut out = [0; MAX_FRAME + 16];
+        let n = belt_link::testing::sealed_frame(&mut raw, 2 + len, &mut out);
+        out[..n].to_vec()
     });
     let e = link.status().unwrap_err();
     assert!(matches!(e, ToolError::Unreadable { .. }), "{e}");

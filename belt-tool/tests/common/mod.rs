@@ -306,12 +306,23 @@ pub fn serve(mut master: File, drive: FakeDrive) -> Serving {
 
 /// Runs beltctl with `args`; kills it after `limit` (a hang is a failure, not a stuck test).
 pub fn beltctl(args: &[&str], limit: Duration) -> (Output, Duration) {
+    beltctl_into(args, limit, Stdio::piped(), Stdio::piped())
+}
+
+/// [`beltctl`] with its standard output and error where the caller says (the `Output` holds
+/// only what went into pipes of its own).
+pub fn beltctl_into(
+    args: &[&str],
+    limit: Duration,
+    stdout: Stdio,
+    stderr: Stdio,
+) -> (Output, Duration) {
     let start = Instant::now();
     let mut child = Command::new(env!("CARGO_BIN_EXE_beltctl"))
         .args(args)
         .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
+        .stdout(stdout)
+        .stderr(stderr)
         .spawn()
         .expect("run beltctl");
     loop {
