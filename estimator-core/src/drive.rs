@@ -146,6 +146,17 @@ struct MoveScale {
     accel_bits_per_um_s2_q32: u64,
 }
 
+/// What only the tick knows, kept for [`Drive::telemetry`]; the rest of the telemetry is the
+/// drive's state, read when it is reported. Four words: building the whole telemetry every tick
+/// cost more than the firmware's one copy of it when it reports.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+struct LastTick {
+    setpoint_counts: i32,
+    following_error_counts: i32,
+    est_error_um: I16F16,
+    current_a: I16F16,
+}
+
 /// The drive: configuration, coefficients and state of one axis.
 ///
 /// `repr(C)` in this order: the per-tick fields come first, within reach of the Cortex-M4's
@@ -179,7 +190,7 @@ pub struct Drive {
     pid: pid::Coeffs,
     pid_state: pid::State,
     model_state: ModelState,
-    last: Telemetry,
+    last: LastTick,
     models: ModelCoeffs,
     /// Limits the trajectory was last built with (velocity um/s, accel um/s^2).
     move_limits: (u32, u32),
@@ -455,7 +466,6 @@ impl Drive {
     fn uncalibrated(&mut self) {
         self.models_valid = false;
         self.model = ModelKind::None;
-        self.last.model = ModelKind::None;
     }
 
     /// The models of `cfg`, into the drive's coefficients in place (an empty image: none, as
@@ -510,10 +520,7 @@ impl Drive {
             carriage_target_um: 0,
             um_per_count_q32: p.um_per_count_q32,
             tick: 0,
-            last: Telemetry {
-                model: p.initial_model,
-                ..Telemetry::default()
-            },
+            last: LastTick::default(),
         }
     }
 
@@ -632,9 +639,26 @@ impl Drive {
         &self.models
     }
 
-    /// Telemetry of the last tick.
+    /// Telemetry of the last tick: its set-point, following error, estimate and current, with
+    /// the drive's state (positions, faults, model, flags), which is the state the tick left
+    /// until a command changes it. The firmware reads it right after the tick, before any
+    /// command can run.
     pub fn telemetry(&self) -> Telemetry {
-        self.last
+        let last = &self.last;
+        Telemetry {
+            tick: self.tick,
+            motor_counts: MotorCounts(self.motor_state.position_counts()),
+            scale_counts: ScaleCounts(self.scale_state.position_counts()),
+            setpoint_counts: MotorCounts(last.setpoint_counts),
+            following_error_counts: MotorCounts(last.following_error_counts),
+            est_error_um: last.est_error_um,
+            current_a: last.current_a,
+            faults: self.faults,
+            model: self.model,
+            moving: self.enabled && !self.trajectory.is_done(),
+            amplifier_enabled: self.amplifier_enabled(),
+            homed: self.homed,
+        }
     }
 
     /// Latches `bits` (e.g. `Faults::CLOCK_FAILURE` from the board): zero current and a low
@@ -671,10 +695,10 @@ impl Drive {
         self.enabled
     }
 
-    /// Whether the last tick left the amplifier's enable line high (its telemetry's
-    /// `amplifier_enabled`, without copying the telemetry).
+    /// Whether the amplifier's enable line is high: enabled and no fault latched (the last
+    /// tick's telemetry's `amplifier_enabled`, without building the telemetry).
     pub fn amplifier_enabled(&self) -> bool {
-        self.last.amplifier_enabled
+        self.enabled && self.faults.is_clear()
     }
 
     /// Whether the drive has been homed since start.
@@ -707,7 +731,8 @@ impl Drive {
     /// The estimated carriage position of the last tick: motor position plus the active
     /// compensator's estimate, um of travel (rounded, saturating).
     pub fn carriage_estimate_um(&self) -> i32 {
-        let motor_q32 = (self.last.motor_counts.0 as i64).saturating_mul(self.um_per_count_q32);
+        let motor_q32 =
+            (self.motor_state.position_counts() as i64).saturating_mul(self.um_per_count_q32);
         let est_q32 = (self.last.est_error_um.to_bits() as i64) << 16;
         let um = motor_q32.saturating_add(est_q32).saturating_add(1 << 31) >> 32;
         um.clamp(i32::MIN as i64, i32::MAX as i64) as i32
@@ -1021,7 +1046,7 @@ impl Drive {
         let current_a = self.control(sample);
         Output {
             current_a,
-            telemetry: self.last,
+            telemetry: self.telemetry(),
         }
     }
 
@@ -1043,13 +1068,9 @@ impl Drive {
         let scale_raw = counting_up(sample.scale_counter, self.polarity.scale_inverted);
         // The scale only informs calibration; a glitch there is counted and keeps the last good
         // reading.
-        let mut scale = match self.scale.update(&mut self.scale_state, scale_raw) {
-            Ok(s) => s,
-            Err(_) => {
-                self.scale_glitches = self.scale_glitches.saturating_add(1);
-                self.scale_state.position_counts()
-            }
-        };
+        if self.scale.update(&mut self.scale_state, scale_raw).is_err() {
+            self.scale_glitches = self.scale_glitches.saturating_add(1);
+        }
         // Before homing the position means nothing: the travel is checked once homed.
         if self.homed && (x < self.limits.fault_min_counts || x > self.limits.fault_max_counts) {
             self.faults.0 |= Faults::TRAVEL_LIMIT;
@@ -1065,9 +1086,8 @@ impl Drive {
             if self.homing {
                 (current_a, following_error_counts, setpoint_counts) = self.homing_tick(&sp, &out);
                 if self.homed {
-                    // Found this tick: report the positions it assigned.
+                    // Found this tick: the model starts from the position it assigned.
                     x = self.motor_state.position_counts();
-                    scale = self.scale_state.position_counts();
                 }
                 self.link_watchdog();
             } else {
@@ -1113,19 +1133,11 @@ impl Drive {
         );
         // Polarity last: everything above works in the drive's own frame.
         let command_a = self.polarity.current_frame(current_a);
-        self.last = Telemetry {
-            tick: self.tick,
-            motor_counts: MotorCounts(x),
-            scale_counts: ScaleCounts(scale),
-            setpoint_counts: MotorCounts(setpoint_counts),
-            following_error_counts: MotorCounts(following_error_counts),
+        self.last = LastTick {
+            setpoint_counts,
+            following_error_counts,
             est_error_um,
             current_a: command_a,
-            faults: self.faults,
-            model: self.model,
-            moving: self.enabled && !self.trajectory.is_done(),
-            amplifier_enabled: self.enabled && self.faults.is_clear(),
-            homed: self.homed,
         };
         command_a
     }

@@ -172,8 +172,7 @@ impl<C: Counter> Coeffs<C> {
             return Ok(state.position_counts);
         }
         let delta_counts = raw.delta_counts(state.last_raw);
-        // `unsigned_abs`: |i32::MIN| does not fit an i32.
-        if delta_counts.unsigned_abs() > self.max_delta_counts {
+        if outside(delta_counts, self.max_delta_counts) {
             return Err(Error::Jump { delta_counts });
         }
         let Some(position_counts) = state.position_counts.checked_add(delta_counts) else {
@@ -183,6 +182,14 @@ impl<C: Counter> Coeffs<C> {
         state.position_counts = position_counts;
         Ok(position_counts)
     }
+}
+
+/// `|delta| > max` as one add and one compare: `delta + max` lies in `[0, 2 max]` exactly when
+/// `|delta| <= max`. For `max <= i32::MAX` neither `2 max` nor the sum of an in-range `delta`
+/// wraps, and an out-of-range one lands above `2 max` (below zero it wraps past `2^31 + max`).
+#[inline(always)]
+fn outside(delta: i32, max: u32) -> bool {
+    (delta as u32).wrapping_add(max) > max << 1
 }
 
 impl Default for Coeffs<u16> {
@@ -252,6 +259,33 @@ impl<C: Counter> Default for State<C> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #[test]
+        fn outside_is_the_absolute_value_compare(delta: i32, max in 0..=(i32::MAX as u32)) {
+            prop_assert_eq!(outside(delta, max), delta.unsigned_abs() > max);
+        }
+    }
+
+    #[test]
+    fn outside_at_the_edges() {
+        for max in [0, 1, 934, i16::MAX as u32, i32::MAX as u32] {
+            for delta in [0, 1, -1, i32::MAX, i32::MIN, i32::MIN + 1] {
+                assert_eq!(
+                    outside(delta, max),
+                    delta.unsigned_abs() > max,
+                    "{delta} {max}"
+                );
+            }
+            let m = max as i64;
+            for delta in [m, m + 1, -m, -m - 1] {
+                if let Ok(d) = i32::try_from(delta) {
+                    assert_eq!(outside(d, max), d.unsigned_abs() > max, "{d} {max}");
+                }
+            }
+        }
+    }
 
     fn coeffs16(max: u32) -> Coeffs<u16> {
         Coeffs::from_max_delta_counts(max).unwrap()

@@ -444,10 +444,12 @@ impl Coeffs {
         state.velocity_counts_per_tick = I16F16::from_bits(velocity_f16);
         state.last_position_counts = measured_counts;
         state.primed = true;
+        let current_f16 = sat(total, limit_f16);
         Output {
-            current_a: I16F16::from_bits(sat(total, limit_f16)),
+            current_a: I16F16::from_bits(current_f16),
             following_error_counts: I24F8::from_bits(error_f8),
-            saturated: total > limit_f16 || total < limit_f16.wrapping_neg(),
+            // Outside `±limit` exactly when the clamp changed it.
+            saturated: current_f16 != total,
         }
     }
 }

@@ -33,6 +33,7 @@
 //! for exactly one tick and never steps the velocity.
 
 use crate::ConfigField;
+use core::num::NonZeroU32;
 use fixed::types::I40F24;
 
 #[cfg(test)]
@@ -333,6 +334,16 @@ fn fit(
     (w, n, r)
 }
 
+/// A lower bound of `slack / speed` (LSBs over LSBs per tick, `speed <= 2^35` as every profile
+/// speed): whole ticks of cruising before the target is near. One 32-bit division, rounding
+/// the slack down and the speed up to 1/256 count per tick; a cap at 2^32 - 1 only shortens it.
+#[inline(always)]
+fn cruise_ticks(slack: u64, speed: u64) -> u32 {
+    let num = (slack >> 16).min(u32::MAX as u64) as u32;
+    let den = NonZeroU32::MIN.saturating_add((speed >> 16).min(u32::MAX as u64) as u32);
+    num / den
+}
+
 /// `ceil(log2(n + 1))`: the shift that divides by at least `n + 1` (0 for `n = 0`).
 #[inline(always)]
 fn ceil_log2_plus1(n: u32) -> u32 {
@@ -454,6 +465,9 @@ pub struct Trajectory {
     /// `|velocity| = (n - 1) * decel + r`, `0 < r <= decel`; at rest `n = 0, r = decel`.
     n: u32,
     r: u32,
+    /// Ticks the profile may go on cruising at the velocity limit without looking at the target:
+    /// a lower bound, set when it reaches the limit far from the target; 0 after any change.
+    cruise_ticks: u32,
 }
 
 impl Trajectory {
@@ -467,6 +481,7 @@ impl Trajectory {
             velocity: 0,
             n: 0,
             r: coeffs.decel,
+            cruise_ticks: 0,
         }
     }
 
@@ -482,6 +497,7 @@ impl Trajectory {
     /// too close to stop for) is reached by braking to rest and coming back.
     pub fn set_target(&mut self, target_counts: i32) {
         self.target = (target_counts as i64) << FRAC_BITS;
+        self.cruise_ticks = 0;
     }
 
     /// Decelerates to rest at the deceleration limit; the stopping point (generally between two
@@ -494,6 +510,7 @@ impl Trajectory {
         } else {
             self.position.wrapping_sub(run_out)
         };
+        self.cruise_ticks = 0;
     }
 
     /// Where the profile would come to rest braking from now at the deceleration limit, whole
@@ -531,6 +548,7 @@ impl Trajectory {
         self.coeffs = coeffs;
         self.n = n;
         self.r = r;
+        self.cruise_ticks = 0;
         Ok(())
     }
 
@@ -635,10 +653,23 @@ impl Trajectory {
         fit(d, held, lo_run_out.wrapping_add(speed), hi, ahead as u64)
     }
 
-    /// Advances one tick. Bounded, division-free integer arithmetic. Always inlined: the control
-    /// tick is its one caller on the drive (17 instructions per tick fewer, measured).
+    /// Advances one tick. Bounded integer arithmetic (one 32-bit division on the tick that
+    /// reaches the velocity limit). Always inlined: the control tick is its one caller on the
+    /// drive (17 instructions per tick fewer, measured).
     #[inline(always)]
     pub fn tick(&mut self) -> Setpoint {
+        if self.cruise_ticks != 0 {
+            // Cruising at the limit and still beyond the run-out (counted when it was reached):
+            // the far branch below would hold the speed, so only the position moves.
+            self.cruise_ticks = self.cruise_ticks.wrapping_sub(1);
+            self.position = self.position.wrapping_add(self.velocity);
+            return Setpoint {
+                position: self.position,
+                velocity: self.velocity,
+                acceleration: 0,
+                done: false,
+            };
+        }
         let to_go = self.target.wrapping_sub(self.position);
         let v = self.velocity;
         if v == 0 && to_go == 0 {
@@ -656,7 +687,15 @@ impl Trajectory {
         let (w, n, r) =
             if speed <= self.coeffs.velocity && ahead >= self.coeffs.velocity_run_out as i64 {
                 // Far away: no speed up to the limit can need braking yet.
-                self.faster(speed)
+                let next = self.faster(speed);
+                if next.0 == self.coeffs.velocity {
+                    // At the limit: the next `k` ticks are far too while `k w <= ahead - S(w)`.
+                    self.cruise_ticks = cruise_ticks(
+                        (ahead as u64).wrapping_sub(self.coeffs.velocity_run_out),
+                        next.0,
+                    );
+                }
+                next
             } else {
                 self.near(speed, ahead)
             };
@@ -1017,6 +1056,85 @@ mod tests {
             assert!(prev.is_done(), "case {k} never arrived");
             assert_eq!(t.position_counts(), target, "case {k}");
         }
+    }
+
+    /// What the profile does to the trajectory between ticks in [`the_cruise_shortcut_is_exact`].
+    #[derive(Clone, Copy, Debug)]
+    enum Op {
+        Tick(u16),
+        Target(i32),
+        Stop,
+        Coeffs(u32, u32, u32),
+    }
+
+    fn op() -> impl Strategy<Value = Op> {
+        prop_oneof![
+            4 => (1u16..3000).prop_map(Op::Tick),
+            2 => (-2_000_000i32..2_000_000).prop_map(Op::Target),
+            1 => Just(Op::Stop),
+            1 => (1u32..1 << 29, 1u32..1 << 26, 1u32..1 << 26)
+                .prop_map(|(v, a, d)| Op::Coeffs(v, a, d)),
+        ]
+    }
+
+    proptest! {
+        /// Ticks taken through the cruise count give the set-points of the full step, bit for
+        /// bit, through retargets, stops and new limits in mid-move.
+        #[test]
+        fn the_cruise_shortcut_is_exact(
+            (v, a, d) in (1u32..1 << 29, 1u32..1 << 26, 1u32..1 << 26),
+            ops in prop::collection::vec(op(), 1..12),
+        ) {
+            let c = |v: u32, a: u32, d: u32| Coeffs::new(
+                I40F24::from_bits(v as i64 * 64),
+                I40F24::from_bits(a as i64),
+                I40F24::from_bits(d as i64),
+            );
+            let Ok(c0) = c(v, a, d) else { return Ok(()) };
+            let mut fast = Trajectory::new(c0, 0);
+            let mut full = fast;
+            for op in ops {
+                match op {
+                    Op::Tick(n) => {
+                        for _ in 0..n {
+                            full.cruise_ticks = 0;
+                            prop_assert_eq!(fast.tick(), full.tick());
+                        }
+                    }
+                    Op::Target(t) => {
+                        fast.set_target(t);
+                        full.set_target(t);
+                    }
+                    Op::Stop => {
+                        fast.stop();
+                        full.stop();
+                    }
+                    Op::Coeffs(v, a, d) => {
+                        if let Ok(c1) = c(v, a, d) {
+                            prop_assert_eq!(fast.set_coeffs(c1), full.set_coeffs(c1));
+                        }
+                    }
+                }
+                prop_assert_eq!(fast.position, full.position);
+                prop_assert_eq!(fast.velocity, full.velocity);
+            }
+        }
+    }
+
+    /// A long cruise is mostly shortcut ticks, and lands exactly.
+    #[test]
+    fn a_long_cruise_takes_the_shortcut() {
+        let mut t = Trajectory::new(coeffs(20.0, 0.5, 0.5), 0);
+        t.set_target(200_000);
+        let mut shortcuts = 0;
+        let mut ticks = 0;
+        while !t.tick().is_done() {
+            shortcuts += (t.cruise_ticks != 0) as u32;
+            ticks += 1;
+        }
+        assert_eq!(t.position_counts(), 200_000);
+        // 10,000 ticks at 20 counts/tick, 40 ramping each way.
+        assert!(shortcuts > 9_000, "{shortcuts} of {ticks}");
     }
 
     #[test]
