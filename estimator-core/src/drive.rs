@@ -175,10 +175,13 @@ pub struct Drive {
     prev_saturated: bool,
     model: ModelKind,
     polarity: Polarity,
+    /// `polarity`'s counter inversions as masks for [`counting_up`].
+    counter_flips: CounterFlips,
     /// The previous tick's command in the drive's frame.
     prev_current_a: I16F16,
-    /// Ticks since the last valid frame (link watchdog).
-    silent_ticks: u32,
+    /// Ticks without a valid frame left before `LINK_TIMEOUT` (link watchdog): the timeout at
+    /// every frame and every stop, counted down while enabled; 0 when off or tripped.
+    link_ticks_left: u32,
     motor: encoder::Coeffs<u16>,
     motor_state: encoder::State<u16>,
     scale: encoder::Coeffs<u16>,
@@ -211,14 +214,28 @@ pub struct Drive {
     models_valid: bool,
 }
 
-/// A raw counter that counts up for positive travel: negated if the wiring counts down.
-#[inline(always)]
-fn counting_up(raw: u16, inverted: bool) -> u16 {
-    if inverted {
-        raw.wrapping_neg()
-    } else {
-        raw
+/// The counters' inversions as masks: `0xffff` for a counter wired to count down, else 0.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct CounterFlips {
+    motor: u16,
+    scale: u16,
+}
+
+impl CounterFlips {
+    fn of(p: &Polarity) -> CounterFlips {
+        let mask = |inverted: bool| (inverted as u16).wrapping_neg();
+        CounterFlips {
+            motor: mask(p.motor_encoder_inverted),
+            scale: mask(p.scale_inverted),
+        }
     }
+}
+
+/// A raw counter that counts up for positive travel: negated (`!raw + 1`) under a flip mask of
+/// `0xffff`, unchanged under 0; no branch.
+#[inline(always)]
+fn counting_up(raw: u16, flip: u16) -> u16 {
+    (raw ^ flip).wrapping_sub(flip)
 }
 
 fn finite(v: f64, field: ConfigField) -> Result<f64, ConfigError> {
@@ -506,6 +523,7 @@ impl Drive {
             monitor: p.monitor,
             monitor_state: fault::State::new(),
             polarity: p.polarity,
+            counter_flips: CounterFlips::of(&p.polarity),
             homing_cfg: p.homing,
             homing: false,
             configured: true,
@@ -514,7 +532,7 @@ impl Drive {
             faults: Faults::NONE,
             prev_current_a: I16F16::ZERO,
             prev_saturated: false,
-            silent_ticks: 0,
+            link_ticks_left: p.monitor.link_timeout_ticks(),
             missed_ticks: 0,
             scale_glitches: 0,
             carriage_target_um: 0,
@@ -570,6 +588,7 @@ impl Drive {
         self.pid = p.pid;
         self.monitor = p.monitor;
         self.polarity = p.polarity;
+        self.counter_flips = CounterFlips::of(&p.polarity);
         self.homing_cfg = p.homing;
         self.um_per_count_q32 = p.um_per_count_q32;
         self.model = if self.models_valid {
@@ -687,7 +706,7 @@ impl Drive {
 
     /// A valid frame arrived from the host: feeds the link watchdog.
     pub fn link_alive(&mut self) {
-        self.silent_ticks = 0;
+        self.link_ticks_left = self.monitor.link_timeout_ticks();
     }
 
     /// Whether the current output is enabled.
@@ -1023,10 +1042,13 @@ impl Drive {
     /// Counts a tick without a frame from the host; latches `LINK_TIMEOUT` when too many pass.
     #[inline(always)]
     fn link_watchdog(&mut self) {
-        let timeout = self.monitor.link_timeout_ticks();
-        self.silent_ticks = self.silent_ticks.saturating_add(1);
-        if timeout != 0 && self.silent_ticks >= timeout {
-            self.faults.0 |= Faults::LINK_TIMEOUT;
+        // Counted down from the timeout: the tick that reaches 0 is the timeout-th without a
+        // frame. The fault then latches, and the stop it causes re-arms the count.
+        if self.link_ticks_left != 0 {
+            self.link_ticks_left = self.link_ticks_left.wrapping_sub(1);
+            if self.link_ticks_left == 0 {
+                self.faults.0 |= Faults::LINK_TIMEOUT;
+            }
         }
     }
 
@@ -1038,7 +1060,7 @@ impl Drive {
         self.monitor_state.reset();
         self.prev_current_a = I16F16::ZERO;
         self.prev_saturated = false;
-        self.silent_ticks = 0;
+        self.link_ticks_left = self.monitor.link_timeout_ticks();
     }
 
     /// One control tick and its telemetry: [`Drive::control`], then [`Drive::telemetry`].
@@ -1055,7 +1077,7 @@ impl Drive {
     /// Integer-only, allocation-free, bounded time; never panics.
     pub fn control(&mut self, sample: Sample) -> I16F16 {
         self.tick = self.tick.wrapping_add(1);
-        let motor_raw = counting_up(sample.motor_counter, self.polarity.motor_encoder_inverted);
+        let motor_raw = counting_up(sample.motor_counter, self.counter_flips.motor);
         let mut x = match self.motor.update(&mut self.motor_state, motor_raw) {
             Ok(x) => x,
             Err(_) => {
@@ -1065,7 +1087,7 @@ impl Drive {
                 self.motor_state.position_counts()
             }
         };
-        let scale_raw = counting_up(sample.scale_counter, self.polarity.scale_inverted);
+        let scale_raw = counting_up(sample.scale_counter, self.counter_flips.scale);
         // The scale only informs calibration; a glitch there is counted and keeps the last good
         // reading.
         if self.scale.update(&mut self.scale_state, scale_raw).is_err() {
@@ -1140,5 +1162,26 @@ impl Drive {
             current_a: command_a,
         };
         command_a
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn counting_up_negates_exactly_under_the_flip() {
+        let normal = CounterFlips::of(&Polarity::NORMAL);
+        let inverted = CounterFlips::of(&Polarity {
+            motor_encoder_inverted: true,
+            scale_inverted: true,
+            current_inverted: false,
+        });
+        assert_eq!((normal.motor, normal.scale), (0, 0));
+        for raw in 0..=u16::MAX {
+            assert_eq!(counting_up(raw, normal.motor), raw);
+            assert_eq!(counting_up(raw, inverted.motor), raw.wrapping_neg());
+            assert_eq!(counting_up(raw, inverted.scale), raw.wrapping_neg());
+        }
     }
 }

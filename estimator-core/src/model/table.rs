@@ -549,7 +549,9 @@ impl BandCoeffs {
     #[inline(always)]
     pub(crate) fn eval_cached(&self, x: i32, cache: &mut SegmentCache) -> i32 {
         let pos = self.position_q32(x);
-        let last = (self.len as u32).saturating_sub(1);
+        // `len >= 2` once built; an empty table (0 points, all zeros) wraps to 255 and reads
+        // zeros through the masked index, as the saturated 0 did: one SUBS instead of five.
+        let last = self.len.wrapping_sub(1) as u32;
         let i = ((pos >> 32) as u32).min(last);
         if i != cache.index {
             // Past the last point both ends are the last value: the hold of `Cell::locate`.
@@ -702,7 +704,8 @@ impl TransitionCoeffs {
     #[inline(always)]
     pub(crate) fn eval(&self, d_counts: u32, col: Cell, rows: &mut SegmentCache) -> i32 {
         let pos = d_counts as u64 * self.rows_q32 as u64;
-        let last = (self.n_d as u32).saturating_sub(1);
+        // As for the bands: an empty table wraps to 255 and reads zeros through the mask.
+        let last = self.n_d.wrapping_sub(1) as u32;
         let r = ((pos >> 32) as u32).min(last);
         if r != rows.index {
             // Past the last row both rows are the last: the hold of `Cell::locate`.
