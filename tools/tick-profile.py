@@ -20,7 +20,7 @@ def symbols(elf):
     return syms
 
 
-def main(elf, trace, top=40):
+def main(elf, trace, top=40, over=500):
     syms = symbols(elf)
     starts = [s[0] for s in syms]
     step = next(s for s in syms if "Drive::control" in s[2])
@@ -29,6 +29,8 @@ def main(elf, trace, top=40):
     counts, ticks, inside = collections.Counter(), 0, False
     # The heaviest tick's own instructions: where the per-tick maximum goes.
     this, heaviest = collections.Counter(), collections.Counter()
+    # Every tick over the budget's maximum: which parts make it heavy.
+    heavy_ticks = []
     with open(trace, errors="replace") as f:
         for line in f:
             m = pc_re.search(line)
@@ -42,6 +44,8 @@ def main(elf, trace, top=40):
                 inside = False
                 if sum(this.values()) > sum(heaviest.values()):
                     heaviest = this
+                if sum(this.values()) > over:
+                    heavy_ticks.append((ticks, this))
             if inside:
                 counts[pc] += 1
                 this[pc] += 1
@@ -87,7 +91,14 @@ def main(elf, trace, top=40):
     print("\nthe heaviest tick, per source line:")
     for where, n in heavy_line.most_common(top // 2):
         print(f"{n:8d}  {where}")
+    print(f"\n{len(heavy_ticks)} ticks over {over} instructions (tick number, total, largest files):")
+    for k, tick in heavy_ticks[:top]:
+        files = collections.Counter()
+        for pc, n in tick.items():
+            files[where_of.get(pc, "?").split(":")[0].split("/")[-1]] += n
+        parts = ", ".join(f"{f} {n}" for f, n in files.most_common(5))
+        print(f"{k:8d} {sum(tick.values()):5d}  {parts}")
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2], int(sys.argv[3]) if len(sys.argv) > 3 else 40)
+    main(sys.argv[1], sys.argv[2], int(sys.argv[3]) if len(sys.argv) > 3 else 40, int(sys.argv[4]) if len(sys.argv) > 4 else 500)
