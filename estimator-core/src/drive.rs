@@ -1072,8 +1072,8 @@ impl Drive {
         }
     }
 
-    /// One control tick: the amplifier's current command (polarity applied), the tick's
-    /// telemetry kept for [`Drive::telemetry`] (the firmware copies it out only when it reports).
+    /// One control tick: the amplifier's current command (polarity applied); what only the tick
+    /// knows is kept for [`Drive::telemetry`], which the firmware builds after writing the current.
     /// Integer-only, allocation-free, bounded time; never panics.
     pub fn control(&mut self, sample: Sample) -> I16F16 {
         self.tick = self.tick.wrapping_add(1);

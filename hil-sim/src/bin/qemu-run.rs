@@ -316,7 +316,7 @@ fn report(measured: &serde_json::Value, check: Option<&std::path::Path>, mut ok:
 }
 
 /// Holds `measured` against the checked-in figures at `path` (same keys): any flash, static RAM,
-/// peak stack or per-tick maximum above them is an error that names the figure, so that every
+/// peak stack or per-tick mean or maximum above them is an error that names the figure, so that every
 /// change of cost shows in a reviewed change of the file. Figures below them are notes. Only the
 /// keys `measured` has are held (`--footprint` measures no stack).
 fn check_against(
@@ -335,12 +335,16 @@ fn check_against(
         .map(|k| format!("/{k}"))
         .collect();
     if let Some(models) = measured["instructions"].as_object() {
-        keys.extend(models.keys().map(|m| format!("/instructions/{m}/max")));
+        // The mean too: under `-icount` it is as exact as the max (one decimal in the JSON).
+        for m in models.keys() {
+            keys.push(format!("/instructions/{m}/max"));
+            keys.push(format!("/instructions/{m}/mean"));
+        }
     }
     let (mut over, mut notes) = (Vec::new(), Vec::new());
     for k in keys {
-        let got = measured.pointer(&k).and_then(|v| v.as_u64());
-        let limit = want.pointer(&k).and_then(|v| v.as_u64());
+        let got = measured.pointer(&k).and_then(|v| v.as_f64());
+        let limit = want.pointer(&k).and_then(|v| v.as_f64());
         match (got, limit) {
             (Some(g), Some(l)) if g > l => over.push(format!("{k}: {g} > {l}")),
             (Some(g), Some(l)) if g < l => notes.push(format!(
@@ -383,5 +387,46 @@ fn run_fuzz(opts: &PilOptions, n: u32) -> ExitCode {
             hil_sim::outln!("0 passed, 1 failed");
             ExitCode::FAILURE
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::check_against;
+
+    /// The checked-in figures hold the mean as well as the maximum: a mean above its figure is
+    /// refused by name, one below is a note to lower the file.
+    #[test]
+    fn the_mean_is_held_like_the_max() {
+        let path = std::env::temp_dir().join(format!("bench-target-{}.json", std::process::id()));
+        std::fs::write(
+            &path,
+            r#"{"flash_bytes": 100, "instructions": {"model3": {"mean": 390.8, "max": 635}}}"#,
+        )
+        .unwrap();
+        let at = |mean: f64, max: u64| {
+            let measured = serde_json::json!({
+                "flash_bytes": 100,
+                "instructions": {"model3": {"mean": mean, "max": max}},
+            });
+            check_against(&measured, &path)
+        };
+        assert_eq!(at(390.8, 635).unwrap(), Vec::<String>::new());
+        let over = at(390.9, 635).unwrap_err().to_string();
+        assert!(
+            over.contains("/instructions/model3/mean: 390.9 > 390.8"),
+            "{over}"
+        );
+        let over = at(390.8, 636).unwrap_err().to_string();
+        assert!(
+            over.contains("/instructions/model3/max: 636 > 635"),
+            "{over}"
+        );
+        let notes = at(389.0, 635).unwrap();
+        assert!(
+            notes[0].contains("/instructions/model3/mean is now 389"),
+            "{notes:?}"
+        );
+        let _ = std::fs::remove_file(&path);
     }
 }
