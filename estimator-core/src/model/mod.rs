@@ -531,7 +531,7 @@ impl ModelState {
             self.x_ext_counts = x;
             // Model 3's g0 cell is recomputed on its next tick, on the other band.
             self.g0_valid = false;
-            self.band = table::SegmentCache::EMPTY;
+            self.band.invalidate();
         }
     }
 }

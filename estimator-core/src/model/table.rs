@@ -581,6 +581,12 @@ impl SegmentCache {
         diff: 0,
     };
 
+    /// Empties the cache: only the index says whether it holds a segment, so the ends stay.
+    #[inline(always)]
+    pub(crate) fn invalidate(&mut self) {
+        self.index = Self::EMPTY.index;
+    }
+
     #[inline(always)]
     fn new(index: u32, lo: i32, hi: i32) -> SegmentCache {
         SegmentCache {
@@ -769,7 +775,7 @@ pub(crate) fn eval(c: &Model3Coeffs, s: &mut ModelState, x_counts: i32) -> I16F1
     if !s.g0_valid {
         s.g0_cell = g0_cell(c, s);
         s.g0_valid = true;
-        s.rows = SegmentCache::EMPTY;
+        s.rows.invalidate();
     }
     // Travel since the turning point along `dir`, held at 0 before it: the difference of two
     // `i32` lies in [0, 2^32) on the far side.
