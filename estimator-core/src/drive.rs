@@ -146,11 +146,13 @@ struct MoveScale {
     accel_bits_per_um_s2_q32: u64,
 }
 
-/// What only the tick knows, kept for [`Drive::telemetry`]; the rest of the telemetry is the
-/// drive's state, read when it is reported. Four words: building the whole telemetry every tick
+/// The tick's measurements and results, kept for [`Drive::telemetry`]; the flags there are the
+/// drive's state, read when it is reported. Six words: building the whole telemetry every tick
 /// cost more than the firmware's one copy of it when it reports.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 struct LastTick {
+    motor_counts: i32,
+    scale_counts: i32,
     setpoint_counts: i32,
     following_error_counts: i32,
     est_error_um: I16F16,
@@ -658,16 +660,17 @@ impl Drive {
         &self.models
     }
 
-    /// Telemetry of the last tick: its set-point, following error, estimate and current, with
-    /// the drive's state (positions, faults, model, flags), which is the state the tick left
-    /// until a command changes it. The firmware reads it right after the tick, before any
-    /// command can run.
+    /// Telemetry of the last tick: its positions, set-point, following error, estimate and
+    /// current, with the drive's faults, model and flags as they are now. The control task reads
+    /// it right after the tick, where they are the tick's; a status reply between ticks shows a
+    /// command's effect at once (a move is `moving`, a disable drops `amplifier_enabled`,
+    /// which the amplifier's line follows at the next tick).
     pub fn telemetry(&self) -> Telemetry {
         let last = &self.last;
         Telemetry {
             tick: self.tick,
-            motor_counts: MotorCounts(self.motor_state.position_counts()),
-            scale_counts: ScaleCounts(self.scale_state.position_counts()),
+            motor_counts: MotorCounts(last.motor_counts),
+            scale_counts: ScaleCounts(last.scale_counts),
             setpoint_counts: MotorCounts(last.setpoint_counts),
             following_error_counts: MotorCounts(last.following_error_counts),
             est_error_um: last.est_error_um,
@@ -750,8 +753,7 @@ impl Drive {
     /// The estimated carriage position of the last tick: motor position plus the active
     /// compensator's estimate, um of travel (rounded, saturating).
     pub fn carriage_estimate_um(&self) -> i32 {
-        let motor_q32 =
-            (self.motor_state.position_counts() as i64).saturating_mul(self.um_per_count_q32);
+        let motor_q32 = (self.last.motor_counts as i64).saturating_mul(self.um_per_count_q32);
         let est_q32 = (self.last.est_error_um.to_bits() as i64) << 16;
         let um = motor_q32.saturating_add(est_q32).saturating_add(1 << 31) >> 32;
         um.clamp(i32::MIN as i64, i32::MAX as i64) as i32
@@ -1156,6 +1158,8 @@ impl Drive {
         // Polarity last: everything above works in the drive's own frame.
         let command_a = self.polarity.current_frame(current_a);
         self.last = LastTick {
+            motor_counts: x,
+            scale_counts: self.scale_state.position_counts(),
             setpoint_counts,
             following_error_counts,
             est_error_um,
