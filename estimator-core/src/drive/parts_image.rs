@@ -159,10 +159,12 @@ impl Parts {
         let tol = um_to_counts_q32(ROUNDING_SLACK_UM, 0, limits.counts_per_um_q32) as i64
             + ROUNDING_SLACK_COUNTS;
         let slack = |a: i32, b: i32| a as i64 <= b as i64 + tol;
-        // The margin is not negative: the fault band holds the targets.
+        // The margin is not negative: the fault band holds the targets, and is a band (strictly,
+        // not within the rounding slack: an inverted band would trip `travel_limit` everywhere).
         check(
             slack(limits.fault_min_counts, limits.target_min_counts)
-                && slack(limits.target_max_counts, limits.fault_max_counts),
+                && slack(limits.target_max_counts, limits.fault_max_counts)
+                && limits.fault_min_counts <= limits.fault_max_counts,
             ConfigField::DriveTravelMarginMm,
         )?;
         check(
@@ -399,6 +401,16 @@ mod tests {
                 LIMITS + 12,
                 &i32::MIN.to_le_bytes(),
                 ConfigField::DriveTravelMaxMm,
+            ),
+            // A fault band turned inside out by less than the rounding slack: min and max of
+            // travel 0..1 count, fault band 1..0.
+            (
+                LIMITS + 8,
+                &[0i32, 1, 1, 0]
+                    .iter()
+                    .flat_map(|v| v.to_le_bytes())
+                    .collect::<Vec<u8>>(),
+                ConfigField::DriveTravelMarginMm,
             ),
             (
                 LIMITS + 24,
