@@ -42,9 +42,10 @@ def main(elf, trace, top=40, over=500):
                 this = collections.Counter()
             elif inside and caller[0] <= pc < caller[1]:
                 inside = False
-                if sum(this.values()) > sum(heaviest.values()):
+                total = sum(this.values())
+                if total > sum(heaviest.values()):
                     heaviest = this
-                if sum(this.values()) > over:
+                if total > over:
                     heavy_ticks.append((ticks, this))
             if inside:
                 counts[pc] += 1

@@ -717,8 +717,9 @@ impl Drive {
         self.enabled
     }
 
-    /// Whether the amplifier's enable line is high: enabled and no fault latched (the last
-    /// tick's telemetry's `amplifier_enabled`, without building the telemetry).
+    /// Whether the drive wants the amplifier's enable line high: enabled and no fault latched
+    /// (the telemetry's `amplifier_enabled`, without building the telemetry); the control task
+    /// writes it right after each tick.
     pub fn amplifier_enabled(&self) -> bool {
         self.enabled && self.faults.is_clear()
     }

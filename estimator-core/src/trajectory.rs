@@ -1102,7 +1102,7 @@ mod tests {
         }
     }
 
-    /// What the profile does to the trajectory between ticks in [`the_cruise_shortcut_is_exact`].
+    /// What the profile does to the trajectory between ticks in [`the_counted_steps_are_exact`].
     #[derive(Clone, Copy, Debug)]
     enum Op {
         Tick(u16),
@@ -1122,10 +1122,11 @@ mod tests {
     }
 
     proptest! {
-        /// Ticks taken through the cruise count give the set-points of the full step, bit for
-        /// bit, through retargets, stops and new limits in mid-move.
+        /// Ticks taken through the cruise and braking counts give the set-points and the state
+        /// (`n`, `r`) of the full step, bit for bit, through retargets, stops and new limits in
+        /// mid-move.
         #[test]
-        fn the_cruise_shortcut_is_exact(
+        fn the_counted_steps_are_exact(
             (v, a, d) in (1u32..1 << 29, 1u32..1 << 26, 1u32..1 << 26),
             ops in prop::collection::vec(op(), 1..12),
         ) {
@@ -1161,6 +1162,7 @@ mod tests {
                 }
                 prop_assert_eq!(fast.position, full.position);
                 prop_assert_eq!(fast.velocity, full.velocity);
+                prop_assert_eq!((fast.n, fast.r), (full.n, full.r));
             }
         }
     }

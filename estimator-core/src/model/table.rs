@@ -549,8 +549,8 @@ impl BandCoeffs {
     #[inline(always)]
     pub(crate) fn eval_cached(&self, x: i32, cache: &mut SegmentCache) -> i32 {
         let pos = self.position_q32(x);
-        // `len >= 2` once built; an empty table (0 points, all zeros) wraps to 255 and reads
-        // zeros through the masked index, as the saturated 0 did: one SUBS instead of five.
+        // `len >= 2` once built: one SUBS instead of five. An empty table (`ModelCoeffs::ZERO`)
+        // wraps to 255, but its `points_q32` is 0, so `i` is 0 as with the saturated 0.
         let last = self.len.wrapping_sub(1) as u32;
         let i = ((pos >> 32) as u32).min(last);
         if i != cache.index {
@@ -710,7 +710,7 @@ impl TransitionCoeffs {
     #[inline(always)]
     pub(crate) fn eval(&self, d_counts: u32, col: Cell, rows: &mut SegmentCache) -> i32 {
         let pos = d_counts as u64 * self.rows_q32 as u64;
-        // As for the bands: an empty table wraps to 255 and reads zeros through the mask.
+        // As for the bands: an empty table wraps to 255, but its `rows_q32` is 0, so `r` is 0.
         let last = self.n_d.wrapping_sub(1) as u32;
         let r = ((pos >> 32) as u32).min(last);
         if r != rows.index {

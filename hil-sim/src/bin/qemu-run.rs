@@ -316,8 +316,8 @@ fn report(measured: &serde_json::Value, check: Option<&std::path::Path>, mut ok:
 }
 
 /// Holds `measured` against the checked-in figures at `path` (same keys): any flash, static RAM,
-/// peak stack or per-tick mean or maximum above them is an error that names the figure, so that every
-/// change of cost shows in a reviewed change of the file. Figures below them are notes. Only the
+/// peak stack or per-tick mean or maximum above them is an error that names the figure, so that
+/// every change of cost shows in a reviewed change of the file. Figures below them are notes. Only the
 /// keys `measured` has are held (`--footprint` measures no stack).
 fn check_against(
     measured: &serde_json::Value,
