@@ -216,11 +216,13 @@ pub struct Drive {
     models_valid: bool,
 }
 
-/// The counters' inversions as masks: `0xffff` for a counter wired to count down, else 0.
+/// The counters' and the current's inversions as masks: all ones for an inverted one, else 0.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 struct CounterFlips {
     motor: u16,
     scale: u16,
+    /// Applied by [`flip_current`]: [`Polarity::current_frame`] without a branch.
+    current: i32,
 }
 
 impl CounterFlips {
@@ -229,6 +231,7 @@ impl CounterFlips {
         CounterFlips {
             motor: mask(p.motor_encoder_inverted),
             scale: mask(p.scale_inverted),
+            current: (p.current_inverted as i32).wrapping_neg(),
         }
     }
 }
@@ -238,6 +241,15 @@ impl CounterFlips {
 #[inline(always)]
 fn counting_up(raw: u16, flip: u16) -> u16 {
     (raw ^ flip).wrapping_sub(flip)
+}
+
+/// A current command in the amplifier's frame: negated under a flip mask of all ones. The
+/// same as [`Polarity::current_frame`] for every command the tick makes: the loop and the
+/// homing clamp to `±limit`, so `i32::MIN` (the one value `saturating_neg` treats apart)
+/// never occurs.
+#[inline(always)]
+fn flip_current(current_a: I16F16, flip: i32) -> I16F16 {
+    I16F16::from_bits((current_a.to_bits() ^ flip).wrapping_sub(flip))
 }
 
 fn finite(v: f64, field: ConfigField) -> Result<f64, ConfigError> {
@@ -1157,7 +1169,7 @@ impl Drive {
             current_a,
         );
         // Polarity last: everything above works in the drive's own frame.
-        let command_a = self.polarity.current_frame(current_a);
+        let command_a = flip_current(current_a, self.counter_flips.current);
         self.last = LastTick {
             motor_counts: x,
             scale_counts: self.scale_state.position_counts(),
@@ -1187,6 +1199,35 @@ mod tests {
             assert_eq!(counting_up(raw, normal.motor), raw);
             assert_eq!(counting_up(raw, inverted.motor), raw.wrapping_neg());
             assert_eq!(counting_up(raw, inverted.scale), raw.wrapping_neg());
+        }
+    }
+
+    #[test]
+    fn the_current_flip_is_the_frame_change() {
+        for current_inverted in [false, true] {
+            let p = Polarity {
+                current_inverted,
+                ..Polarity::NORMAL
+            };
+            let flip = CounterFlips::of(&p).current;
+            // Every command the tick can make: within +-(2^31 - 1) bits.
+            for bits in [
+                i32::MIN + 1,
+                -(1 << 23),
+                -65536,
+                -1,
+                0,
+                1,
+                12345,
+                1 << 23,
+                i32::MAX,
+            ]
+            .into_iter()
+            .chain((-70_000..70_000).step_by(7))
+            {
+                let a = I16F16::from_bits(bits);
+                assert_eq!(flip_current(a, flip), p.current_frame(a), "{bits}");
+            }
         }
     }
 }

@@ -360,7 +360,13 @@ impl State {
 
 /// Runs the detectors for one tick and returns the fault bits they raise (0 = none).
 ///
-/// Integer only: about forty instructions when nothing is near a threshold.
+/// The amplifier's saturation is counted every tick (a limit cycle at half the tick rate must
+/// not hide from it), and the position history is kept every tick. The window detectors run on
+/// alternate ticks, like a drive's supervision below its loop rate: stall and overspeed on the
+/// ticks that write an even slot of the history, runaway on the odd ones, each look counting
+/// the two ticks since the last. So each trips within one tick of its configured time (which
+/// side depends on the tick its condition begins), for about half the instructions; they
+/// measure over a window of 4 ms and time out after milliseconds to tens of them.
 #[inline]
 pub fn check(c: &Coeffs, s: &mut State, input: Inputs) -> u16 {
     let x = input.position_counts;
@@ -373,17 +379,6 @@ pub fn check(c: &Coeffs, s: &mut State, input: Inputs) -> u16 {
     let i_abs = i.unsigned_abs();
     let mut raised = 0;
 
-    // Stall / encoder loss: effort without response.
-    if i_abs >= c.stall_current && x.abs_diff(s.stall_anchor) <= c.stall_motion_counts {
-        s.stall_ticks = s.stall_ticks.saturating_add(1);
-        if s.stall_ticks >= c.stall_ticks {
-            raised |= Faults::STALL;
-        }
-    } else {
-        s.stall_anchor = x;
-        s.stall_ticks = 0;
-    }
-
     // Amplifier at its limit: up while saturated, down while not (chatter does not hide it).
     if input.prev_saturated {
         s.saturation_ticks = s.saturation_ticks.saturating_add(1);
@@ -394,20 +389,36 @@ pub fn check(c: &Coeffs, s: &mut State, input: Inputs) -> u16 {
         s.saturation_ticks = s.saturation_ticks.saturating_sub(1);
     }
 
-    // Speed over the window: v = x - x[-W]. `wrapping_sub` is exact: the encoder refuses any
-    // step above its plausibility limit, so positions W ticks apart differ by far less than 2^31.
     let slot = s.next & MASK;
     let oldest = s.history[slot];
+    s.history[slot] = x;
+    s.next = (slot + 1) & MASK;
+
+    // Speed over the window: v = x - x[-W]. `wrapping_sub` is exact: the encoder refuses any
+    // step above its plausibility limit, so positions W ticks apart differ by far less than 2^31.
     let v = x.wrapping_sub(oldest);
     let speed = v.unsigned_abs();
 
-    if speed > c.overspeed_window_counts {
-        s.overspeed_ticks = s.overspeed_ticks.saturating_add(1);
-        if s.overspeed_ticks >= c.overspeed_ticks {
-            raised |= Faults::OVERSPEED;
+    if slot & 1 == 0 {
+        // Stall / encoder loss: effort without response.
+        if i_abs >= c.stall_current && x.abs_diff(s.stall_anchor) <= c.stall_motion_counts {
+            s.stall_ticks = s.stall_ticks.saturating_add(2);
+            if s.stall_ticks >= c.stall_ticks {
+                raised |= Faults::STALL;
+            }
+        } else {
+            s.stall_anchor = x;
+            s.stall_ticks = 0;
         }
-    } else {
-        s.overspeed_ticks = 0;
+        if speed > c.overspeed_window_counts {
+            s.overspeed_ticks = s.overspeed_ticks.saturating_add(2);
+            if s.overspeed_ticks >= c.overspeed_ticks {
+                raised |= Faults::OVERSPEED;
+            }
+        } else {
+            s.overspeed_ticks = 0;
+        }
+        return raised;
     }
 
     // Runaway: moving against the current and not slowing down (a = x - 2 x[-W/2] + x[-W]).
@@ -416,24 +427,20 @@ pub fn check(c: &Coeffs, s: &mut State, input: Inputs) -> u16 {
     if i_abs >= c.runaway_current && speed >= c.runaway_window_counts && (v ^ i) < 0 {
         let mid = s.history[(slot + WINDOW / 2) & MASK];
         let a = x.wrapping_sub(mid).wrapping_sub(mid.wrapping_sub(oldest));
-        // Slowing by more than the counts' quantisation (two counts over half windows).
-        runaway = if v > 0 {
-            a >= -ACCEL_DEAD_BAND
-        } else {
-            a <= ACCEL_DEAD_BAND
-        };
+        // Slowing by more than the counts' quantisation (two counts over half windows): moving
+        // forwards `a >= -ACCEL_DEAD_BAND`, else `a <= ACCEL_DEAD_BAND`, i.e. `-a >=
+        // -ACCEL_DEAD_BAND` with the negation saturating (`!a - (-1)`), so exact for every `a`.
+        let back = ((v <= 0) as i32).wrapping_neg();
+        runaway = (a ^ back).saturating_sub(back) >= -ACCEL_DEAD_BAND;
     }
     if runaway {
-        s.runaway_ticks = s.runaway_ticks.saturating_add(1);
+        s.runaway_ticks = s.runaway_ticks.saturating_add(2);
         if s.runaway_ticks >= c.runaway_ticks {
             raised |= Faults::RUNAWAY;
         }
     } else {
         s.runaway_ticks = 0;
     }
-
-    s.history[slot] = x;
-    s.next = (slot + 1) & MASK;
     raised
 }
 

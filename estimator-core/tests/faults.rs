@@ -65,6 +65,13 @@ fn first_trip(
     None
 }
 
+/// The window detectors look every other tick: a trip within one tick of `n`, either side.
+#[track_caller]
+fn within_a_tick(trip: Option<usize>, n: usize) {
+    let t = trip.unwrap_or_else(|| panic!("no trip, expected tick {n}"));
+    assert!(t.abs_diff(n) <= 1, "tripped on tick {t}, expected {n} +- 1");
+}
+
 /// Positions moving at `counts_per_tick` (fractional), for `n` ticks.
 fn ramp(counts_per_tick: f64, n: usize) -> Vec<i32> {
     (0..n)
@@ -81,17 +88,21 @@ fn stall_trips_at_the_configured_time_and_not_below_its_current() {
     });
     let n = 100; // 0.05 s at 2 kHz
     let still = vec![1234; 400];
-    assert_eq!(first_trip(&c, &still, amps(2.0), false), Some(n));
+    within_a_tick(first_trip(&c, &still, amps(2.0), false), n);
+    // The condition beginning on the other parity of tick: a step on tick 2 restarts the
+    // timer, which runs from tick 3 (at full rate the trip would come on tick n + 2).
+    let later: Vec<i32> = [0].into_iter().chain(still.iter().copied()).collect();
+    within_a_tick(first_trip(&c, &later, amps(2.0), false), n + 2);
     let under = I16F16::from_bits(amps(2.0).to_bits() - 1);
     assert_eq!(first_trip(&c, &still, under, false), None);
-    assert_eq!(first_trip(&c, &still, -amps(2.5), false), Some(n));
+    within_a_tick(first_trip(&c, &still, -amps(2.5), false), n);
     // Motion just inside the dead band (20 um = 37 counts) is no motion; just outside, each
     // window restarts the timer.
     let band = (0.02 * cpm()) as i32;
     let creeping: Vec<i32> = (0..400)
         .map(|k| if k % 2 == 0 { 0 } else { band })
         .collect();
-    assert_eq!(first_trip(&c, &creeping, amps(3.0), false), Some(n));
+    within_a_tick(first_trip(&c, &creeping, amps(3.0), false), n);
     let moving = ramp((band + 1) as f64 / 50.0, 400);
     assert_eq!(first_trip(&c, &moving, amps(3.0), false), None);
 }
@@ -132,14 +143,14 @@ fn overspeed_trips_just_over_the_margin_and_not_just_under() {
     let limit_per_tick = 1.2 * VMAX_MM_S * cpm() / RATE_HZ;
     // The window measures WINDOW ticks: the first verdict comes on tick WINDOW + 1.
     let over = ramp(limit_per_tick * 1.01, 200);
-    assert_eq!(first_trip(&c, &over, amps(0.5), false), Some(WINDOW + 4));
+    within_a_tick(first_trip(&c, &over, amps(0.5), false), WINDOW + 4);
+    // Beginning on the other parity of tick: one tick at rest first.
+    let later: Vec<i32> = [0].into_iter().chain(over.iter().copied()).collect();
+    within_a_tick(first_trip(&c, &later, amps(0.5), false), WINDOW + 5);
     let under = ramp(limit_per_tick * 0.99, 200);
     assert_eq!(first_trip(&c, &under, amps(0.5), false), None);
     let backwards: Vec<i32> = over.iter().map(|x| -x).collect();
-    assert_eq!(
-        first_trip(&c, &backwards, amps(0.5), false),
-        Some(WINDOW + 4)
-    );
+    within_a_tick(first_trip(&c, &backwards, amps(0.5), false), WINDOW + 4);
 }
 
 #[test]
@@ -155,7 +166,9 @@ fn runaway_trips_on_motion_against_the_current_but_not_on_braking() {
     let accel: Vec<i32> = (0..300).map(|k: i32| -(k * k) / 4 - 20 * k).collect();
     // Until the window fills, speed counts from the first sample: 41 counts on tick 3 is
     // over the threshold (37 counts per window), and the 30th such tick trips.
-    assert_eq!(first_trip(&c, &accel, amps(1.5), false), Some(3 + n - 1));
+    within_a_tick(first_trip(&c, &accel, amps(1.5), false), 3 + n - 1);
+    let later: Vec<i32> = [0].into_iter().chain(accel.iter().copied()).collect();
+    within_a_tick(first_trip(&c, &later, amps(1.5), false), 3 + n);
     let under = I16F16::from_bits(amps(1.5).to_bits() - 1);
     assert_eq!(first_trip(&c, &accel, under, false), None);
     // Same motion with the current along it: a normal acceleration.
@@ -166,7 +179,7 @@ fn runaway_trips_on_motion_against_the_current_but_not_on_braking() {
     // Constant speed against the current, just above and just below the speed threshold.
     let v = 5.0 * cpm() / RATE_HZ;
     let over = ramp(-v * 1.05, 300);
-    assert_eq!(first_trip(&c, &over, amps(2.0), false), Some(WINDOW + n));
+    within_a_tick(first_trip(&c, &over, amps(2.0), false), WINDOW + n);
     let slow = ramp(-v * 0.95, 300);
     assert_eq!(first_trip(&c, &slow, amps(2.0), false), None);
 }

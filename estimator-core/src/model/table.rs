@@ -746,22 +746,29 @@ impl Model3Coeffs {
     }
 }
 
-/// The column cell of `g0` for the transition in progress: `g0 = max(0, y_d - Λ_f(x_d))` forward,
-/// `max(0, Λ_r(x_d) - y_d)` reverse. Computed once per reversal, on the first Model 3 tick after
-/// it (a reversal under another model costs nothing here; switching to Model 3 mid-transition
-/// gives the same cell as computing it at the reversal).
+/// The first Model 3 tick of a transition: the column cell of `g0` (`g0 = max(0, y_d -
+/// Λ_f(x_d))` forward, `max(0, Λ_r(x_d) - y_d)` reverse), then the gap at `d_counts` of travel
+/// through a fresh row pair. Once per reversal, on the first Model 3 tick after it (a reversal
+/// under another model costs nothing here; switching to Model 3 mid-transition gives the same
+/// cell as computing it at the reversal). Out of line and cold: the tick that needs it is the
+/// reversal's, and the common tick keeps its registers.
+#[cold]
 #[inline(never)]
-fn g0_cell(c: &Model3Coeffs, s: &mut ModelState) -> Cell {
+fn start_transition(c: &Model3Coeffs, s: &mut ModelState, d_counts: u32) -> i32 {
     let dir = s.dir;
-    // Through the (emptied) band cache: the tick goes on at x near x_d, mostly in this segment.
+    // Through the band's cache: the tick is at x near x_d, mostly in this segment.
     let edge = c.band(dir).eval_cached(s.x_d_counts, &mut s.band);
-    let y_d = s.y_d_um.to_bits() as i64;
+    let y_d = s.y_d_um.to_bits();
+    // Saturating where the difference leaves `i32`; `g0_cell` takes a negative `g0` as 0.
     let g0 = match dir {
-        Direction::Forward => y_d - edge as i64,
-        Direction::Reverse => edge as i64 - y_d,
+        Direction::Forward => y_d.saturating_sub(edge),
+        Direction::Reverse => edge.saturating_sub(y_d),
     };
-    let g0 = g0.clamp(0, i32::MAX as i64) as i32;
-    c.transition(dir).g0_cell(g0)
+    let t = c.transition(dir);
+    s.g0_cell = t.g0_cell(g0);
+    s.g0_valid = true;
+    s.rows.invalidate();
+    t.eval(d_counts, s.g0_cell, &mut s.rows)
 }
 
 /// One step of eq. 18 in our parametrisation.
@@ -771,11 +778,6 @@ pub(crate) fn eval(c: &Model3Coeffs, s: &mut ModelState, x_counts: i32) -> I16F1
     let edge = c.band(dir).eval_cached(x_counts, &mut s.band);
     if !s.transition {
         return I16F16::from_bits(edge);
-    }
-    if !s.g0_valid {
-        s.g0_cell = g0_cell(c, s);
-        s.g0_valid = true;
-        s.rows.invalidate();
     }
     // Travel since the turning point along `dir`, held at 0 before it: the difference of two
     // `i32` lies in [0, 2^32) on the far side.
@@ -788,7 +790,11 @@ pub(crate) fn eval(c: &Model3Coeffs, s: &mut ModelState, x_counts: i32) -> I16F1
     } else {
         to.wrapping_sub(from) as u32
     };
-    let gap = c.transition(dir).eval(d, s.g0_cell, &mut s.rows);
+    let gap = if s.g0_valid {
+        c.transition(dir).eval(d, s.g0_cell, &mut s.rows)
+    } else {
+        start_transition(c, s, d)
+    };
     I16F16::from_bits(match dir {
         Direction::Forward => edge.saturating_add(gap),
         Direction::Reverse => edge.saturating_sub(gap),
