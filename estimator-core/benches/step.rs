@@ -48,6 +48,9 @@ fn main() {
                 scale_counter: 0,
             };
             samples.push(s);
+            // A frame each tick, as the firmware's sample frames feed it: without it the link
+            // watchdog trips and the rest of the run is a faulted drive's.
+            d.link_alive();
             let o = d.step(s);
             v += (o.current_a.to_num::<f64>() * 1.09e3 * cpm - 2.0 * v) / 2000.0;
             x += v / 2000.0;
@@ -65,10 +68,12 @@ fn main() {
                     accel_um_s2: 1_500_000,
                 });
             }
+            d2.link_alive();
             black_box(d2.step(black_box(*s)));
         }
         let ns = start.elapsed().as_nanos() as f64 / TICKS as f64;
         assert_eq!(d2.telemetry(), outs[TICKS - 1].telemetry, "replay diverged");
+        assert!(d2.faults().is_clear(), "{kind:?}: {:?}", d2.faults());
         println!("  {:<7} {:6.1} ns/step", kind.as_str(), ns);
     }
 }

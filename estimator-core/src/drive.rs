@@ -1069,10 +1069,13 @@ impl Drive {
 
     /// Set-point at the measured position, loop and detector state cleared: enabling never jerks
     /// the motor, and no detector carries history across a stop.
+    // Not inlined: commands, and the tick only when a fault stops the drive.
+    #[inline(never)]
     fn hold_here(&mut self) {
-        self.trajectory.reset(self.motor_state.position_counts());
+        let x = self.motor_state.position_counts();
+        self.trajectory.reset(x);
         self.pid_state.reset();
-        self.monitor_state.reset();
+        self.monitor_state.restart_at(x);
         self.prev_current_a = I16F16::ZERO;
         self.prev_saturated = false;
         self.link_ticks_left = self.monitor.link_timeout_ticks();

@@ -356,6 +356,18 @@ impl State {
     pub fn reset(&mut self) {
         *self = Self::new();
     }
+
+    /// Forgets everything and starts at `x_counts` as if the motor had stood there for the whole
+    /// window: what the drive does when it holds (enable, homing, a cleared fault), so that the
+    /// first tick after has no window to fill (40 instructions).
+    pub fn restart_at(&mut self, x_counts: i32) {
+        *self = State {
+            history: [x_counts; WINDOW],
+            stall_anchor: x_counts,
+            primed: true,
+            ..Self::new()
+        };
+    }
 }
 
 /// Runs the detectors for one tick and returns the fault bits they raise (0 = none).

@@ -426,3 +426,26 @@ fn a_jammed_axis_trips_stall() {
     assert_eq!(o.current_a.to_bits(), 0);
     assert!(k < 400, "{k} ticks");
 }
+
+#[test]
+fn a_hold_primes_the_window_as_the_first_tick_would() {
+    // The drive primes the detectors when it holds (enable, homing, a cleared fault) rather
+    // than on the first tick after: the same state from there on.
+    let c = coeffs(quiet());
+    for x in [-5000, 0, 1234] {
+        let input = Inputs {
+            position_counts: x,
+            prev_current_a: amps(0.5),
+            prev_saturated: false,
+        };
+        let (mut fresh, mut held) = (State::new(), State::new());
+        held.restart_at(x);
+        for _ in 0..20 {
+            assert_eq!(
+                fault::check(&c, &mut fresh, input),
+                fault::check(&c, &mut held, input)
+            );
+        }
+        assert_eq!(fresh, held);
+    }
+}
