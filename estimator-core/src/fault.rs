@@ -352,13 +352,13 @@ impl State {
         }
     }
 
-    /// Forgets everything (enable, homing, a cleared fault).
+    /// Forgets everything.
     pub fn reset(&mut self) {
         *self = Self::new();
     }
 
     /// Forgets everything and starts at `x_counts` as if the motor had stood there for the whole
-    /// window: what the drive does when it holds (enable, homing, a cleared fault), so that the
+    /// window: what the drive does when it holds (enable, homing, a fault latching), so that the
     /// first tick after has no window to fill (40 instructions).
     pub fn restart_at(&mut self, x_counts: i32) {
         *self = State {
@@ -376,9 +376,12 @@ impl State {
 /// not hide from it), and the position history is kept every tick. The window detectors run on
 /// alternate ticks, like a drive's supervision below its loop rate: stall and overspeed on the
 /// ticks that write an even slot of the history, runaway on the odd ones, each look counting
-/// the two ticks since the last. So each trips within one tick of its configured time (which
-/// side depends on the tick its condition begins), for about half the instructions; they
-/// measure over a window of 4 ms and time out after milliseconds to tens of them.
+/// the two ticks since the last. A condition that holds trips its detector within one tick of
+/// its configured time (which side depends on the tick it begins), for about half the
+/// instructions; they measure over a window of 4 ms and time out after milliseconds to tens of
+/// them. Every trip the full-rate detectors make is made; a condition that comes and goes
+/// faster than every other tick can also trip when it is there at each look (a limit cycle at
+/// stall current or against the current is itself a fault).
 #[inline]
 pub fn check(c: &Coeffs, s: &mut State, input: Inputs) -> u16 {
     let x = input.position_counts;

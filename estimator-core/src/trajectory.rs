@@ -22,9 +22,12 @@
 //! `S(w) = w`, so the last step takes exactly what is left. Per tick:
 //! - far from the target (beyond the run-out from the velocity limit): accelerate or cruise, no
 //!   run-out needed;
-//! - braking: one run-out, `S(speed - d)`; the speed is set above `speed - d` by
-//!   `slack >> ceil(log2(n + 1))`, a shift standing in for `slack / n` that never overshoots and
-//!   absorbs at least half the slack each tick;
+//! - braking: one run-out, `S(speed - d)`; the speed is set above `speed - d` by the largest
+//!   `k` with `S(speed - d + k) <= remaining`, one hardware division while the sums fit 32 bits
+//!   (else `slack >> ceil(log2(n + 1))`, which never overshoots and absorbs at least half the
+//!   slack each tick); the ticks after it that brake by exactly `d` are counted;
+//! - far from the target, the ticks that accelerate by exactly `accel` or cruise are counted
+//!   too: a counted tick adds a stored step;
 //! - the tick(s) where a short move stops accelerating below the limit (the peak of a triangle):
 //!   a bisection over whole decelerations, at most 29 run-outs and usually one or two.
 //!
@@ -662,10 +665,10 @@ impl Trajectory {
             // to `room = d - lo_r` each unit of `k` adds `lo_n` to `S` (the same terms, each
             // faster); past it the speed gains a term and `S(lo + k) = S(lo) + (lo_n + 1) k -
             // room`. So `k = slack / lo_n` short of the room, else `(slack + room) / (lo_n + 1)`;
-            // `k < d` as `slack < speed = lo_n d + lo_r`. One hardware division while the sums
-            // fit 32 bits (below 256 counts/tick always); past that `k = slack >> ceil(log2(lo_n
-            // + 1))`, at least half of it (the slope of `S` is at most `lo_n + 1`), and the next
-            // tick takes up the rest.
+            // `k < d` as `slack < speed = lo_n d + lo_r`. One hardware division while the slack
+            // and the room fit 32 bits together (speeds up to about 256 counts/tick); past that
+            // `k = slack >> ceil(log2(lo_n + 1))`, at least half of it (the slope of `S` is at
+            // most `lo_n + 1`), and the next tick takes up the rest.
             let room = d.wrapping_sub(lo_r);
             let (k, rest) = if slack.wrapping_add(room as u64) >> 32 == 0 {
                 let slack = slack as u32;

@@ -536,7 +536,7 @@ impl BandCoeffs {
     /// The position of `x` on the axis in Q32.32 (held at 0 before the first point). `x - x0`
     /// of two `i32` lies in `[0, 2^32)` once `x >= x0`; times a Q0.32 below 2^31, below 2^63.
     #[inline(always)]
-    fn position_q32(&self, x: i32) -> u64 {
+    pub(crate) fn position_q32(&self, x: i32) -> u64 {
         let d = if x < self.x0_counts {
             0
         } else {
@@ -777,7 +777,7 @@ fn start_transition(c: &Model3Coeffs, s: &mut ModelState, d_counts: u32) -> i32 
 /// both terms of eq. 18 are linear in `x`, so their sum is too. A tick on the line is one
 /// multiply (about 15 instructions instead of two table lookups and interpolations, about 60);
 /// a tick off it interpolates as before. The next line is drawn in two halves on the following
-/// ticks that reload no table segment: the band's stretch (about 55 instructions), then the
+/// ticks that reload no table segment: the band's stretch (about 60 instructions), then the
 /// transition's and the line (about 85), so that no tick pays a reload and a whole new line
 /// together, nor a reversal and a line (the reversal's first tick only interpolates).
 ///
@@ -824,8 +824,10 @@ impl Piece {
         if (x.wrapping_sub(self.lo) as u32) >= self.span {
             return None;
         }
-        // |slope (x - x_ref)| < 2^63: within a band segment (or a row) `pq |x - x_ref| < 2^32`
-        // and |diff| < 2^31; on a hold the slope is 0.
+        // Within the tables' contract (values below 2^30) |slope (x - x_ref)| < 2^63: the line
+        // spans at most one band segment and one row (`pq |x - x_ref| < 2^32`), and where it
+        // has a slope at most 2^30 counts either way (`cell_room`: `x - x_ref` does not wrap);
+        // on the holds the slope is 0.
         let rel = x.wrapping_sub(self.x_ref) as i64;
         let step = self.slope.wrapping_mul(rel).wrapping_add(1 << 31) >> 32;
         Some(self.y_ref.wrapping_add(step as i32))
@@ -834,10 +836,12 @@ impl Piece {
 
 /// The counts `x` can move back and forward and stay in the cell of an even axis at fraction
 /// `t` (Q0.32) with `per_count` (Q0.32 of a cell per count): `t / per_count` back, `(2^32 - 1 -
-/// t) / per_count` forward. Two hardware divisions.
+/// t) / per_count` forward, two hardware divisions. Dividing by at least 4 holds each below
+/// 2^30, so that a line with a slope never spans enough for `x - x_ref` to wrap (only cells of
+/// more than 2^30 counts see less than their whole room).
 #[inline(always)]
 fn cell_room(t: u32, per_count: u32) -> (u32, u32) {
-    let q = NonZeroU32::new(per_count).unwrap_or(NonZeroU32::MIN);
+    let q = NonZeroU32::new(per_count.max(4)).unwrap_or(NonZeroU32::MIN);
     (t / q, !t / q)
 }
 
@@ -877,6 +881,8 @@ fn draw_band(c: &Model3Coeffs, s: &mut ModelState, x: i32, y: i32) {
     let p = &mut s.piece;
     p.slope = slope;
     if s.transition {
+        // The old line goes with its slope: a tick back on it would read the band's.
+        p.span = 0;
         (p.half, p.half_lo, p.half_hi) = (true, lo, hi);
     } else {
         p.set(lo, hi, x, y);
