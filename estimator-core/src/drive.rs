@@ -1069,7 +1069,7 @@ impl Drive {
 
     /// Set-point at the measured position, loop and detector state cleared: enabling never jerks
     /// the motor, and no detector carries history across a stop.
-    // Not inlined: commands, and the tick only when a fault stops the drive.
+    // Not inlined: commands, and the ticks while a fault is latched.
     #[inline(never)]
     fn hold_here(&mut self) {
         let x = self.motor_state.position_counts();

@@ -482,13 +482,12 @@ pub struct Trajectory {
     /// Ticks whose step is known without looking at the target (0 after any change):
     /// accelerating or cruising far from it, or braking by exactly `decel` towards it. Each adds
     /// `shortcut_dv` to the velocity and takes `shortcut_dn` from `n` (see [`Trajectory::tick`]).
-    /// While accelerating, `(n, r)` already hold the decomposition of the count's last speed
-    /// (`shortcut_dn` is 0): [`Trajectory::sync`] recovers the present one when a command cuts
-    /// the count short.
+    /// While accelerating (the count with `shortcut_dn` 0 and a velocity step), `(n, r)`
+    /// already hold the decomposition of the count's last speed: [`Trajectory::sync`] recovers
+    /// the present one when a command cuts the count short.
     shortcut_ticks: u32,
     shortcut_dn: u32,
     shortcut_dv: i64,
-    shortcut_accel: bool,
 }
 
 impl Trajectory {
@@ -505,7 +504,6 @@ impl Trajectory {
             shortcut_ticks: 0,
             shortcut_dn: 0,
             shortcut_dv: 0,
-            shortcut_accel: false,
         }
     }
 
@@ -734,7 +732,6 @@ impl Trajectory {
         } else {
             c.accel as i64
         };
-        self.shortcut_accel = k != 0;
         let d = NonZeroU32::new(c.decel).unwrap_or(NonZeroU32::MIN);
         let t = r.wrapping_sub(1).wrapping_add(k.wrapping_mul(c.accel_rem));
         let wraps = t / d;
@@ -748,7 +745,9 @@ impl Trajectory {
     /// Makes `(n, r)` describe the present speed again when a command cuts a count short: only
     /// an acceleration count keeps them ahead (by a division, outside the tick).
     fn sync(&mut self) {
-        if self.shortcut_ticks != 0 && self.shortcut_accel {
+        // An acceleration count: no step of `n` (braking takes 1), a step of velocity (cruising
+        // has none).
+        if self.shortcut_ticks != 0 && self.shortcut_dn == 0 && self.shortcut_dv != 0 {
             let speed = self.velocity.unsigned_abs();
             let n = div_ceil_u64(speed, self.coeffs.decel);
             self.n = n as u32;
@@ -803,7 +802,6 @@ impl Trajectory {
                 // At the limit: cruising.
                 self.shortcut_ticks = cruise_ticks(far, next.0);
                 self.shortcut_dv = 0;
-                self.shortcut_accel = false;
                 next
             } else {
                 self.accelerate(next, far, backwards)
@@ -815,7 +813,6 @@ impl Trajectory {
                 self.shortcut_ticks = brake;
                 self.shortcut_dn = 1;
                 self.shortcut_dv = if backwards { d } else { d.wrapping_neg() };
-                self.shortcut_accel = false;
             }
             (w, n, r)
         };
@@ -1270,14 +1267,22 @@ mod tests {
         assert!(shortcuts > 9_000, "{shortcuts} of {ticks}");
     }
 
+    /// The bench's second move (150 mm/s, 3000 mm/s^2 on the paper rig at 2 kHz, 40 mm) from
+    /// rest: the profile and its target.
+    fn bench_move() -> (Trajectory, i32) {
+        let per_mm = Rig::PAPER.counts_per_mm();
+        let (v, a) = (150.0 * per_mm / 2000.0, 3000.0 * per_mm / 4e6);
+        let mut t = Trajectory::new(coeffs(v, a, a), 0);
+        let target = (40.0 * per_mm) as i32;
+        t.set_target(target);
+        (t, target)
+    }
+
     /// Braking to the target is mostly shortcut ticks (the bench's
     /// second move: 150 mm/s, 3000 mm/s^2 on the paper rig at 2 kHz, 40 mm).
     #[test]
     fn braking_takes_the_shortcut() {
-        let per_mm = Rig::PAPER.counts_per_mm();
-        let (v, a) = (150.0 * per_mm / 2000.0, 3000.0 * per_mm / 4e6);
-        let mut t = Trajectory::new(coeffs(v, a, a), 0);
-        t.set_target((40.0 * per_mm) as i32);
+        let (mut t, target) = bench_move();
         let (mut braking, mut shortcuts) = (0, 0);
         let mut prev = t.tick();
         for _ in 0..10_000 {
@@ -1292,11 +1297,11 @@ mod tests {
             }
             prev = s;
         }
-        assert_eq!(t.position_counts(), (40.0 * per_mm) as i32);
+        assert_eq!(t.position_counts(), target);
         assert!(braking >= 95, "{braking}");
-        // 96 of 102: the tick that takes up the slack left by the cruise (one division), the
-        // tick that starts the count, and the few at the end that take up what is left as `n`
-        // falls to the slack. (With a shift in place of the division: 79.)
+        // 96 of 102: the tick that takes up the slack left by the cruise (one division; the
+        // count starts on it), and the few at the end that take up what is left as `n` falls
+        // to the slack. (With a shift in place of the division: 79.)
         assert!(braking - shortcuts <= 8, "{shortcuts} of {braking}");
     }
 
@@ -1305,10 +1310,7 @@ mod tests {
     /// [`the_counted_steps_are_exact`]) recovers the present decomposition.
     #[test]
     fn acceleration_takes_the_shortcut() {
-        let per_mm = Rig::PAPER.counts_per_mm();
-        let (v, a) = (150.0 * per_mm / 2000.0, 3000.0 * per_mm / 4e6);
-        let mut t = Trajectory::new(coeffs(v, a, a), 0);
-        t.set_target((40.0 * per_mm) as i32);
+        let (mut t, _) = bench_move();
         let (mut accelerating, mut shortcuts) = (0, 0);
         for _ in 0..10_000 {
             let took = t.shortcut_ticks != 0;

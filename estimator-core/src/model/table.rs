@@ -818,6 +818,17 @@ impl Piece {
         self.half = false;
     }
 
+    /// The line through `(x, y)` with the slope in hand, over `[lo, hi]` (`lo <= x <= hi`).
+    #[inline(always)]
+    fn set(&mut self, lo: i32, hi: i32, x: i32, y: i32) {
+        self.lo = lo;
+        // The whole `i32` range loses its one last count.
+        self.span = (hi.wrapping_sub(lo) as u32).saturating_add(1);
+        self.x_ref = x;
+        self.y_ref = y;
+        self.half = false;
+    }
+
     /// The line at `x`, if `x` lies on it.
     #[inline(always)]
     fn at(&self, x: i32) -> Option<i32> {
@@ -886,19 +897,6 @@ fn draw_band(c: &Model3Coeffs, s: &mut ModelState, x: i32, y: i32) {
         (p.half, p.half_lo, p.half_hi) = (true, lo, hi);
     } else {
         p.set(lo, hi, x, y);
-    }
-}
-
-impl Piece {
-    /// The line through `(x, y)` with the slope in hand, over `[lo, hi]` (`lo <= x <= hi`).
-    #[inline(always)]
-    fn set(&mut self, lo: i32, hi: i32, x: i32, y: i32) {
-        self.lo = lo;
-        // The whole `i32` range loses its one last count.
-        self.span = (hi.wrapping_sub(lo) as u32).saturating_add(1);
-        self.x_ref = x;
-        self.y_ref = y;
-        self.half = false;
     }
 }
 
@@ -976,7 +974,7 @@ pub(crate) fn eval(c: &Model3Coeffs, s: &mut ModelState, x_counts: i32) -> I16F1
 
 /// Eq. 18 by interpolating the band table and the transition table.
 #[inline(always)]
-pub(crate) fn interpolate(c: &Model3Coeffs, s: &mut ModelState, x_counts: i32) -> I16F16 {
+fn interpolate(c: &Model3Coeffs, s: &mut ModelState, x_counts: i32) -> I16F16 {
     let dir = s.dir;
     let edge = c.band(dir).eval_cached(x_counts, &mut s.band);
     if !s.transition {
@@ -1005,15 +1003,20 @@ pub(crate) fn interpolate(c: &Model3Coeffs, s: &mut ModelState, x_counts: i32) -
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use proptest::prelude::*;
 
-    fn band() -> impl Strategy<Value = BandCoeffs> {
+    /// Band tables of 2 to 64 points from `x0` with `points_q32` from `min_points_q32`
+    /// (segments of at most `2^32 / min_points_q32` counts), values within the contract.
+    pub(crate) fn band_in(
+        x0: impl Strategy<Value = i32>,
+        min_points_q32: u32,
+    ) -> impl Strategy<Value = BandCoeffs> {
         (
             2u8..=MAX_BAND_POINTS as u8,
-            any::<i32>(),
-            (1u32 << 12)..(1u32 << 31),
+            x0,
+            min_points_q32..(1u32 << 31),
             prop::collection::vec(-(1i32 << 29)..(1i32 << 29), MAX_BAND_POINTS),
         )
             .prop_map(|(len, x0_counts, points_q32, y)| {
@@ -1027,6 +1030,34 @@ mod tests {
                     *dst = I16F16::from_bits(v);
                 }
                 b
+            })
+    }
+
+    fn band() -> impl Strategy<Value = BandCoeffs> {
+        band_in(any::<i32>(), 1 << 12)
+    }
+
+    /// Transition tables of any shape and gaps, rows from `min_rows_q32` per count.
+    pub(crate) fn transition_in(min_rows_q32: u32) -> impl Strategy<Value = TransitionCoeffs> {
+        (
+            2u8..=MAX_TRANSITION_D as u8,
+            2u8..=MAX_TRANSITION_G0 as u8,
+            min_rows_q32..(1u32 << 31),
+            (1u32 << 12)..(1u32 << 31),
+            prop::collection::vec(any::<u16>(), MAX_TRANSITION_D * MAX_TRANSITION_G0),
+        )
+            .prop_map(|(n_d, n_g0, rows_q32, cols_q32, gaps)| {
+                let mut t = TransitionCoeffs {
+                    n_d,
+                    n_g0,
+                    rows_q32,
+                    cols_q32,
+                    gap_um: [[U11F5::ZERO; MAX_TRANSITION_G0]; MAX_TRANSITION_D],
+                };
+                for (k, g) in gaps.into_iter().enumerate() {
+                    t.gap_um[k / MAX_TRANSITION_G0][k % MAX_TRANSITION_G0] = U11F5::from_bits(g);
+                }
+                t
             })
     }
 
@@ -1067,24 +1098,10 @@ mod tests {
         /// `(d, g0)`, bit for bit, for any travel sequence and initial gap.
         #[test]
         fn cached_rows_are_the_lookup(
-            n_d in 2u8..=MAX_TRANSITION_D as u8,
-            n_g0 in 2u8..=MAX_TRANSITION_G0 as u8,
-            rows_q32 in (1u32 << 12)..(1u32 << 31),
-            cols_q32 in (1u32 << 12)..(1u32 << 31),
-            gaps in prop::collection::vec(any::<u16>(), MAX_TRANSITION_D * MAX_TRANSITION_G0),
+            t in transition_in(1 << 12),
             g0_bits in any::<i32>(),
             steps in walk(),
         ) {
-            let mut t = TransitionCoeffs {
-                n_d,
-                n_g0,
-                rows_q32,
-                cols_q32,
-                gap_um: [[U11F5::ZERO; MAX_TRANSITION_G0]; MAX_TRANSITION_D],
-            };
-            for (k, g) in gaps.into_iter().enumerate() {
-                t.gap_um[k / MAX_TRANSITION_G0][k % MAX_TRANSITION_G0] = U11F5::from_bits(g);
-            }
             let col = t.g0_cell(g0_bits);
             let g = |i: u8, j: u8| (t.gap_um[i as usize][j as usize].to_bits() as i32) << 11;
             let mut rows = SegmentCache::EMPTY;
