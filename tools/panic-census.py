@@ -14,9 +14,10 @@ import sys
 
 from inline_chains import inline_chains
 
-# What a panic enters through; `panic_fmt` and the handler itself are reached only from these.
+# What a panic enters through. `panic_fmt` counts too (an `assert!` with a message, e.g. the
+# order check of `Ord::clamp`, calls it directly), except from inside the other entries.
 ENTRIES = re.compile(
-    r"<(core::panicking::panic(?:_const::\w+|_bounds_check|_nounwind)?|"
+    r"<(core::panicking::panic(?:_const::\w+|_bounds_check|_nounwind|_fmt)?|"
     r"core::slice::index::\w+|core::option::\w+|core::result::\w+|_defmt_panic)>"
 )
 
@@ -25,11 +26,18 @@ def census(elf):
     dis = subprocess.run(["llvm-objdump", "-d", "--no-show-raw-insn", "-C", elf],
                          capture_output=True, text=True, check=True).stdout
     calls = []
+    inside_entry = False
     for line in dis.splitlines():
+        f = re.match(r"^[0-9a-f]+ <(.*)>:", line)
+        if f:
+            inside_entry = bool(ENTRIES.fullmatch("<" + f.group(1) + ">"))
+            continue
         m = re.match(r"\s+([0-9a-f]+):\s+(bl|b\.w|b)\s", line)
         if m:
             e = ENTRIES.search(line)
             if e and "+0x" not in line.split("<", 1)[1]:
+                if e.group(1) == "core::panicking::panic_fmt" and inside_entry:
+                    continue
                 calls.append((int(m.group(1), 16), e.group(1)))
     chains = inline_chains(elf, [a for a, _ in calls])
     sites = collections.Counter()

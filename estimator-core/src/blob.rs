@@ -2,12 +2,12 @@
 //! `hil-sim calibrate` writes it (`calibration.bin`). The drive loads the image built from it
 //! on the host ([`crate::image::from_blob`]): the coefficients, with no `f64` on the drive.
 //!
-//! Layout (little-endian), version 4 (version 3 weighted Model 1 in Model 4, not Model 2, and
-//! had no low-passed current;
+//! Layout (little-endian), version 5 (version 4 weighted Model 2 in Model 4 and had ten plays
+//! and no slip observer; version 3 weighted Model 1, not Model 2, and had no low-passed current;
 //! version 2 recorded only counts/mm and had no Model 4; version 1 had no baselines):
 //! ```text
 //! 0   magic "BDCB"
-//! 4   version u16 (= 4)          6  reserved u16 (= 0)
+//! 4   version u16 (= 5)          6  reserved u16 (= 0)
 //! 8   payload length u32        12  CRC-32 (IEEE) of bytes 0..12 followed by the payload
 //! 16  payload:
 //!     geometry        encoder lines u32, pulley teeth u32, gear ratio f64, belt pitch mm f64:
@@ -26,7 +26,8 @@
 //!                     knot start um i32, knot step um I24F8, knots N_KNOTS x um I16F16
 //!                     pitch um I20F12, sin, cos um I16F16, turn um I24F8, sin, cos um,
 //!                     um/A I16F16, low-passed um/A I16F16,
-//!                     Model 2's weight I16F16
+//!                     slip observer: load um reverse, forward I16F16, um/A reverse, forward
+//!                     I16F16, creep per mm I8F24, limit um, half gap um, weight I16F16
 //! ```
 //! Slopes are I16F16 um per mm, errors I16F16 um, Model 2 rates I8F24 per mm. Decoding checks
 //! every length and count before reading and never panics; a blob that fails any check is
@@ -48,14 +49,15 @@ use belt_link::Crc32;
 /// First four bytes of every blob.
 pub const MAGIC: [u8; 4] = *b"BDCB";
 /// The version this code writes and reads.
-pub const VERSION: u16 = 4;
+pub const VERSION: u16 = 5;
 const HEADER: usize = 16;
 const BAND_BYTES: usize = 4 + 8 * MAX_BAND_POINTS;
 const TRANSITION_BYTES: usize = 12 + 2 * MAX_TRANSITION_D * MAX_TRANSITION_G0;
 const BIDIR_BYTES: usize = 12 + 8 * MAX_BIDIR_ROWS;
 /// Size of Model 4's section (the last): 3 words per play, 5 for the band line and the knot
-/// grid, the knots, 9 for the two harmonics, the current, its low pass and Model 2's weight.
-pub const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 9);
+/// grid, the knots, 8 for the two harmonics, the current and its low pass, 8 for the slip
+/// observer.
+pub const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 8);
 const RIG_BYTES: usize = 24;
 /// Largest blob: header, rig and dead band, Models 1 and 2, two full bands, two full tables,
 /// backlash and a full bidirectional table.
@@ -619,7 +621,17 @@ fn write_model4(w: &mut Writer<'_>, m4: &Model4Params) -> Result<(), BlobError> 
         Q16,
         ConfigField::Model4CurrentLpUmPerA,
     )?;
-    w.fixed(m4.model2_weight, Q16, ConfigField::Model4Model2Weight)?;
+    let sl = &m4.slip;
+    for v in sl.load_um {
+        w.fixed(v, Q16, ConfigField::Model4SlipLoadUm)?;
+    }
+    for v in sl.um_per_a {
+        w.fixed(v, Q16, ConfigField::Model4SlipUmPerA)?;
+    }
+    w.fixed(sl.creep_per_mm, 24, ConfigField::Model4SlipCreepPerMm)?;
+    w.fixed(sl.limit_um, Q16, ConfigField::Model4SlipLimitUm)?;
+    w.fixed(sl.half_gap_um, Q16, ConfigField::Model4SlipHalfGapUm)?;
+    w.fixed(sl.weight, Q16, ConfigField::Model4SlipWeight)?;
     Ok(())
 }
 
@@ -648,7 +660,13 @@ fn read_model4(r: &mut Reader<'_>) -> Result<Model4Params, BlobError> {
     model4.turn_um = [r.fixed(Q16)?, r.fixed(Q16)?];
     model4.current_um_per_a = r.fixed(Q16)?;
     model4.current_lp_um_per_a = r.fixed(Q16)?;
-    model4.model2_weight = r.fixed(Q16)?;
+    let sl = &mut model4.slip;
+    sl.load_um = [r.fixed(Q16)?, r.fixed(Q16)?];
+    sl.um_per_a = [r.fixed(Q16)?, r.fixed(Q16)?];
+    sl.creep_per_mm = r.fixed(24)?;
+    sl.limit_um = r.fixed(Q16)?;
+    sl.half_gap_um = r.fixed(Q16)?;
+    sl.weight = r.fixed(Q16)?;
     Ok(model4)
 }
 

@@ -5,11 +5,11 @@
 //! (`calibration.bin`, parameters for people and tools); [`from_blob`] turns it into the image a
 //! drive loads over the link, stores, and boots from.
 //!
-//! Layout (little-endian), version 2 (version 1 weighted Model 1 in Model 4, not Model 2, and
-//! had no low-passed current):
+//! Layout (little-endian), version 5 (version 4 weighted Model 2 in Model 4 and had ten plays
+//! and no slip observer; earlier versions weighted Model 1 and had no low-passed current):
 //! ```text
 //! 0   magic "BDCI"
-//! 4   version u16 (= 2)          6  reserved u16 (= 0)
+//! 4   version u16 (= 5)          6  reserved u16 (= 0)
 //! 8   payload length u32        12  CRC-32 (IEEE) of bytes 0..12 followed by the payload
 //! 16  payload:
 //!     geometry        as in the blob (must match the drive's exactly)
@@ -28,7 +28,9 @@
 //!                     3 x N_OPS x i32; x_ref counts, offset I16F16, slope Q31 um/count, hat
 //!                     start counts, hat reciprocal u32, knots N_KNOTS x I16F16, pitch rate u32,
 //!                     sin, cos I16F16, turn rate u32, sin, cos, um/A, low-passed um/A I16F16,
-//!                     Model 2's weight Q16
+//!                     slip observer: load reverse, forward, per A reverse, forward I16F16 um,
+//!                     kappa per count Q32 u32, um per count I16F16 u32, limit, half gap I16F16
+//!                     um, weight Q16
 //!     closing         Models 1, 2, 3: forward, reverse I16F16 mm, -1 = never   6 x i32
 //!                     (host diagnostics: the drive skips them)
 //! ```
@@ -45,6 +47,7 @@ use fixed::types::{I13F3, I16F16, I1F31, U11F5};
 use crate::blob::{check_header_from, BlobError};
 use crate::model::fixmath::{Recip, Scale, MAX_SHIFT};
 use crate::model::operator::{weight_total, N_KNOTS, N_OPS};
+use crate::model::slip::{self, SlipCoeffs};
 use crate::model::LinearBand;
 use crate::model::{
     BacklashCoeffs, BandCoeffs, BidirCoeffs, Model1Coeffs, Model2Coeffs, Model3Coeffs,
@@ -59,13 +62,13 @@ use belt_link::bytes::Fields;
 /// First four bytes of every image.
 pub const MAGIC: [u8; 4] = *b"BDCI";
 /// The version this code writes and reads.
-pub const VERSION: u16 = 4;
+pub const VERSION: u16 = 5;
 const HEADER: usize = 16;
 const RIG_BYTES: usize = 24;
 const BAND_BYTES: usize = 12 + 4 * MAX_BAND_POINTS;
 const TRANSITION_BYTES: usize = 12 + 2 * MAX_TRANSITION_D * MAX_TRANSITION_G0;
 const BIDIR_BYTES: usize = 12 + 4 * MAX_BIDIR_ROWS;
-const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 9);
+const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 9);
 /// Largest image: every table full.
 pub const MAX_BYTES: usize = HEADER
     + RIG_BYTES
@@ -380,10 +383,7 @@ fn read_model4(r: &mut Stream) -> Result<Model4Coeffs, BlobError> {
     ];
     let current_um_per_a = um(r, ANY, ConfigField::Model4CurrentUmPerA)?;
     let current_lp_um_per_a = um(r, ANY, ConfigField::Model4CurrentLpUmPerA)?;
-    let model2_q16 = r.i32()?;
-    if model2_q16.unsigned_abs() > 8 << 16 {
-        return Err(out_of_range(ConfigField::Model4Model2Weight));
-    }
+    let slip = read_slip(r)?;
     Ok(Model4Coeffs {
         weight_total: weight_total(&weight_q24),
         widths_counts,
@@ -400,7 +400,58 @@ fn read_model4(r: &mut Stream) -> Result<Model4Coeffs, BlobError> {
         turn_um,
         current_um_per_a,
         current_lp_um_per_a,
-        model2_q16,
+        slip,
+    })
+}
+
+/// The slip observer, each field within what [`crate::model::slip::SlipParams::build`] makes.
+fn read_slip(r: &mut Stream) -> Result<SlipCoeffs, BlobError> {
+    let max = (slip::MAX_SLIP_UM as i32) << 16;
+    let mut bits = |field, lo: i32, hi: i32| -> Result<i32, BlobError> {
+        let v = r.i32()?;
+        if (lo..=hi).contains(&v) {
+            Ok(v)
+        } else {
+            Err(out_of_range(field))
+        }
+    };
+    let load_bits = [
+        bits(ConfigField::Model4SlipLoadUm, -max, 0)?,
+        bits(ConfigField::Model4SlipLoadUm, 0, max)?,
+    ];
+    let per_a_bits = [
+        bits(ConfigField::Model4SlipUmPerA, -max, max)?,
+        bits(ConfigField::Model4SlipUmPerA, -max, max)?,
+    ];
+    let kappa_q32 = r.u32()?;
+    if kappa_q32 as u64 > slip::MAX_KAPPA_Q32 {
+        return Err(out_of_range(ConfigField::Model4SlipCreepPerMm));
+    }
+    // Up to 1 mm per count.
+    let um_per_count_bits = r.u32()?;
+    if um_per_count_bits > 1000 << 16 {
+        return Err(out_of_range(ConfigField::Model4SlipCreepPerMm));
+    }
+    let mut bits = |field, lo: i32, hi: i32| -> Result<i32, BlobError> {
+        let v = r.i32()?;
+        if (lo..=hi).contains(&v) {
+            Ok(v)
+        } else {
+            Err(out_of_range(field))
+        }
+    };
+    let limit_bits = bits(ConfigField::Model4SlipLimitUm, 1 << 16, max)?;
+    let half_gap_bits = bits(ConfigField::Model4SlipHalfGapUm, 1 << 16, max)?;
+    let weight_q16 = bits(ConfigField::Model4SlipWeight, -(8 << 16), 8 << 16)?;
+    Ok(SlipCoeffs {
+        load_bits,
+        per_a_bits,
+        kappa_q32,
+        um_per_count_bits,
+        limit_bits,
+        cap_bits: limit_bits - limit_bits / 20,
+        half_gap_bits,
+        weight_q16,
     })
 }
 
@@ -583,7 +634,15 @@ mod write {
         w.i32(m.turn_um[1].to_bits());
         w.i32(m.current_um_per_a.to_bits());
         w.i32(m.current_lp_um_per_a.to_bits());
-        w.i32(m.model2_q16);
+        let sl = &m.slip;
+        for v in sl.load_bits.iter().chain(&sl.per_a_bits) {
+            w.i32(*v);
+        }
+        w.u32(sl.kappa_q32);
+        w.u32(sl.um_per_count_bits);
+        w.i32(sl.limit_bits);
+        w.i32(sl.half_gap_bits);
+        w.i32(sl.weight_q16);
     }
 
     /// Writes coefficients built for `rig` into `buf`; returns the image's length.

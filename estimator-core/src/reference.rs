@@ -8,6 +8,7 @@
 //! compared, not the quantisation of calibration data.
 
 use crate::model::operator::{N_KNOTS, N_OPS};
+use crate::model::slip::{self, SlipCoeffs};
 use crate::model::{BandCoeffs, Direction, ModelKind, ModelParams, TransitionCoeffs};
 use crate::model::{Model1Params, Model2Params};
 use crate::rig::Rig;
@@ -118,7 +119,7 @@ pub struct Reference {
     plays_valid: bool,
     /// Model 4's low-passed current, I16F16 bits (restarted with the plays).
     current_lp_bits: i32,
-    base: RefBase,
+    slip: RefSlip,
 }
 
 /// Model 4's quantised coefficients as `f64` (um, counts).
@@ -137,14 +138,14 @@ struct RefModel4 {
     harmonic_um: [[f64; 2]; 2],
     current_um_per_a: f64,
     current_lp_um_per_a: f64,
-    model2_weight: f64,
+    slip_weight: f64,
 }
 
 /// Model 4's terms at one tick before their weights (see [`crate::model::operator`]).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Model4Terms {
-    /// Model 2's estimate on Model 4's own turning points, um.
-    pub model2_um: f64,
+    /// The slip observer's mesh offset `g`, um.
+    pub slip_um: f64,
     /// Each play's output `x - p`, counts.
     pub plays_counts: [f64; N_OPS],
     /// The forward play weights apply (the registered direction is forward).
@@ -161,20 +162,114 @@ pub struct Model4Terms {
     pub current_lp_a: f64,
 }
 
-/// Model 4's Model 2 term: its own turning-point state (see `ModelState`'s `base_*`).
-#[derive(Clone, Debug, Default)]
-struct RefBase {
-    y_ext_mm: f64,
-    y_ext_valid: bool,
-    y_d_mm: f64,
-    transition: bool,
+/// Model 4's slip observer ([`crate::model::slip`]), written out plainly in `i64`.
+///
+/// The observer is a discrete-time state machine defined in integers (its contact and slip
+/// decisions compare states to the bit): an `f64` copy would take the other branch whenever a
+/// comparison falls within a rounding, and the two would part by a whole pre-slide. So the
+/// reference runs the definition itself, every product in `i64` with its rounding spelled out
+/// and no shortcut of the drive's code, and the rest of Model 4 in `f64` on its output.
+#[derive(Clone, Debug)]
+pub struct RefSlip {
+    c: SlipCoeffs,
+    /// Mesh offset and friction deflection, I16F16 um.
+    g: i64,
+    z: i64,
+    lp_bits: i32,
+    x_prev: i64,
+}
+
+impl RefSlip {
+    /// The observer of `c`, to be started.
+    pub fn new(c: &SlipCoeffs) -> RefSlip {
+        RefSlip {
+            c: *c,
+            g: 0,
+            z: 0,
+            lp_bits: 0,
+            x_prev: 0,
+        }
+    }
+
+    /// Against the teeth on the side of `forward`, unloaded (as the drive starts it).
+    pub fn start(&mut self, forward: bool, x: i32, current_a: f64) {
+        let h = self.c.half_gap_bits as i64;
+        self.g = if forward { h } else { -h };
+        self.z = 0;
+        self.lp_bits = current_bits(current_a);
+        self.x_prev = x as i64;
+    }
+
+    /// Mesh offset `g` now, um.
+    pub fn offset_um(&self) -> f64 {
+        self.g as f64 / 65536.0
+    }
+
+    /// One tick (see [`crate::model::slip`]).
+    pub fn step(&mut self, forward: bool, x: i32, current_a: f64) {
+        let c = &self.c;
+        let x = x as i64;
+        // The drive's difference wraps in i32; positions here stay within i32, so does it.
+        let ds = x - self.x_prev;
+        self.x_prev = x;
+        let ads = ds.unsigned_abs();
+        let lp = self.lp_bits as i64;
+        self.lp_bits = (lp + ((current_bits(current_a) as i64 - lp) >> slip::SLIP_LP_SHIFT)) as i32;
+        let k = forward as usize;
+        let raw = c.load_bits[k] as i64
+            + (c.per_a_bits[k] as i64 * self.lp_bits as i64).div_euclid(1 << 16);
+        let (cap, limit, h) = (
+            c.cap_bits as i64,
+            c.limit_bits as i64,
+            c.half_gap_bits as i64,
+        );
+        let req = raw.clamp(-cap, cap);
+        if raw.abs() > limit && ds != 0 && (ds > 0) == (raw > 0) {
+            self.g = raw.signum() * h;
+            self.z = req;
+            return;
+        }
+        if !((self.g >= h && req > self.z) || (self.g <= -h && req < self.z)) {
+            let lim = (ads as u128 * c.um_per_count_bits as u128).min(i32::MAX as u128) as i64;
+            let dz = (req - self.z).clamp(-lim, lim);
+            self.g += dz;
+            self.z += dz;
+            if self.g > h {
+                self.z -= self.g - h;
+                self.g = h;
+            } else if self.g < -h {
+                self.z += -h - self.g;
+                self.g = -h;
+            }
+        }
+        let step = ads as u128 * c.kappa_q32 as u128;
+        let (g, z) = (self.g, self.z);
+        if (g >= h && z > 0) || (g <= -h && z < 0) {
+            let step = step.min(slip::MAX_DECAY_Q32 as u128) as i64;
+            self.z = z - (z * step + (1 << 31)).div_euclid(1 << 32);
+        } else {
+            let f = slip::creep_factor_q12(c.limit_bits, z as i32) as i64;
+            let r = (z * f + (1 << 19)).div_euclid(1 << 20);
+            let step = step.min(slip::MAX_CREEP_Q32 as u128) as i64;
+            self.g = (g + (r * step + (1 << 23)).div_euclid(1 << 24)).clamp(-h, h);
+        }
+    }
+}
+
+/// The current as the drive holds it: I16F16 bits, saturated, 0 for a non-finite value.
+fn current_bits(current_a: f64) -> i32 {
+    if current_a.is_finite() {
+        I16F16::saturating_from_num(current_a).to_bits()
+    } else {
+        0
+    }
 }
 
 impl RefModel4 {
     /// The weighted sum of `t`, um, saturated like every output of the fixed-point models.
     fn combine(&self, t: &Model4Terms) -> f64 {
         let weights = &self.weight_um_per_count[t.forward as usize];
-        let y = self.model2_weight * t.model2_um
+        let y = self.slip_weight * t.slip_um
             + self.offset_um
             + self.slope_um_per_count * t.from_ref_counts
             + weights
@@ -218,7 +313,7 @@ impl RefModel4 {
             ],
             current_um_per_a: c.current_um_per_a.to_num(),
             current_lp_um_per_a: c.current_lp_um_per_a.to_num(),
-            model2_weight: c.model2_q16 as f64 / 65536.0,
+            slip_weight: c.slip.weight_q16 as f64 / 65536.0,
         }
     }
 }
@@ -262,7 +357,7 @@ impl Reference {
             plays: [0.0; N_OPS],
             plays_valid: false,
             current_lp_bits: 0,
-            base: RefBase::default(),
+            slip: RefSlip::new(&c.model4().slip),
         })
     }
 
@@ -277,7 +372,6 @@ impl Reference {
         self.transition = false;
         self.g0_mm = 0.0;
         self.plays_valid = false;
-        self.base = RefBase::default();
     }
 
     /// Direction as last registered.
@@ -285,8 +379,13 @@ impl Reference {
         self.dir
     }
 
-    /// One step: the error estimate of `kind` at `x_counts`, in micrometres.
+    /// One step: the error estimate of `kind` at `x_counts`, in micrometres. A prediction at
+    /// rest like [`crate::model::estimate`]: Model 4's low passes settled at zero.
     pub fn estimate_um(&mut self, kind: ModelKind, x_counts: i32) -> f64 {
+        if kind == ModelKind::Operator {
+            self.current_lp_bits = 0;
+            self.slip.lp_bits = 0;
+        }
         self.estimate_with_current_um(kind, x_counts, 0.0)
     }
 
@@ -301,9 +400,8 @@ impl Reference {
             return self.model4_step(x_counts, current_a).0;
         }
         self.track(x_counts);
-        // Model 4's plays and Model 2 term only follow x while Model 4 runs.
+        // Model 4's plays and observer only follow x while Model 4 runs.
         self.plays_valid = false;
-        self.base.y_ext_valid = false;
         let y_mm = match kind {
             ModelKind::Operator | ModelKind::None => 0.0,
             ModelKind::Linear => self.model1(x_counts),
@@ -338,8 +436,6 @@ impl Reference {
             self.x_d = self.x_ext;
             self.y_d_mm = self.y_ext_mm;
             self.transition = self.y_ext_valid;
-            self.base.y_d_mm = self.base.y_ext_mm;
-            self.base.transition = self.base.y_ext_valid;
             self.x_ext = x;
             let x_d = self.x_d as f64;
             self.g0_mm = match self.dir {
@@ -364,21 +460,23 @@ impl Reference {
         (y_um, t)
     }
 
-    /// Moves Model 4's plays and Model 2 term with `x` (see [`crate::model::operator`]).
+    /// Moves Model 4's plays and slip observer with `x` (see [`crate::model::operator`]).
     fn model4_terms(&mut self, x: i32, current_a: f64) -> Model4Terms {
         let m = &self.m4;
         let xf = x as f64;
+        let forward = self.dir == Direction::Forward;
         // The filter is integer on the drive and part of the feature's definition: run it as is.
-        let current_bits = if current_a.is_finite() {
-            I16F16::saturating_from_num(current_a).to_bits()
-        } else {
-            0
-        };
+        let bits = current_bits(current_a);
         self.current_lp_bits = if self.plays_valid {
-            crate::model::operator::current_lowpass(self.current_lp_bits, current_bits)
+            crate::model::operator::current_lowpass(self.current_lp_bits, bits)
         } else {
-            current_bits
+            bits
         };
+        if self.plays_valid {
+            self.slip.step(forward, x, current_a);
+        } else {
+            self.slip.start(forward, x, current_a);
+        }
         if !self.plays_valid {
             for (p, w) in self.plays.iter_mut().zip(&m.widths) {
                 *p = match self.dir {
@@ -387,7 +485,6 @@ impl Reference {
                 };
             }
             self.plays_valid = true;
-            self.base.transition = false;
         }
         let mut t = Model4Terms {
             forward: self.dir == Direction::Forward,
@@ -416,11 +513,7 @@ impl Reference {
             let a = turns as f64 / (1u64 << 32) as f64 * core::f64::consts::TAU;
             *h = [a.sin(), a.cos()];
         }
-        t.model2_um = self.model2_at(self.base.transition, self.base.y_d_mm, x) * 1000.0;
-        if x == self.x_ext {
-            self.base.y_ext_mm = t.model2_um / 1000.0;
-            self.base.y_ext_valid = true;
-        }
+        t.slip_um = self.slip.offset_um();
         t
     }
 

@@ -162,7 +162,7 @@ fn drive_loads_good_images_and_refuses_bad_ones_unchanged() {
     bad[at..at + 4].copy_from_slice(&(9i32 << 16).to_le_bytes());
     resign(&mut bad);
     assert!(
-        matches!(d.load_calibration(&bad), Err(BlobError::Invalid(e)) if e.field() == "model4.model2_weight")
+        matches!(d.load_calibration(&bad), Err(BlobError::Invalid(e)) if e.field() == "model4.slip.weight")
     );
     assert_eq!(d.models(), &before);
     d.load_calibration(&good).unwrap();

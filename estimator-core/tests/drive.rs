@@ -425,14 +425,22 @@ fn carriage_moves_put_the_estimated_carriage_on_target() {
     for model in ModelKind::ALL {
         // Table 2 with a calibrated dead band (160 counts, as `hil-sim calibrate` finds): with
         // Table 2's 2 counts, the motor's settling wiggle counts as a reversal.
-        // The paper has no Model 4: give it a band (an offset, a slope and the 40 mm play
-        // weighted to -+200 um, the carriage lagging) so that it has an error to place. A narrow
-        // play would follow the motor's settling overshoot (12 counts here), which no planned
-        // inverse can know: its arrival is measured on the simulated rig (README, placement).
+        // The paper has no Model 4: give it a band (an offset, a slope and the slip observer's
+        // offset weighted to -+100 um, the carriage lagging) so that it has an error to place.
+        // A narrow play would follow the motor's settling overshoot (12 counts here), which no
+        // planned inverse can know: its arrival is measured on the simulated rig (README,
+        // placement).
         let mut model4 = estimator_core::model::ModelParams::PAPER.model4;
         model4.offset_um = -200.0;
         model4.slope_um_per_mm = -1.5;
-        model4.play_um_per_mm[9] = -5.0;
+        model4.slip = estimator_core::model::slip::SlipParams {
+            load_um: [60.0, 60.0],
+            um_per_a: [0.0, 0.0],
+            creep_per_mm: 0.05,
+            limit_um: 150.0,
+            half_gap_um: 100.0,
+            weight: -1.0,
+        };
         let params = estimator_core::model::ModelParams {
             reversal_deadband_counts: 160,
             model4,

@@ -17,9 +17,16 @@ fn params() -> ModelParams {
     p.model2.offset_mm = 0.0117;
     p.model4.offset_um = -12.5;
     p.model4.play_um_per_mm[0] = 900.0;
-    p.model4.play_forward_um_per_mm[3] = -40.0;
+    p.model4.play_forward_um_per_mm[2] = -40.0;
     p.model4.knot_um[2] = 7.25;
-    p.model4.model2_weight = 0.75;
+    p.model4.slip = estimator_core::model::slip::SlipParams {
+        load_um: [61.5, 70.25],
+        um_per_a: [22.0, -3.5],
+        creep_per_mm: 0.03,
+        limit_um: 150.0,
+        half_gap_um: 140.0,
+        weight: -0.75,
+    };
     p.backlash.backlash_um = 120.0;
     p
 }
@@ -39,8 +46,9 @@ fn reseal(b: &mut [u8]) {
 const MODEL1: usize = 16 + 24 + 4;
 const MODEL2: usize = MODEL1 + 24;
 const MODEL3: usize = MODEL2 + 40;
-/// Model 4's section: widths and two weight sets, five words, the knots, eight words.
-const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 9);
+/// Model 4's section: widths and two weight sets, five words, the knots, eight words, the slip
+/// observer's nine.
+const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 9);
 
 #[test]
 fn coefficients_arrive_exactly_and_re_encode_to_the_same_bytes() {
@@ -214,6 +222,7 @@ fn every_section_is_checked() {
         "the layout this test assumes"
     );
     let pitch_rate = model4 + 4 * (3 * N_OPS + 5 + N_KNOTS);
+    let slip = pitch_rate + 4 * 8;
     assert_refusals(&[
         (
             transition,
@@ -228,19 +237,32 @@ fn every_section_is_checked() {
         (bidir, &1u16.to_le_bytes(), "bidir_table.rows"),
         (bidir + 8, &0u32.to_le_bytes(), "bidir_table.step_mm"),
         // Model 4: widths out of order, a zero width, a period under 16 counts, the
-        // low-passed current's weight, Model 2's weight.
+        // low-passed current's weight, the slip observer's load acting the wrong way, renewal,
+        // limit, half gap and weight.
         (model4 + 4, &1i32.to_le_bytes(), "model4.widths_mm"),
         (model4, &0i32.to_le_bytes(), "model4.widths_mm"),
         (pitch_rate, &(1u32 << 29).to_le_bytes(), "model4.pitch_mm"),
         (
-            model4 + MODEL4_BYTES - 8,
+            slip - 4,
             &i32::MAX.to_le_bytes(),
             "model4.current_lp_um_per_a",
         ),
+        (slip + 4, &(-1i32).to_le_bytes(), "model4.slip.load_um"),
         (
-            model4 + MODEL4_BYTES - 4,
+            slip + 16,
+            &((1u32 << 28) + 1).to_le_bytes(),
+            "model4.slip.creep_per_mm",
+        ),
+        (slip + 24, &0i32.to_le_bytes(), "model4.slip.limit_um"),
+        (
+            slip + 28,
+            &((2049i32) << 16).to_le_bytes(),
+            "model4.slip.half_gap_um",
+        ),
+        (
+            slip + 32,
             &((8i32 << 16) + 1).to_le_bytes(),
-            "model4.model2_weight",
+            "model4.slip.weight",
         ),
     ]);
 }

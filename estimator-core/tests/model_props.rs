@@ -8,6 +8,7 @@
 use std::cell::Cell;
 
 use estimator_core::fixed::types::I16F16;
+use estimator_core::model::slip::SlipParams;
 use estimator_core::model::{
     estimate, estimate_with_current, BacklashParams, BandParams, BidirParams, Model1Params,
     Model2Params, Model3Params, Model4Params, ModelKind, ModelParams, ModelState, TransitionParams,
@@ -214,10 +215,33 @@ fn baselines(cpm: f64) -> impl Strategy<Value = (BacklashParams, BidirParams)> {
         })
 }
 
+/// Model 4's slip observer: loads beyond the limit (gross slip) and within it, gaps from a few
+/// um to 400 um, renewal up to 0.2 per mm.
+fn slip() -> impl Strategy<Value = SlipParams> {
+    (
+        prop::array::uniform2(0.0f64..200.0),
+        prop::array::uniform2(-60.0f64..60.0),
+        0.0f64..0.2,
+        5.0f64..300.0,
+        2.0f64..400.0,
+        -1.5f64..1.5,
+    )
+        .prop_map(
+            |(load_um, um_per_a, creep_per_mm, limit_um, half_gap_um, weight)| SlipParams {
+                load_um,
+                um_per_a,
+                creep_per_mm,
+                limit_um,
+                half_gap_um,
+                weight,
+            },
+        )
+}
+
 /// Model 4 with random weights of plausible size: plays carrying up to 300 um each.
 fn model4(cpm: f64) -> impl Strategy<Value = Model4Params> {
     (
-        prop::array::uniform10((0.3f64..3.0, -300.0f64..300.0, -300.0f64..300.0)),
+        prop::array::uniform3((0.3f64..3.0, -300.0f64..300.0, -300.0f64..300.0)),
         (-0.5f64..0.5, -500.0f64..500.0, -1.0f64..1.0),
         (
             -0.5f64..0.5,
@@ -232,10 +256,10 @@ fn model4(cpm: f64) -> impl Strategy<Value = Model4Params> {
             -30.0f64..30.0,
             -30.0f64..30.0,
         ),
-        (-40.0f64..40.0, -40.0f64..40.0, -1.5f64..1.5),
+        (-40.0f64..40.0, -40.0f64..40.0, slip()),
     )
         .prop_map(
-            move |(plays, (xr, off, slope), (ks, step, knots), h, (cur, cur_lp, w2))| {
+            move |(plays, (xr, off, slope), (ks, step, knots), h, (cur, cur_lp, slip))| {
                 let range_mm = ACCURATE_RANGE_COUNTS as f64 / cpm;
                 let mut m = Model4Params::zero(h.0, h.0 * h.3 as f64);
                 for (j, (scale, w, f)) in plays.into_iter().enumerate() {
@@ -258,7 +282,7 @@ fn model4(cpm: f64) -> impl Strategy<Value = Model4Params> {
                 m.turn_um = [h.4, h.5];
                 m.current_um_per_a = cur;
                 m.current_lp_um_per_a = cur_lp;
-                m.model2_weight = w2;
+                m.slip = slip;
                 m
             },
         )

@@ -15,11 +15,12 @@
 
 use estimator_core::blob::{self, BlobError};
 use estimator_core::model::operator::{N_KNOTS, N_OPS};
+use estimator_core::model::slip::{SlipParams, MAX_SLIP_UM};
 use estimator_core::model::{
     BandParams, Model1Params, Model2Params, Model3Params, Model4Params, ModelKind, ModelParams,
     TransitionParams, MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
 };
-use estimator_core::reference::Reference;
+use estimator_core::reference::{RefSlip, Reference};
 use estimator_core::rig::Rig;
 use estimator_core::ConfigError;
 
@@ -499,7 +500,7 @@ pub fn calibrate(
     }
     params.model3 = model3(&params.model1, &runs, rig, deadband, best.1)?;
     progress("Model 4", 0.0);
-    params.model4 = model4(&runs, rig, &params)?;
+    params.model4 = model4(&runs, rig, &params, progress)?;
     params.backlash = Backlash::calibrate(traces)
         .ok_or(CalibrationError::NoApproachedSamples)?
         .to_params();
@@ -544,33 +545,35 @@ fn travel_span_mm(runs: &[Prepared], rig: &Rig) -> Result<(f64, f64), Calibratio
     Ok((lo, hi))
 }
 
-/// Model 4 by one linear least-squares fit of all its weights (plays with and without the
-/// forward share, band line and hats, both harmonics, current and its low pass, and the weight of `base`'s
-/// calibrated Model 2) to Delta x on every calibration sample, lightly regularised (ridge 1e-6
-/// of each column's energy) so that plays the data never move get no weight. The terms are
-/// [`Reference::model4_step`]'s, the definitions the drive's Model 4 evaluates.
+/// Model 4: the slip observer's own parameters by Nelder-Mead around one linear least-squares
+/// fit of all the weights (the three plays with and without the forward share, band line and
+/// hats, both harmonics, the current and its low pass, and the observer's mesh offset) to Delta
+/// x on every calibration sample, lightly regularised (ridge 1e-6 of each column's energy) so
+/// that terms the data never move get no weight. The terms are [`Reference::model4_step`]'s,
+/// the definitions the drive's Model 4 evaluates; the observer is the quantised one the blob
+/// will hold.
 fn model4(
     runs: &[Prepared],
     rig: &Rig,
     base: &ModelParams,
+    progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Model4Params, CalibrationError> {
     let (lo, hi) = travel_span_mm(runs, rig)?;
     let mut m = Model4Params::zero(rig.belt_pitch_mm, rig.mm_per_pulley_rev());
     m.x_ref_mm = ((lo + hi) / 2.0).round();
     m.knot_step_mm = (hi - lo) / (N_KNOTS + 1) as f64;
     m.knot_start_mm = lo + m.knot_step_mm;
-    // Geometry as the coefficients hold it (the features must match the fixed-point model).
-    // The geometry as the blob holds it and Model 2 as the drive will hold it: the terms are
-    // those the drive's Model 4 computes (its reference evaluates the same definitions).
+    // The geometry as the blob holds it and the dead band as the drive will hold it: the terms
+    // are those the drive's Model 4 computes (its reference evaluates the same definitions).
     let probe = ModelParams {
         model4: blob::quantise_model4(&m).map_err(CalibrationError::Rejected)?,
         ..quantised(base, rig).map_err(CalibrationError::Rejected)?
     };
     let cpm = rig.counts_per_mm();
-    const N: usize = 2 * N_OPS + 2 + N_KNOTS + 4 + 3;
-    let mut ata = vec![0.0f64; N * N];
-    let mut atb = vec![0.0f64; N];
-    let mut row = [0.0f64; N];
+    // Every term but the observer's, per sample, and the direction the observer sees.
+    let mut cols: Vec<[f64; NB]> = Vec::new();
+    let mut forward: Vec<bool> = Vec::new();
+    let mut y: Vec<f64> = Vec::new();
     for r in runs {
         let Some(&x0) = r.x_counts.first() else {
             continue;
@@ -578,6 +581,7 @@ fn model4(
         let mut model4 = Reference::new(&probe, rig, x0).map_err(CalibrationError::Features)?;
         for (i, &x) in r.x_counts.iter().enumerate() {
             let (_, t) = model4.model4_step(x, r.current_a[i]);
+            let mut row = [0.0; NB];
             for (j, f) in t.plays_counts.iter().enumerate() {
                 row[2 * j] = f / cpm;
                 row[2 * j + 1] = if t.forward { f / cpm } else { 0.0 };
@@ -588,26 +592,104 @@ fn model4(
             row[k + 2..k + 2 + N_KNOTS].copy_from_slice(&t.hats);
             let h = k + 2 + N_KNOTS;
             row[h..h + 4].copy_from_slice(t.harmonics.as_flattened());
-            row[N - 3] = t.current_a;
-            row[N - 2] = t.current_lp_a;
-            row[N - 1] = t.model2_um;
-            let y = r.dx_um[i];
-            for a in 0..N {
-                if row[a] == 0.0 {
-                    continue;
-                }
-                atb[a] += row[a] * y;
-                for b in 0..N {
-                    ata[a * N + b] += row[a] * row[b];
-                }
+            row[NB - 2] = t.current_a;
+            row[NB - 1] = t.current_lp_a;
+            cols.push(row);
+            forward.push(t.forward);
+            y.push(r.dx_um[i]);
+        }
+    }
+    let mut ata = vec![0.0f64; NB * NB];
+    let mut atb = vec![0.0f64; NB];
+    let mut yy = 0.0;
+    for (row, &v) in cols.iter().zip(&y) {
+        yy += v * v;
+        for a in 0..NB {
+            if row[a] == 0.0 {
+                continue;
+            }
+            atb[a] += row[a] * v;
+            for b in a..NB {
+                ata[a * NB + b] += row[a] * row[b];
             }
         }
     }
-    for a in 0..N {
-        ata[a * N + a] += 1e-6 * ata[a * N + a] + 1e-9;
+    for a in 0..NB {
+        for b in 0..a {
+            ata[a * NB + b] = ata[b * NB + a];
+        }
     }
-    let v =
-        crate::tables::solve_spd(ata, atb).ok_or(CalibrationError::Singular { fit: "Model 4" })?;
+    // The observer's offset along every run, for candidate parameters (quantised as the blob
+    // holds them); None where they are refused.
+    let shape = m.clone();
+    let offsets = |slip: &SlipParams| -> Option<Vec<f64>> {
+        let mut q = shape.clone();
+        q.slip = *slip;
+        let q = blob::quantise_model4(&q).ok()?;
+        let c = q.slip.build(cpm).ok()?;
+        let mut out = Vec::with_capacity(y.len());
+        let mut k = 0;
+        for r in runs {
+            let mut obs = RefSlip::new(&c);
+            for (i, (&x, &a)) in r.x_counts.iter().zip(&r.current_a).enumerate() {
+                if i == 0 {
+                    obs.start(forward[k], x, a);
+                } else {
+                    obs.step(forward[k], x, a);
+                }
+                out.push(obs.offset_um());
+                k += 1;
+            }
+        }
+        Some(out)
+    };
+    // The joint least squares with the offset `g` as the last column: (weights, residual sum).
+    let solve = |g: &[f64]| -> Option<(Vec<f64>, f64)> {
+        const N: usize = NB + 1;
+        let mut a = vec![0.0f64; N * N];
+        let mut b = vec![0.0f64; N];
+        for i in 0..NB {
+            a[i * N..i * N + NB].copy_from_slice(&ata[i * NB..i * NB + NB]);
+            b[i] = atb[i];
+        }
+        for ((row, &v), &gv) in cols.iter().zip(&y).zip(g) {
+            for i in 0..NB {
+                a[i * N + NB] += row[i] * gv;
+            }
+            a[NB * N + NB] += gv * gv;
+            b[NB] += gv * v;
+        }
+        for i in 0..NB {
+            a[NB * N + i] = a[i * N + NB];
+        }
+        for i in 0..N {
+            a[i * N + i] += 1e-6 * a[i * N + i] + 1e-9;
+        }
+        let bb = b.clone();
+        let w = crate::tables::solve_spd(a, b)?;
+        let sse = yy - w.iter().zip(&bb).map(|(p, q)| p * q).sum::<f64>();
+        Some((w, sse))
+    };
+    const MAX_EVALS: usize = 500;
+    let mut evals = 0usize;
+    let best = nelder_mead(
+        |v| {
+            evals += 1;
+            progress("Model 4 slip observer", evals as f64 / MAX_EVALS as f64);
+            offsets(&slip_params(v))
+                .and_then(|g| solve(&g))
+                .map_or(f64::INFINITY, |(_, sse)| sse)
+        },
+        &SLIP_START,
+        &SLIP_STEP,
+        1e-9,
+        MAX_EVALS,
+    );
+    m.slip = slip_params(&best.x);
+    let mut m = blob::quantise_model4(&m).map_err(CalibrationError::Rejected)?;
+    let (v, _) = offsets(&m.slip)
+        .and_then(|g| solve(&g))
+        .ok_or(CalibrationError::Singular { fit: "Model 4" })?;
     for j in 0..N_OPS {
         m.play_um_per_mm[j] = v[2 * j];
         m.play_forward_um_per_mm[j] = v[2 * j + 1];
@@ -619,10 +701,38 @@ fn model4(
     let h = k + 2 + N_KNOTS;
     m.pitch_um = [v[h], v[h + 1]];
     m.turn_um = [v[h + 2], v[h + 3]];
-    m.current_um_per_a = v[N - 3];
-    m.current_lp_um_per_a = v[N - 2];
-    m.model2_weight = v[N - 1];
+    m.current_um_per_a = v[NB - 2];
+    m.current_lp_um_per_a = v[NB - 1];
+    m.slip.weight = v[NB];
     Ok(m)
+}
+
+/// Model 4's terms besides the observer: two per play, the band line, the hats, the harmonics,
+/// the current and its low pass.
+const NB: usize = 2 * N_OPS + 2 + N_KNOTS + 4 + 2;
+
+/// Where the observer's fit starts (`slip_params`' coordinates): a load of 60 um at constant
+/// speed, 5 % more forward, 25 um per ampere, a renewal of 0.03 per mm, limit and half gap
+/// 150 um. Measured on the simulated plants (paper rig and four variants) the fits land within
+/// a factor of two of these.
+const SLIP_START: [f64; 6] = [60.0, 0.05, 25.0, 0.03, 150.0, 150.0];
+const SLIP_STEP: [f64; 6] = [20.0, 0.05, 10.0, 0.01, 40.0, 30.0];
+
+/// The observer of the fit's coordinates: load, its forward asymmetry, um per ampere, renewal
+/// per mm, limit and half gap. Out-of-range coordinates fold back into range (the simplex
+/// explores freely).
+fn slip_params(v: &[f64]) -> SlipParams {
+    let asym = v[1].clamp(-0.9, 0.9);
+    let load = v[0].abs().min(MAX_SLIP_UM);
+    SlipParams {
+        load_um: [load * (1.0 - asym), load * (1.0 + asym)].map(|l| l.min(MAX_SLIP_UM)),
+        um_per_a: [v[2] * (1.0 - asym), v[2] * (1.0 + asym)]
+            .map(|a| a.clamp(-MAX_SLIP_UM, MAX_SLIP_UM)),
+        creep_per_mm: v[3].abs().min(1.0),
+        limit_um: v[4].abs().clamp(1.0, MAX_SLIP_UM),
+        half_gap_um: v[5].abs().clamp(1.0, MAX_SLIP_UM),
+        weight: 0.0,
+    }
 }
 
 /// The parameters exactly as the firmware will hold them (through the blob's formats).

@@ -82,7 +82,8 @@
 //! the README's tick table, measured by `tools/bench-target.sh`.) Model 3's worst case is a
 //! reversal tick: the band edge at the turning point, the `g0` cell and two interpolated
 //! transition rows. Its bands lie on an even axis, so every lookup is a multiply: no search and
-//! no division. The per-tick path calls no runtime library (no software division; multiplies are
+//! no division. The per-tick path calls no runtime library (no software division: Model 4's slip
+//! observer divides once with the hardware `UDIV`; multiplies are
 //! `UMULL`/`SMULL`/`SMLAL`). See the size guards below for `ModelCoeffs` and `ModelState`.
 
 pub mod baseline;
@@ -92,6 +93,7 @@ mod convert;
 pub mod exponential;
 mod linear;
 pub mod operator;
+pub mod slip;
 pub mod table;
 
 use fixed::types::I16F16;
@@ -261,17 +263,17 @@ pub struct ModelCoeffs {
 }
 
 // The firmware keeps one `ModelCoeffs` in static RAM (budget 8 KiB) and moves it when a
-// calibration loads: any growth must be deliberate (3496 B with the host's closing distances,
+// calibration loads: any growth must be deliberate (3448 B with the host's closing distances,
 // the 256-row bidirectional table 1 KiB in I13F3, Model 3's even-axis bands 528 B and Model 4
-// 224 B of it; ModelState 208 B, Model 4's plays with their running sums and its Model 2 term
-// 112 B of it, Model 3's line over the current stretch and its half-drawn successor 40 B). Exact: a
+// 176 B of it; ModelState 184 B, Model 4's plays with their running sums and its slip observer
+// 88 B of it, Model 3's line over the current stretch and its half-drawn successor 40 B). Exact: a
 // shrink shows here too.
 #[cfg(feature = "std")]
-const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3496);
+const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3448);
 // On the drive (no closing distances): what the static RAM figures count.
 #[cfg(not(feature = "std"))]
-const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3448);
-const _: () = assert!(core::mem::size_of::<ModelState>() == 208);
+const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3400);
+const _: () = assert!(core::mem::size_of::<ModelState>() == 184);
 
 impl ModelCoeffs {
     /// Everything zero and no tables: a value to decode a calibration image into
@@ -343,7 +345,7 @@ impl ModelCoeffs {
                 turn_um: [I16F16::ZERO; 2],
                 current_um_per_a: I16F16::ZERO,
                 current_lp_um_per_a: I16F16::ZERO,
-                model2_q16: 0,
+                slip: slip::SlipCoeffs::ZERO,
                 weight_total: [0; 2],
             },
             backlash: BacklashCoeffs {
@@ -444,12 +446,8 @@ pub struct ModelState {
     pub(crate) piece: table::Piece,
     /// Model 4: the plays, valid while Model 4 has run every tick.
     pub(crate) plays: operator::Plays,
-    /// Model 4's Model 2 term: its output at `x_ext` (valid if Model 4 ran there) and at the
-    /// last turning point, and whether its transition runs.
-    pub(crate) base_y_ext_um: I16F16,
-    pub(crate) base_y_ext_valid: bool,
-    pub(crate) base_y_d_um: I16F16,
-    pub(crate) base_transition: bool,
+    /// Model 4's belt-slip observer (restarted with the plays).
+    pub(crate) slip: slip::Slip,
     /// Model 4's low-passed current, I16F16 amperes (restarted with the plays).
     pub(crate) current_lp_bits: i32,
 }
@@ -471,10 +469,7 @@ impl ModelState {
             rows: table::SegmentCache::EMPTY,
             piece: table::Piece::NONE,
             plays: operator::Plays::NEW,
-            base_y_ext_um: I16F16::ZERO,
-            base_y_ext_valid: false,
-            base_y_d_um: I16F16::ZERO,
-            base_transition: false,
+            slip: slip::Slip::NEW,
             current_lp_bits: 0,
         }
     }
@@ -535,8 +530,6 @@ impl ModelState {
             self.x_d_counts = self.x_ext_counts;
             self.y_d_um = self.y_ext_um;
             self.transition = self.y_ext_valid;
-            self.base_y_d_um = self.base_y_ext_um;
-            self.base_transition = self.base_y_ext_valid;
             self.x_ext_counts = x;
             // Model 3's g0 cell is recomputed on its next tick, on the other band.
             self.needs_g0 = self.y_ext_valid;
@@ -547,8 +540,9 @@ impl ModelState {
 }
 
 /// One tick: update the reversal detector with `x_counts` (unwrapped motor encoder counts) and
-/// return the estimated error `y = x_LS - x_PE` of model `kind`, in micrometres. Model 4 sees
-/// no current here (a prediction at rest): see [`estimate_with_current`].
+/// return the estimated error `y = x_LS - x_PE` of model `kind`, in micrometres. A prediction
+/// at rest: Model 4 sees no current, its low passes settled at zero (as after the move that
+/// brings the motor to `x_counts`, whatever its length). See [`estimate_with_current`].
 ///
 /// Integer-only, bounded time, no panics for any input.
 pub fn estimate(
@@ -557,6 +551,10 @@ pub fn estimate(
     state: &mut ModelState,
     x_counts: i32,
 ) -> I16F16 {
+    if kind == ModelKind::Operator {
+        state.current_lp_bits = 0;
+        state.slip.lp_bits = 0;
+    }
     estimate_with_current(coeffs, kind, state, x_counts, I16F16::ZERO)
 }
 
@@ -571,10 +569,9 @@ pub fn estimate_with_current(
 ) -> I16F16 {
     state.track(coeffs.deadband_counts, x_counts);
     if kind != ModelKind::Operator {
-        // The plays and Model 4's Model 2 term only follow x while Model 4 runs; they restart
-        // on the band edge after.
+        // The plays and the slip observer only follow x while Model 4 runs; they restart on
+        // the band edge after.
         state.plays.valid = false;
-        state.base_y_ext_valid = false;
     }
     let y = match kind {
         ModelKind::None => I16F16::ZERO,
@@ -583,9 +580,7 @@ pub fn estimate_with_current(
         ModelKind::Table => table::eval(&coeffs.model3, state, x_counts),
         ModelKind::Backlash => baseline::eval_backlash(&coeffs.backlash, state),
         ModelKind::BidirTable => baseline::eval_bidir(&coeffs.bidir, state, x_counts),
-        ModelKind::Operator => {
-            operator::eval(&coeffs.model4, &coeffs.model2, state, x_counts, current_a)
-        }
+        ModelKind::Operator => operator::eval(&coeffs.model4, state, x_counts, current_a),
     };
     if x_counts == state.x_ext_counts {
         state.y_ext_um = y;
@@ -700,5 +695,15 @@ mod tests {
             estimate(&c, ModelKind::Table, &mut s, x);
         }
         assert!(on_lines * 10 > ticks * 9, "{on_lines} of {ticks}");
+    }
+}
+impl ModelState {
+    #[doc(hidden)]
+    pub fn tmp_slip(&self) -> (f64, f64, i32) {
+        (
+            self.slip.g_bits as f64 / 65536.0,
+            self.slip.z_bits as f64 / 65536.0,
+            self.current_lp_bits,
+        )
     }
 }
