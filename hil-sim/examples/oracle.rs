@@ -1,0 +1,177 @@
+//! How much of Model 4's residual one more state would explain: replays the plant alongside each
+//! recording (same scenario, same seed, the recorded currents), reads its true mesh offset
+//! `P - b` tick by tick, and adds it to Model 4's least-squares fit as one more term. A
+//! measurement for the README ("Why this structure"), not part of the product: the drive never
+//! sees the plant's state.
+//!
+//! `cargo run --profile ci -p hil-sim --example oracle [plant-name-part]` prints, for Model 4's
+//! terms alone, with the true offset and with the span tension too: the fit on the calibration
+//! data and the RMS of e on fig18, zigzag, accelerations and one generated workload of every
+//! class (seed 11), all held out of the calibration.
+#![allow(clippy::print_stdout)]
+
+use estimator_core::model::operator::{N_KNOTS, N_OPS};
+use estimator_core::model::{ModelKind, ModelParams};
+use estimator_core::reference::Reference;
+use estimator_core::rig::Rig;
+use hil_sim::eval::{self, CALIBRATION_PLAN_S, CALIBRATION_PLAN_SEED, CALIBRATION_SCENARIOS};
+use hil_sim::run::Trace;
+use hil_sim::scenario::Scenario;
+use hil_sim::workloads::{self, Class, Limits};
+use hil_sim::{drive_setup, Plant, PlantParams};
+
+/// One recording with the plant's state beside it.
+struct Run {
+    name: String,
+    /// Model 4's terms (the observer's offset included), one row per tick.
+    terms: Vec<Vec<f64>>,
+    dx_um: Vec<f64>,
+    offset_um: Vec<f64>,
+    span_n: Vec<f64>,
+}
+
+fn replay(t: &Trace, s: &Scenario, plant: &PlantParams, params: &ModelParams, rig: &Rig) -> Run {
+    let mut p = Plant::new(plant, s.start_mm, t.seed).expect("plant");
+    let cpm = rig.counts_per_mm();
+    let mut m = Reference::new(params, rig, t.records[0].motor_counts.0).expect("reference");
+    let mut run = Run {
+        name: t.scenario.clone(),
+        terms: Vec::new(),
+        dx_um: Vec::new(),
+        offset_um: Vec::new(),
+        span_n: Vec::new(),
+    };
+    for (k, r) in t.records.iter().enumerate() {
+        let b = p.belt();
+        run.offset_um.push(b.mesh_offset_m * 1e6);
+        run.span_n.push(b.span2_n - b.span1_n);
+        let current = r.out.current_a.to_num::<f64>();
+        let (_, f) = m.model4_step(r.motor_counts.0, current);
+        let mut row = Vec::with_capacity(2 * N_OPS + N_KNOTS + 9);
+        for v in f.plays_counts {
+            row.push(v / cpm);
+            row.push(if f.forward { v / cpm } else { 0.0 });
+        }
+        row.extend([1.0, f.from_ref_counts / cpm]);
+        row.extend_from_slice(&f.hats);
+        row.extend_from_slice(f.harmonics.as_flattened());
+        row.extend([f.current_a, f.current_lp_a, f.slip_um]);
+        run.terms.push(row);
+        run.dx_um.push(t.dx_um(k));
+        p.step(current, 1.0 / 2000.0);
+    }
+    run
+}
+
+/// Rows of `run` with `extra` terms appended.
+fn rows(run: &Run, extra: usize) -> Vec<Vec<f64>> {
+    (0..run.terms.len())
+        .map(|k| {
+            let mut v = run.terms[k].clone();
+            let more = [run.offset_um[k], run.span_n[k]];
+            v.extend_from_slice(&more[..extra]);
+            v
+        })
+        .collect()
+}
+
+fn fit(runs: &[Run], extra: usize) -> Vec<f64> {
+    let n = runs[0].terms[0].len() + extra;
+    let (mut a, mut b) = (vec![0.0; n * n], vec![0.0; n]);
+    for r in runs {
+        for (row, y) in rows(r, extra).iter().zip(&r.dx_um) {
+            for i in 0..n {
+                b[i] += row[i] * y;
+                for j in 0..n {
+                    a[i * n + j] += row[i] * row[j];
+                }
+            }
+        }
+    }
+    for i in 0..n {
+        a[i * n + i] += 1e-6 * a[i * n + i] + 1e-9;
+    }
+    hil_sim::tables::solve_spd(a, b).expect("fit")
+}
+
+fn rms(run: &Run, extra: usize, w: &[f64]) -> f64 {
+    let rows = rows(run, extra);
+    let s: f64 = rows
+        .iter()
+        .zip(&run.dx_um)
+        .map(|(r, y)| (y - r.iter().zip(w).map(|(a, b)| a * b).sum::<f64>()).powi(2))
+        .sum();
+    (s / rows.len() as f64).sqrt()
+}
+
+fn main() {
+    let which = std::env::args().nth(1);
+    let plant = match &which {
+        None => PlantParams::paper_rig(),
+        Some(name) => hil_sim::generalise::plants()
+            .expect("plants")
+            .into_iter()
+            .find(|p| p.source.contains(name.as_str()))
+            .expect("a plant of that name"),
+    };
+    let rig = plant.rig();
+    let traces = eval::record_calibration(&plant, &mut |_, _| {}).expect("recordings");
+    let cal = hil_sim::calibrate::calibrate(&traces, &rig, &mut |_, _| {}).expect("calibration");
+    let lim = Limits::of(&drive_setup::drive_limits(rig));
+    let mut cal_scenarios: Vec<Scenario> = CALIBRATION_SCENARIOS
+        .iter()
+        .map(|n| Scenario::load(n).expect("preset"))
+        .collect();
+    cal_scenarios.push(workloads::calibration_plan(
+        &lim,
+        CALIBRATION_PLAN_SEED,
+        CALIBRATION_PLAN_S,
+    ));
+    let cal_runs: Vec<Run> = traces
+        .iter()
+        .zip(&cal_scenarios)
+        .map(|(t, s)| replay(t, s, &plant, &cal.params, &rig))
+        .collect();
+    let mut held_out: Vec<Scenario> = ["fig18", "zigzag", "accelerations"]
+        .iter()
+        .map(|n| Scenario::load(n).expect("preset"))
+        .collect();
+    held_out.extend(Class::ALL.map(|c| workloads::generate(c, 11, &lim, 20.0)));
+    let runs: Vec<Run> = held_out
+        .iter()
+        .map(|s| {
+            let t = eval::run_in_process(
+                s,
+                &plant,
+                &ModelParams::PAPER,
+                ModelKind::None,
+                1,
+                &mut |_| {},
+            )
+            .expect("run");
+            replay(&t, s, &plant, &cal.params, &rig)
+        })
+        .collect();
+    for (extra, name) in [
+        (0, "Model 4's terms"),
+        (1, "+ true offset"),
+        (2, "+ span tension"),
+    ] {
+        let w = fit(&cal_runs, extra);
+        let n: usize = cal_runs.iter().map(|r| r.dx_um.len()).sum();
+        let fit_rms = (cal_runs
+            .iter()
+            .map(|r| rms(r, extra, &w).powi(2) * r.dx_um.len() as f64)
+            .sum::<f64>()
+            / n as f64)
+            .sqrt();
+        print!("{name:16} fit {fit_rms:5.1} |");
+        let mut ms = 0.0;
+        for r in &runs {
+            let e = rms(r, extra, &w);
+            ms += e * e;
+            print!(" {} {e:.1}", r.name);
+        }
+        println!(" | mean square {:.1} um", (ms / runs.len() as f64).sqrt());
+    }
+}
