@@ -600,7 +600,7 @@ fn model4(
         }
     }
     let mut ata = vec![0.0f64; NB * NB];
-    let mut atb = vec![0.0f64; NB];
+    let mut atb = [0.0f64; NB];
     let mut yy = 0.0;
     for (row, &v) in cols.iter().zip(&y) {
         yy += v * v;

@@ -697,13 +697,3 @@ mod tests {
         assert!(on_lines * 10 > ticks * 9, "{on_lines} of {ticks}");
     }
 }
-impl ModelState {
-    #[doc(hidden)]
-    pub fn tmp_slip(&self) -> (f64, f64, i32) {
-        (
-            self.slip.g_bits as f64 / 65536.0,
-            self.slip.z_bits as f64 / 65536.0,
-            self.current_lp_bits,
-        )
-    }
-}
