@@ -1,7 +1,8 @@
 //! `beltctl calibrate`: the calibration of `hil-sim calibrate` on a real drive.
 //!
 //! The same scenarios (`hil_sim::eval::CALIBRATION_SCENARIOS`, fitted to the drive's travel and
-//! limits), run as raw motor moves while the drive records every tick; the recordings become
+//! limits, and `hil-sim`'s default calibration plan drawn across the drive's own range), run as
+//! raw motor moves while the drive records every tick; the recordings become
 //! `hil_sim::run::Trace`s and are fitted by `hil_sim::calibrate::calibrate`, written by
 //! `hil_sim::calfile`, plotted by `hil_sim::plot`; the blob goes to the drive and is read back.
 
@@ -47,7 +48,8 @@ pub struct Plan {
 
 /// `hil-sim`'s calibration scenarios fitted to the drive: positions mapped from the paper's
 /// travel onto the drive's (scaled down only where the drive's is shorter), speeds and
-/// accelerations clipped to the drive's limits and to the caps given.
+/// accelerations clipped to the drive's limits and to the caps given; then `hil-sim`'s default
+/// calibration plan drawn across the drive's own range.
 pub fn plan(
     settings: &Settings,
     velocity_cap: Option<f64>,
@@ -95,6 +97,21 @@ pub fn plan(
             ..s
         });
     }
+    // The default plan of `hil-sim calibrate` across the drive's own range (travel, speed and
+    // acceleration up to the caps): short and long strokes, slow feeds to the fastest moves,
+    // reversals in mid-motion, both travel ends. Without it the fit saw only the paper's three
+    // scenarios, at their speeds.
+    let lim = hil_sim::workloads::Limits {
+        travel_min_mm: d0,
+        travel_max_mm: d1,
+        max_velocity_mm_s: vmax,
+        max_accel_mm_s2: amax,
+    };
+    scenarios.push(hil_sim::workloads::calibration_plan(
+        &lim,
+        hil_sim::eval::CALIBRATION_PLAN_SEED,
+        hil_sim::eval::CALIBRATION_PLAN_S,
+    ));
     Ok(Plan {
         scenarios,
         position_scale: scale,
@@ -548,8 +565,9 @@ mod tests {
         assert_eq!(same.position_scale, 1.0);
         assert_eq!(same.clipped_moves, 0);
         let names: Vec<_> = same.scenarios.iter().map(|s| s.name.as_str()).collect();
-        assert_eq!(names, hil_sim::eval::CALIBRATION_SCENARIOS);
-        for s in &same.scenarios {
+        assert_eq!(names[..3], *hil_sim::eval::CALIBRATION_SCENARIOS);
+        assert!(names[3].starts_with("calibration-plan"), "{names:?}");
+        for s in &same.scenarios[..3] {
             let orig = Scenario::load(&s.name).unwrap();
             assert_eq!(s.moves, orig.moves);
         }
