@@ -27,6 +27,7 @@ struct Models {
     model1: toml::Table,
     model2: toml::Table,
     model3: toml::Table,
+    model4: toml::Table,
     backlash: toml::Table,
     bidir_table: toml::Table,
 }
@@ -212,6 +213,42 @@ fn models_of(p: &ModelParams) -> Models {
             ("amplitude_b_mm", m2.amplitude_b_mm),
         ]),
         model3,
+        model4: {
+            let m = &p.model4;
+            let mut t = table(&[
+                ("x_ref_mm", m.x_ref_mm),
+                ("offset_um", m.offset_um),
+                ("slope_um_per_mm", m.slope_um_per_mm),
+                ("knot_start_mm", m.knot_start_mm),
+                ("knot_step_mm", m.knot_step_mm),
+                ("pitch_mm", m.pitch_mm),
+                ("turn_mm", m.turn_mm),
+                ("current_um_per_a", m.current_um_per_a),
+                ("current_lp_um_per_a", m.current_lp_um_per_a),
+            ]);
+            for (k, v) in [
+                ("widths_mm", &m.widths_mm[..]),
+                ("play_um_per_mm", &m.play_um_per_mm[..]),
+                ("play_forward_um_per_mm", &m.play_forward_um_per_mm[..]),
+                ("knot_um", &m.knot_um[..]),
+                ("pitch_um", &m.pitch_um[..]),
+                ("turn_um", &m.turn_um[..]),
+            ] {
+                t.insert(k.into(), floats(v));
+            }
+            // The slip observer: the belt's tooth gap, its load and creep as fitted.
+            let sl = &m.slip;
+            let mut slip = table(&[
+                ("creep_per_mm", sl.creep_per_mm),
+                ("limit_um", sl.limit_um),
+                ("half_gap_um", sl.half_gap_um),
+                ("weight", sl.weight),
+            ]);
+            slip.insert("load_um".into(), floats(&sl.load_um));
+            slip.insert("um_per_a".into(), floats(&sl.um_per_a));
+            t.insert("slip".into(), toml::Value::Table(slip));
+            t
+        },
         backlash: table(&[
             ("offset_um", p.backlash.offset_um),
             ("backlash_um", p.backlash.backlash_um),

@@ -331,6 +331,7 @@ fn the_reported_inputs_are_refused_by_file_move_and_field() {
         ("edited", ("h_mm = ", "h_mm = 0.5 # ")),
         ("nan", ("backlash_um = ", "backlash_um = nan # ")),
         ("unknown", ("[backlash]", "[backlash]\nslack_um = 3.0")),
+        ("slip", ("half_gap_um = ", "half_gap_um = 100.0 # ")),
     ] {
         let d = dir.join(name);
         std::fs::create_dir_all(&d).unwrap();
