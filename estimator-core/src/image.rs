@@ -427,11 +427,8 @@ fn read_slip(r: &mut Stream) -> Result<SlipCoeffs, BlobError> {
     if kappa_q32 as u64 > slip::MAX_KAPPA_Q32 {
         return Err(out_of_range(ConfigField::Model4SlipCreepPerMm));
     }
-    // Up to 1 mm per count.
+    // Any travel per count: the step saturates the pre-slide limit.
     let um_per_count_bits = r.u32()?;
-    if um_per_count_bits > 1000 << 16 {
-        return Err(out_of_range(ConfigField::Model4SlipCreepPerMm));
-    }
     let mut bits = |field, lo: i32, hi: i32| -> Result<i32, BlobError> {
         let v = r.i32()?;
         if (lo..=hi).contains(&v) {

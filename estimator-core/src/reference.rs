@@ -208,13 +208,26 @@ impl RefSlip {
     /// One tick (see [`crate::model::slip`]).
     pub fn step(&mut self, forward: bool, x: i32, current_a: f64) {
         let c = &self.c;
-        let x = x as i64;
-        // The drive's difference wraps in i32; positions here stay within i32, so does it.
-        let ds = x - self.x_prev;
-        self.x_prev = x;
+        // The travel is the difference of two `i32` positions modulo 2^32 (a position that
+        // wraps around `i32` moves by one count), as the drive defines it.
+        let ds = (x as i64 - self.x_prev).rem_euclid(1 << 32);
+        let ds = if ds >= 1 << 31 { ds - (1 << 32) } else { ds };
+        self.x_prev = x as i64;
         let ads = ds.unsigned_abs();
+        // The low pass is defined on the current's bits modulo 2^32, as the drive runs it.
         let lp = self.lp_bits as i64;
-        self.lp_bits = (lp + ((current_bits(current_a) as i64 - lp) >> slip::SLIP_LP_SHIFT)) as i32;
+        let diff = (current_bits(current_a) as i64 - lp).rem_euclid(1 << 32);
+        let diff = if diff >= 1 << 31 {
+            diff - (1 << 32)
+        } else {
+            diff
+        };
+        let next = (lp + (diff >> slip::SLIP_LP_SHIFT)).rem_euclid(1 << 32);
+        self.lp_bits = (if next >= 1 << 31 {
+            next - (1 << 32)
+        } else {
+            next
+        }) as i32;
         let k = forward as usize;
         let raw = c.load_bits[k] as i64
             + (c.per_a_bits[k] as i64 * self.lp_bits as i64).div_euclid(1 << 16);
@@ -619,6 +632,57 @@ impl Reference {
                 } else {
                     edge
                 }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::slip::{Slip, SlipParams};
+    use proptest::prelude::*;
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 512, failure_persistence: None, ..ProptestConfig::default() })]
+
+        /// The plain `i64` observer is the drive's, bit for bit, on wild input: positions
+        /// anywhere in `i32` (jumps across its wrap and of more than 2^31), currents anywhere
+        /// in I16F16 (steps of the whole range), loads beyond the limit and within it.
+        #[test]
+        fn the_slip_reference_is_the_drive_s(
+            load in prop::array::uniform2(0.0f64..2048.0),
+            per_a in prop::array::uniform2(-2048.0f64..2048.0),
+            creep_per_mm in 0.0f64..10.0,
+            limit_um in 1.0f64..2048.0,
+            half_gap_um in 1.0f64..2048.0,
+            x0 in any::<i32>(),
+            walk in prop::collection::vec((any::<i32>(), -2000i32..2000, any::<i32>(), any::<bool>(), 0u8..3), 1..100),
+        ) {
+            let c = SlipParams {
+                load_um: load,
+                um_per_a: per_a,
+                creep_per_mm,
+                limit_um,
+                half_gap_um,
+                weight: 1.0,
+            }
+            .build(500.0)
+            .expect("observer builds");
+            let (mut drive, mut reference) = (Slip::NEW, RefSlip::new(&c));
+            drive.start(&c, true, x0, 0);
+            reference.start(true, x0, 0.0);
+            let mut x = x0;
+            for (jump, step, current_bits, forward, kind) in walk {
+                x = match kind {
+                    0 => jump,
+                    _ => x.wrapping_add(step),
+                };
+                let amps = I16F16::from_bits(current_bits);
+                drive.step(&c, forward, x, current_bits);
+                reference.step(forward, x, amps.to_num());
+                prop_assert_eq!(drive.g_bits as i64, reference.g);
+                prop_assert_eq!(drive.z_bits as i64, reference.z);
             }
         }
     }

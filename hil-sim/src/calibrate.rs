@@ -703,7 +703,8 @@ fn model4(
     m.turn_um = [v[h + 2], v[h + 3]];
     m.current_um_per_a = v[NB - 2];
     m.current_lp_um_per_a = v[NB - 1];
-    m.slip.weight = v[NB];
+    // The blob holds |w| < 8 (Q16); a fit at the bound is clamped, not refused.
+    m.slip.weight = v[NB].clamp(-7.99, 7.99);
     Ok(m)
 }
 

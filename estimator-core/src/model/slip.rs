@@ -62,7 +62,8 @@ pub struct SlipParams {
     pub load_um: [f64; 2],
     /// Deflection per ampere of the low-passed motor current, reverse and forward, um/A.
     pub um_per_a: [f64; 2],
-    /// Renewal of the contact per mm of pulley travel (`kappa`), 1/mm, >= 0.
+    /// Renewal of the contact per mm of pulley travel (`kappa`), 1/mm, from 0 to a sixteenth of
+    /// the counts per mm.
     pub creep_per_mm: f64,
     /// Friction limit as a deflection (`z_max`), um, in `[1, 2048]`.
     pub limit_um: f64,
@@ -108,7 +109,8 @@ impl SlipParams {
         }
         let kappa = finite(self.creep_per_mm, ConfigField::Model4SlipCreepPerMm)?;
         let kappa_q32 = kappa / counts_per_mm * (1u64 << 32) as f64;
-        // At most 1/16 per count: the cap per tick is then reached only above 1 count/tick.
+        // At most 1/16 per count (the hand-over's cap of 1 is then reached at 16 counts per
+        // tick, the creep's of 128 at 2048).
         if !(0.0..=MAX_KAPPA_Q32 as f64).contains(&kappa_q32) {
             return Err(ConfigError::OutOfRange(ConfigField::Model4SlipCreepPerMm));
         }
@@ -216,7 +218,7 @@ impl Slip {
             .lp_bits
             .wrapping_add(current_bits.wrapping_sub(self.lp_bits) >> SLIP_LP_SHIFT);
         let k = forward as usize;
-        // |per_a| < 2^27, |lp| < 2^31: the load fits 2^43.
+        // |per_a| <= 2^27, |lp| <= 2^31: the load fits 2^58.
         let raw = c.load_bits[k] as i64 + ((c.per_a_bits[k] as i64 * self.lp_bits as i64) >> 16);
         // max/min, not clamp: the bounds come from coefficients, and clamp asserts their order.
         let req = raw.max(-(c.cap_bits as i64)).min(c.cap_bits as i64) as i32;
@@ -230,7 +232,8 @@ impl Slip {
         let hold = (g >= h && req > z) || (g <= -h && req < z);
         if !hold {
             let lim = (ads as u64 * c.um_per_count_bits as u64).min(i32::MAX as u64) as i32;
-            // |req|, |z| <= cap < 2^28: no overflow.
+            // |req| <= cap < 2^27 and |z| < 2^27 (|g - z| <= 2^27 even after new coefficients):
+            // no overflow.
             let dz = (req - z).max(-lim).min(lim);
             let (mut g, mut z) = (g + dz, z + dz);
             if g > h {
@@ -250,7 +253,8 @@ impl Slip {
             self.z_bits = z - ((z as i64 * step + (1 << 31)) >> 32) as i32;
         } else {
             // |z| < 2^27 and the factor <= 2^17: r (Q8 um) < 2^24, times a step <= 2^39
-            // fits an i64.
+            // fits an i64 (the drive resets the state with new coefficients; a state kept
+            // across them stays within these bounds too).
             let r = (z as i64 * creep_factor_q12(c.limit_bits, z) as i64 + (1 << 19)) >> 20;
             let dg = (r * step.min(MAX_CREEP_Q32) as i64 + (1 << 23)) >> 24;
             self.g_bits = (g as i64 + dg).max(-(h as i64)).min(h as i64) as i32;
