@@ -404,24 +404,31 @@ fn read_model4(r: &mut Stream) -> Result<Model4Coeffs, BlobError> {
     })
 }
 
+/// An `i32` in `lo..=hi`, or a refusal naming `field`.
+fn i32_in(r: &mut Stream, lo: i32, hi: i32, field: ConfigField) -> Result<i32, BlobError> {
+    let v = r.i32()?;
+    if (lo..=hi).contains(&v) {
+        Ok(v)
+    } else {
+        Err(out_of_range(field))
+    }
+}
+
 /// The slip observer, each field within what [`crate::model::slip::SlipParams::build`] makes.
 fn read_slip(r: &mut Stream) -> Result<SlipCoeffs, BlobError> {
-    let max = (slip::MAX_SLIP_UM as i32) << 16;
-    let mut bits = |field, lo: i32, hi: i32| -> Result<i32, BlobError> {
-        let v = r.i32()?;
-        if (lo..=hi).contains(&v) {
-            Ok(v)
-        } else {
-            Err(out_of_range(field))
-        }
+    use ConfigField::{
+        Model4SlipHalfGapUm, Model4SlipLimitUm, Model4SlipLoadUm, Model4SlipUmPerA,
+        Model4SlipWeight,
     };
+    let max = (slip::MAX_SLIP_UM as i32) << 16;
+    // The reverse load acts backward, the forward one forward.
     let load_bits = [
-        bits(ConfigField::Model4SlipLoadUm, -max, 0)?,
-        bits(ConfigField::Model4SlipLoadUm, 0, max)?,
+        i32_in(r, -max, 0, Model4SlipLoadUm)?,
+        i32_in(r, 0, max, Model4SlipLoadUm)?,
     ];
     let per_a_bits = [
-        bits(ConfigField::Model4SlipUmPerA, -max, max)?,
-        bits(ConfigField::Model4SlipUmPerA, -max, max)?,
+        i32_in(r, -max, max, Model4SlipUmPerA)?,
+        i32_in(r, -max, max, Model4SlipUmPerA)?,
     ];
     let kappa_q32 = r.u32()?;
     if kappa_q32 as u64 > slip::MAX_KAPPA_Q32 {
@@ -429,24 +436,16 @@ fn read_slip(r: &mut Stream) -> Result<SlipCoeffs, BlobError> {
     }
     // Any travel per count: the step saturates the pre-slide limit.
     let um_per_count_bits = r.u32()?;
-    let mut bits = |field, lo: i32, hi: i32| -> Result<i32, BlobError> {
-        let v = r.i32()?;
-        if (lo..=hi).contains(&v) {
-            Ok(v)
-        } else {
-            Err(out_of_range(field))
-        }
-    };
-    let limit_bits = bits(ConfigField::Model4SlipLimitUm, 1 << 16, max)?;
-    let half_gap_bits = bits(ConfigField::Model4SlipHalfGapUm, 1 << 16, max)?;
-    let weight_q16 = bits(ConfigField::Model4SlipWeight, -(8 << 16), 8 << 16)?;
+    let limit_bits = i32_in(r, 1 << 16, max, Model4SlipLimitUm)?;
+    let half_gap_bits = i32_in(r, 1 << 16, max, Model4SlipHalfGapUm)?;
+    let weight_q16 = i32_in(r, -(8 << 16), 8 << 16, Model4SlipWeight)?;
     Ok(SlipCoeffs {
         load_bits,
         per_a_bits,
         kappa_q32,
         um_per_count_bits,
         limit_bits,
-        cap_bits: limit_bits - limit_bits / 20,
+        cap_bits: SlipCoeffs::cap_bits_of(limit_bits),
         half_gap_bits,
         weight_q16,
     })

@@ -214,20 +214,12 @@ impl RefSlip {
         let ds = if ds >= 1 << 31 { ds - (1 << 32) } else { ds };
         self.x_prev = x as i64;
         let ads = ds.unsigned_abs();
-        // The low pass is defined on the current's bits modulo 2^32, as the drive runs it.
-        let lp = self.lp_bits as i64;
-        let diff = (current_bits(current_a) as i64 - lp).rem_euclid(1 << 32);
-        let diff = if diff >= 1 << 31 {
-            diff - (1 << 32)
-        } else {
-            diff
-        };
-        let next = (lp + (diff >> slip::SLIP_LP_SHIFT)).rem_euclid(1 << 32);
-        self.lp_bits = (if next >= 1 << 31 {
-            next - (1 << 32)
-        } else {
-            next
-        }) as i32;
+        // The low pass is part of the definition, as for Model 4's current term: run as is.
+        self.lp_bits = crate::model::operator::lowpass_bits(
+            self.lp_bits,
+            current_bits(current_a),
+            slip::SLIP_LP_SHIFT,
+        );
         let k = forward as usize;
         let raw = c.load_bits[k] as i64
             + (c.per_a_bits[k] as i64 * self.lp_bits as i64).div_euclid(1 << 16);

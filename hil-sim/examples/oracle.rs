@@ -10,10 +10,10 @@
 //! class (seed 11), all held out of the calibration.
 #![allow(clippy::print_stdout)]
 
-use estimator_core::model::operator::{N_KNOTS, N_OPS};
 use estimator_core::model::{ModelKind, ModelParams};
 use estimator_core::reference::Reference;
 use estimator_core::rig::Rig;
+use hil_sim::calibrate::model4_row;
 use hil_sim::eval::{self, CALIBRATION_PLAN_S, CALIBRATION_PLAN_SEED, CALIBRATION_SCENARIOS};
 use hil_sim::run::Trace;
 use hil_sim::scenario::Scenario;
@@ -47,15 +47,8 @@ fn replay(t: &Trace, s: &Scenario, plant: &PlantParams, params: &ModelParams, ri
         run.span_n.push(b.span2_n - b.span1_n);
         let current = r.out.current_a.to_num::<f64>();
         let (_, f) = m.model4_step(r.motor_counts.0, current);
-        let mut row = Vec::with_capacity(2 * N_OPS + N_KNOTS + 9);
-        for v in f.plays_counts {
-            row.push(v / cpm);
-            row.push(if f.forward { v / cpm } else { 0.0 });
-        }
-        row.extend([1.0, f.from_ref_counts / cpm]);
-        row.extend_from_slice(&f.hats);
-        row.extend_from_slice(f.harmonics.as_flattened());
-        row.extend([f.current_a, f.current_lp_a, f.slip_um]);
+        let mut row = model4_row(&f, cpm).to_vec();
+        row.push(f.slip_um);
         run.terms.push(row);
         run.dx_um.push(t.dx_um(k));
         p.step(current, 1.0 / 2000.0);

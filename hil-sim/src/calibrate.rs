@@ -20,7 +20,7 @@ use estimator_core::model::{
     BandParams, Model1Params, Model2Params, Model3Params, Model4Params, ModelKind, ModelParams,
     TransitionParams, MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
 };
-use estimator_core::reference::{RefSlip, Reference};
+use estimator_core::reference::{Model4Terms, RefSlip, Reference};
 use estimator_core::rig::Rig;
 use estimator_core::ConfigError;
 
@@ -581,20 +581,7 @@ fn model4(
         let mut model4 = Reference::new(&probe, rig, x0).map_err(CalibrationError::Features)?;
         for (i, &x) in r.x_counts.iter().enumerate() {
             let (_, t) = model4.model4_step(x, r.current_a[i]);
-            let mut row = [0.0; NB];
-            for (j, f) in t.plays_counts.iter().enumerate() {
-                row[2 * j] = f / cpm;
-                row[2 * j + 1] = if t.forward { f / cpm } else { 0.0 };
-            }
-            let k = 2 * N_OPS;
-            row[k] = 1.0;
-            row[k + 1] = t.from_ref_counts / cpm;
-            row[k + 2..k + 2 + N_KNOTS].copy_from_slice(&t.hats);
-            let h = k + 2 + N_KNOTS;
-            row[h..h + 4].copy_from_slice(t.harmonics.as_flattened());
-            row[NB - 2] = t.current_a;
-            row[NB - 1] = t.current_lp_a;
-            cols.push(row);
+            cols.push(model4_row(&t, cpm));
             forward.push(t.forward);
             y.push(r.dx_um[i]);
         }
@@ -710,7 +697,27 @@ fn model4(
 
 /// Model 4's terms besides the observer: two per play, the band line, the hats, the harmonics,
 /// the current and its low pass.
-const NB: usize = 2 * N_OPS + 2 + N_KNOTS + 4 + 2;
+pub const NB: usize = 2 * N_OPS + 2 + N_KNOTS + 4 + 2;
+
+/// Model 4's terms at one tick as a row of the fit, every weight's column in its unit (um per mm
+/// of play output, um, um per mm of travel, um per hat, per sine, per ampere); the observer's
+/// offset is not in it (the fit adds it as the last column).
+pub fn model4_row(t: &Model4Terms, counts_per_mm: f64) -> [f64; NB] {
+    let mut row = [0.0; NB];
+    for (j, f) in t.plays_counts.iter().enumerate() {
+        row[2 * j] = f / counts_per_mm;
+        row[2 * j + 1] = if t.forward { f / counts_per_mm } else { 0.0 };
+    }
+    let k = 2 * N_OPS;
+    row[k] = 1.0;
+    row[k + 1] = t.from_ref_counts / counts_per_mm;
+    row[k + 2..k + 2 + N_KNOTS].copy_from_slice(&t.hats);
+    let h = k + 2 + N_KNOTS;
+    row[h..h + 4].copy_from_slice(t.harmonics.as_flattened());
+    row[NB - 2] = t.current_a;
+    row[NB - 1] = t.current_lp_a;
+    row
+}
 
 /// Where the observer's fit starts (`slip_params`' coordinates): a load of 60 um at constant
 /// speed, 5 % more forward, 25 um per ampere, a renewal of 0.03 per mm, limit and half gap

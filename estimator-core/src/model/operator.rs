@@ -70,7 +70,14 @@ const CURRENT_LP_SHIFT: u32 = 5;
 /// is part of the feature's definition).
 #[inline(always)]
 pub fn current_lowpass(lp_bits: i32, current_bits: i32) -> i32 {
-    lp_bits.wrapping_add(current_bits.wrapping_sub(lp_bits) >> CURRENT_LP_SHIFT)
+    lowpass_bits(lp_bits, current_bits, CURRENT_LP_SHIFT)
+}
+
+/// A one-pole low pass of `1 / 2^shift` per tick on raw bits, modulo 2^32 (arithmetic shift:
+/// floor). Model 4's current term and its slip observer both run it.
+#[inline(always)]
+pub fn lowpass_bits(lp_bits: i32, input_bits: i32, shift: u32) -> i32 {
+    lp_bits.wrapping_add(input_bits.wrapping_sub(lp_bits) >> shift)
 }
 
 /// Model 4's parameters in SI-ish units (mm, um); all zero predicts 0 everywhere.

@@ -40,6 +40,7 @@ use crate::ConfigField;
 use fixed::types::I16F16;
 
 use super::convert::finite;
+use super::operator::lowpass_bits;
 use crate::ConfigError;
 
 /// The current's low pass inside the observer: `1 / 2^SLIP_LP_SHIFT` per tick (2 ms at 2 kHz).
@@ -126,7 +127,7 @@ impl SlipParams {
             kappa_q32: (kappa_q32 + 0.5) as u32,
             um_per_count_bits: (um_per_count + 0.5).min(u32::MAX as f64) as u32,
             limit_bits,
-            cap_bits: limit_bits - limit_bits / 20,
+            cap_bits: SlipCoeffs::cap_bits_of(limit_bits),
             half_gap_bits: I16F16::from_num(half_gap).to_bits(),
             // Half away from zero (`core` has no `f64::round`).
             weight_q16: (if weight >= 0.0 {
@@ -159,6 +160,12 @@ pub struct SlipCoeffs {
 }
 
 impl SlipCoeffs {
+    /// The cap on the load, `0.95 z_max`, kept with the coefficients so that the tick does not
+    /// derive it.
+    pub(crate) const fn cap_bits_of(limit_bits: i32) -> i32 {
+        limit_bits - limit_bits / 20
+    }
+
     /// Adds nothing; all bits zero (so that `ModelCoeffs::ZERO` stays in `.bss`, not a copy
     /// in flash). A zero limit and gap are total: the factor is 0 and `g` stays at 0.
     pub const ZERO: SlipCoeffs = SlipCoeffs {
@@ -214,9 +221,7 @@ impl Slip {
         let ds = x.wrapping_sub(self.x_prev);
         self.x_prev = x;
         let ads = ds.unsigned_abs();
-        self.lp_bits = self
-            .lp_bits
-            .wrapping_add(current_bits.wrapping_sub(self.lp_bits) >> SLIP_LP_SHIFT);
+        self.lp_bits = lowpass_bits(self.lp_bits, current_bits, SLIP_LP_SHIFT);
         let k = forward as usize;
         // |per_a| <= 2^27, |lp| <= 2^31: the load fits 2^58.
         let raw = c.load_bits[k] as i64 + ((c.per_a_bits[k] as i64 * self.lp_bits as i64) >> 16);
