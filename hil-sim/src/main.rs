@@ -201,6 +201,10 @@ enum Cmd {
         /// geometry).
         #[arg(long)]
         no_variants: bool,
+        /// Also N machines drawn at random around the paper rig (seeds 1 to N; see
+        /// `generalise::drawn_plant`).
+        #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u64).range(0..=100))]
+        drawn: u64,
     },
     /// Calibrate, run the scenario, and write report.md with PNG figures (Figs. 11, 18-24).
     Report {
@@ -597,6 +601,7 @@ fn main() -> ExitCode {
             plant,
             seed,
             no_variants,
+            drawn,
         } => (|| {
             let mut plants = if no_variants {
                 vec![PlantParams::paper_rig()]
@@ -606,6 +611,7 @@ fn main() -> ExitCode {
             for p in &plant {
                 plants.push(PlantParams::load(p)?);
             }
+            plants.extend((1..=drawn).map(generalise::drawn_plant));
             let mut progress = Progress::new();
             let mut tables = Vec::new();
             for p in &plants {
