@@ -229,13 +229,13 @@ impl RefSlip {
             c.half_gap_bits as i64,
         );
         let req = raw.clamp(-cap, cap);
+        let lim = (ads as u128 * c.um_per_count_bits as u128).min(i32::MAX as u128) as i64;
         if raw.abs() > limit && ds != 0 && (ds > 0) == (raw > 0) {
-            self.g = raw.signum() * h;
+            self.g = (self.g + raw.signum() * lim).clamp(-h, h);
             self.z = req;
             return;
         }
         if !((self.g >= h && req > self.z) || (self.g <= -h && req < self.z)) {
-            let lim = (ads as u128 * c.um_per_count_bits as u128).min(i32::MAX as u128) as i64;
             let dz = (req - self.z).clamp(-lim, lim);
             self.g += dz;
             self.z += dz;
