@@ -25,11 +25,17 @@ fn mean_square(t: &PlantTable, estimator: &str) -> f64 {
 /// (Model 3), heavy carriage 60.4 / 112.9 (Model 3), other geometry 28.7 / 46.1 (Model 1) um.
 #[test]
 fn model4_is_best_over_held_out_workloads() {
+    assert_model4_best_held_out(generalise::plants().unwrap());
+}
+
+/// On every plant, calibrated by its default plan, over one generated workload of every class at
+/// [`HELD_OUT_SEED`]: Model 4's mean square is below every other estimator's. Prints the figures.
+fn assert_model4_best_held_out(plants: impl IntoIterator<Item = hil_sim::PlantParams>) {
     let mut report = String::new();
     let mut failed = Vec::new();
-    for plant in generalise::plants().unwrap() {
-        let all = generalise::workloads(&plant, HELD_OUT_SEED).unwrap();
-        let generated: Vec<_> = all
+    for plant in plants {
+        let generated: Vec<_> = generalise::workloads(&plant, HELD_OUT_SEED)
+            .unwrap()
             .into_iter()
             .filter(|s| s.name.ends_with(&format!("-{HELD_OUT_SEED}")))
             .collect();
@@ -37,7 +43,7 @@ fn model4_is_best_over_held_out_workloads() {
         let t = generalise::measure(&plant, &generated, &mut |_, _| {}).unwrap();
         assert_eq!(t.rows.len(), 6, "{}: a workload was refused", plant.name());
         let m4 = mean_square(&t, "model4").sqrt();
-        report += &format!("{}: model4 {m4:.1} um", t.plant);
+        report += &format!("{} {:?}: model4 {m4:.1} um", t.plant, plant.rig());
         for e in hil_sim::eval::ESTIMATORS {
             if *e == "model4" {
                 continue;
@@ -86,31 +92,5 @@ fn generated_workloads_are_valid_on_every_plant() {
 /// With the gap crossed at once in gross slip the third was 23.0 against 20.3.
 #[test]
 fn model4_is_best_on_machines_drawn_at_random() {
-    let mut report = String::new();
-    let mut failed = Vec::new();
-    for seed in 1..=3 {
-        let plant = generalise::drawn_plant(seed);
-        let generated: Vec<_> = generalise::workloads(&plant, HELD_OUT_SEED)
-            .unwrap()
-            .into_iter()
-            .filter(|s| s.name.ends_with(&format!("-{HELD_OUT_SEED}")))
-            .collect();
-        let t = generalise::measure(&plant, &generated, &mut |_, _| {}).unwrap();
-        assert_eq!(t.rows.len(), 6, "{}: a workload was refused", plant.name());
-        let m4 = mean_square(&t, "model4").sqrt();
-        report += &format!("{} {:?}: model4 {m4:.1} um", t.plant, plant.rig());
-        for e in hil_sim::eval::ESTIMATORS {
-            if *e == "model4" {
-                continue;
-            }
-            let other = mean_square(&t, e).sqrt();
-            report += &format!(", {e} {other:.1}");
-            if other <= m4 {
-                failed.push(format!("{}: {e} {other:.1} <= model4 {m4:.1}", t.plant));
-            }
-        }
-        report += "\n";
-    }
-    println!("{report}");
-    assert!(failed.is_empty(), "{failed:?}\n{report}");
+    assert_model4_best_held_out((1..=3).map(generalise::drawn_plant));
 }
