@@ -41,22 +41,17 @@ fn main() {
     println!("move  target mm   arrival  prediction  estimate   motor");
     let mut sums = [0.0f64; 4];
     let mut moves = 0.0;
-    for (k, m) in scenario.moves.iter().enumerate() {
-        let end = t.move_starts.get(k + 1).copied().unwrap_or(t.records.len());
-        let Some(r) = end.checked_sub(1).and_then(|i| t.records.get(i)) else {
-            continue;
-        };
-        if r.out.telemetry.moving || m.retarget_after_ms.is_some() {
-            continue;
-        }
-        let arrival = (r.x_ls_mm - m.to_mm) * 1000.0;
+    // The moves that end at rest, read as the placement figures read them.
+    for (k, arrival) in placement::arrivals(&scenario, &t) {
+        let m = &scenario.moves[k];
+        let i = t.move_starts.get(k + 1).copied().unwrap_or(t.records.len()) - 1;
+        let r = &t.records[i];
         let predicted = m.to_mm * 1000.0 - um(r.setpoint_counts.0);
         let estimated = r.out.telemetry.est_error_um.to_num::<f64>();
-        let true_um = (r.x_ls_mm - r.motor_counts.0 as f64 / cpm) * 1000.0;
         let parts = [
             arrival,
             estimated - predicted,
-            true_um - estimated,
+            t.dx_um(i) - estimated,
             um(r.motor_counts.0 - r.setpoint_counts.0),
         ];
         println!(
@@ -83,9 +78,10 @@ fn main() {
     )
     .expect("motor-space run");
     let est = eval::estimates(&t, &coeffs);
-    let Some((_, y)) = est.iter().find(|e| e.0 == name) else {
-        return;
-    };
+    let (_, y) = est
+        .iter()
+        .find(|e| e.0 == name)
+        .expect("an estimate for every compensator");
     // Moving, the first 100 ticks (50 ms) at rest, and after.
     let mut phase = [(0.0f64, 0usize); 3];
     let mut at_rest = 0usize;
