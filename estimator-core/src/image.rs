@@ -46,7 +46,7 @@ use fixed::types::{I13F3, I16F16, I1F31, U11F5};
 
 use crate::blob::{check_header_from, BlobError};
 use crate::model::fixmath::{Recip, Scale, MAX_SHIFT};
-use crate::model::operator::{weight_total, N_KNOTS, N_OPS};
+use crate::model::operator::{N_KNOTS, N_OPS};
 use crate::model::slip::{self, SlipCoeffs};
 use crate::model::LinearBand;
 use crate::model::{
@@ -385,7 +385,6 @@ fn read_model4(r: &mut Stream) -> Result<Model4Coeffs, BlobError> {
     let current_lp_um_per_a = um(r, ANY, ConfigField::Model4CurrentLpUmPerA)?;
     let slip = read_slip(r)?;
     Ok(Model4Coeffs {
-        weight_total: weight_total(&weight_q24),
         widths_counts,
         weight_q24,
         x_ref_counts,

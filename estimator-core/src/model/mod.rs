@@ -263,17 +263,17 @@ pub struct ModelCoeffs {
 }
 
 // The firmware keeps one `ModelCoeffs` in static RAM (budget 8 KiB) and moves it when a
-// calibration loads: any growth must be deliberate (3448 B with the host's closing distances,
+// calibration loads: any growth must be deliberate (3428 B with the host's closing distances,
 // the 256-row bidirectional table 1 KiB in I13F3, Model 3's even-axis bands 528 B and Model 4
-// 176 B of it; ModelState 184 B, Model 4's plays with their running sums and its slip observer
-// 88 B of it, Model 3's line over the current stretch and its half-drawn successor 40 B). Exact: a
-// shrink shows here too.
+// 160 B of it; ModelState 128 B, Model 4's plays and its slip observer 32 B of it, Model 3's
+// line over the current stretch and its half-drawn successor 40 B). Exact: a shrink shows here
+// too.
 #[cfg(feature = "std")]
-const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3448);
+const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3428);
 // On the drive (no closing distances): what the static RAM figures count.
 #[cfg(not(feature = "std"))]
-const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3400);
-const _: () = assert!(core::mem::size_of::<ModelState>() == 184);
+const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3380);
+const _: () = assert!(core::mem::size_of::<ModelState>() == 128);
 
 impl ModelCoeffs {
     /// Everything zero and no tables: a value to decode a calibration image into
@@ -346,7 +346,6 @@ impl ModelCoeffs {
                 current_um_per_a: I16F16::ZERO,
                 current_lp_um_per_a: I16F16::ZERO,
                 slip: slip::SlipCoeffs::ZERO,
-                weight_total: [0; 2],
             },
             backlash: BacklashCoeffs {
                 forward_um: I16F16::ZERO,

@@ -224,26 +224,43 @@ impl Slip {
     pub(crate) fn step(&mut self, c: &SlipCoeffs, forward: bool, x: i32, current_bits: i32) {
         let ds = x.wrapping_sub(self.x_prev);
         self.x_prev = x;
-        let ads = ds.unsigned_abs();
         self.lp_bits = lowpass_bits(self.lp_bits, current_bits, SLIP_LP_SHIFT);
+        if ds == 0 {
+            // Standing still moves neither `g` nor `z`: no slip without travel, the load's
+            // swing and the creep are bounded by the travel, and the state is in the gap
+            // (`|g| <= h`, the drive restarts it with new coefficients). Most ticks of a
+            // positioning job are at rest.
+            return;
+        }
+        let ads = ds.unsigned_abs();
         let k = forward as usize;
         // |per_a| <= 2^27, |lp| <= 2^31: the load fits 2^58.
         let raw = c.load_bits[k] as i64 + ((c.per_a_bits[k] as i64 * self.lp_bits as i64) >> 16);
-        // max/min, not clamp: the bounds come from coefficients, and clamp asserts their order.
-        let req = raw.max(-(c.cap_bits as i64)).min(c.cap_bits as i64) as i32;
         let h = c.half_gap_bits;
         let lim = (ads as u64 * c.um_per_count_bits as u64).min(i32::MAX as u64) as i32;
-        if raw.abs() > c.limit_bits as i64 && ds != 0 && (ds > 0) == (raw > 0) {
-            // The belt stands while the pulley runs under it, towards the flank.
-            let g = self.g_bits as i64;
-            self.g_bits = if raw > 0 {
-                (g + lim as i64).min(h as i64)
-            } else {
-                (g - lim as i64).max(-(h as i64))
-            } as i32;
-            self.z_bits = req;
-            return;
-        }
+        // Beyond the limit (>= 0) the load is the cap (<= the limit); within it, it fits an
+        // `i32`, so the rest of the tick is 32-bit.
+        let limit = c.limit_bits as i64;
+        let req = if raw > limit {
+            if ds > 0 {
+                // The belt stands while the pulley runs under it, towards the flank.
+                self.g_bits = self.g_bits.saturating_add(lim).min(h);
+                self.z_bits = c.cap_bits;
+                return;
+            }
+            c.cap_bits
+        } else if raw < -limit {
+            if ds < 0 {
+                self.g_bits = self.g_bits.saturating_sub(lim).max(-h);
+                self.z_bits = -c.cap_bits;
+                return;
+            }
+            -c.cap_bits
+        } else {
+            // max/min, not clamp: the bounds come from coefficients, and clamp asserts their
+            // order.
+            (raw as i32).max(-c.cap_bits).min(c.cap_bits)
+        };
         let (g, z) = (self.g_bits, self.z_bits);
         let hold = (g >= h && req > z) || (g <= -h && req < z);
         if !hold {
