@@ -31,6 +31,8 @@ def main(elf, trace, top=40, over=500):
     this, heaviest = collections.Counter(), collections.Counter()
     # Every tick over the budget's maximum: which parts make it heavy.
     heavy_ticks = []
+    # Every tick's own instructions: each function's heaviest tick.
+    all_ticks = []
     with open(trace, errors="replace") as f:
         for line in f:
             m = pc_re.search(line)
@@ -42,6 +44,7 @@ def main(elf, trace, top=40, over=500):
                 this = collections.Counter()
             elif inside and caller[0] <= pc < caller[1]:
                 inside = False
+                all_ticks.append(this)
                 total = sum(this.values())
                 if total > sum(heaviest.values()):
                     heaviest = this
@@ -58,12 +61,19 @@ def main(elf, trace, top=40, over=500):
         i = bisect.bisect_right(starts, pc) - 1
         return syms[i][2] if i >= 0 and syms[i][0] <= pc < syms[i][1] else "?"
 
-    by_fn = collections.Counter()
+    fn_of = {pc: re.sub(r"::h[0-9a-f]{16}$", "", name(pc)) for pc in counts}
+    by_fn, fn_max = collections.Counter(), collections.Counter()
     for pc, n in counts.items():
-        by_fn[re.sub(r"::h[0-9a-f]{16}$", "", name(pc))] += n
-    print("\nper function (after inlining):")
+        by_fn[fn_of[pc]] += n
+    for tick in all_ticks:
+        per_fn = collections.Counter()
+        for pc, n in tick.items():
+            per_fn[fn_of[pc]] += n
+        for fn, n in per_fn.items():
+            fn_max[fn] = max(fn_max[fn], n)
+    print("\nper function (after inlining), mean and heaviest tick:")
     for fn, n in by_fn.most_common(top):
-        print(f"{n / ticks:8.1f}  {fn}")
+        print(f"{n / ticks:8.1f} {fn_max[fn]:6d}  {fn}")
 
     pcs = sorted(counts)
     chains = inline_chains(elf, pcs)

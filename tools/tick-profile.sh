@@ -5,8 +5,9 @@
 # workspace in the inline chain, via addr2line). Mean per tick; the total matches the bench's
 # mean to within the call overhead.
 #   tools/tick-profile.sh [MODEL]      # MODEL: none, model1, ..., model4 (default model3); per
-#   function, per source file and per source line, the heaviest tick per source file and line,
-#   and every tick over 500 instructions with its largest source files
+#   function (mean and heaviest tick: `operator::eval` is Model 4's own cost), per source file
+#   and per source line, the heaviest tick per source file and line, and every tick over 500
+#   instructions with its largest source files
 # Needs python3 and addr2line (binutils); the trace takes ~1 GB in $TMPDIR for ~10 s.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
