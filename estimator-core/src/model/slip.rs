@@ -239,7 +239,7 @@ impl Slip {
         let h = c.half_gap_bits;
         let lim = (ads as u64 * c.um_per_count_bits as u64).min(i32::MAX as u64) as i32;
         // Beyond the limit (>= 0) the load is the cap (<= the limit); within it, it fits an
-        // `i32`, so the rest of the tick is 32-bit.
+        // `i32`, so the load and the pre-slide are 32-bit.
         let limit = c.limit_bits as i64;
         let req = if raw > limit {
             if ds > 0 {
