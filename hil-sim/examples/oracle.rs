@@ -10,14 +10,14 @@
 //! class (seed 11), all held out of the calibration.
 #![allow(clippy::print_stdout)]
 
-use estimator_core::model::{ModelKind, ModelParams};
+use estimator_core::model::ModelParams;
 use estimator_core::reference::Reference;
 use estimator_core::rig::Rig;
 use hil_sim::calibrate::model4_row;
 use hil_sim::eval::{self, CALIBRATION_PLAN_S, CALIBRATION_PLAN_SEED, CALIBRATION_SCENARIOS};
 use hil_sim::run::Trace;
 use hil_sim::scenario::Scenario;
-use hil_sim::workloads::{self, Class, Limits};
+use hil_sim::workloads::{self, Limits};
 use hil_sim::{drive_setup, Plant, PlantParams};
 
 /// One recording with the plant's state beside it.
@@ -99,14 +99,9 @@ fn rms(run: &Run, extra: usize, w: &[f64]) -> f64 {
 
 fn main() {
     let which = std::env::args().nth(1);
-    let plant = match &which {
-        None => PlantParams::paper_rig(),
-        Some(name) => hil_sim::generalise::plants()
-            .expect("plants")
-            .into_iter()
-            .find(|p| p.source.contains(name.as_str()))
-            .expect("a plant of that name"),
-    };
+    let plant = hil_sim::generalise::plant_named(which.as_deref())
+        .expect("built-in plants")
+        .expect("a built-in plant of that name");
     let rig = plant.rig();
     let traces = eval::record_calibration(&plant, &mut |_, _| {}).expect("recordings");
     let cal = hil_sim::calibrate::calibrate(&traces, &rig, &mut |_, _| {}).expect("calibration");
@@ -125,25 +120,10 @@ fn main() {
         .zip(&cal_scenarios)
         .map(|(t, s)| replay(t, s, &plant, &cal.params, &rig))
         .collect();
-    let mut held_out: Vec<Scenario> = ["fig18", "zigzag", "accelerations"]
+    let runs: Vec<Run> = hil_sim::generalise::probe_set(&plant, 11)
+        .expect("held-out runs")
         .iter()
-        .map(|n| Scenario::load(n).expect("preset"))
-        .collect();
-    held_out.extend(Class::ALL.map(|c| workloads::generate(c, 11, &lim, 20.0)));
-    let runs: Vec<Run> = held_out
-        .iter()
-        .map(|s| {
-            let t = eval::run_in_process(
-                s,
-                &plant,
-                &ModelParams::PAPER,
-                ModelKind::None,
-                1,
-                &mut |_| {},
-            )
-            .expect("run");
-            replay(&t, s, &plant, &cal.params, &rig)
-        })
+        .map(|(s, t)| replay(t, s, &plant, &cal.params, &rig))
         .collect();
     for (extra, name) in [
         (0, "Model 4's terms"),

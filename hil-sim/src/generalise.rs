@@ -8,6 +8,7 @@ use crate::error::{Context, Error};
 use estimator_core::model::{ModelKind, ModelParams};
 
 use crate::params::PlantParams;
+use crate::run::Trace;
 use crate::scenario::{Scenario, PRESETS};
 use crate::workloads::{self, Class, Limits};
 use crate::{drive_setup, eval};
@@ -41,6 +42,15 @@ pub fn plants() -> Result<Vec<PlantParams>, Error> {
         out.push(p);
     }
     Ok(out)
+}
+
+/// The built-in plant whose name contains `part` (`paper` or none: the paper rig), for the
+/// examples' command lines; `None` if no plant's name does.
+pub fn plant_named(part: Option<&str>) -> Result<Option<PlantParams>, Error> {
+    Ok(match part {
+        None | Some("paper") => Some(PlantParams::paper_rig()),
+        Some(part) => plants()?.into_iter().find(|p| p.source.contains(part)),
+    })
 }
 
 /// A machine drawn at random around the paper rig (`hil-sim generalise --drawn N`): a machine
@@ -135,6 +145,32 @@ pub struct PlantTable {
     pub fit_rms_um: Vec<(&'static str, f64)>,
     /// Scenario presets first, then the generated workloads.
     pub rows: Vec<Row>,
+}
+
+/// The held-out set of the Model 4 probes (`examples/oracle.rs`, `examples/observer_variants.rs`):
+/// fig18, zigzag and accelerations, then one generated member of every class for `seed`, each
+/// recorded on `plant` with no model (noise seed 1), beside its scenario.
+pub fn probe_set(plant: &PlantParams, seed: u64) -> Result<Vec<(Scenario, Trace)>, Error> {
+    let lim = Limits::of(&drive_setup::drive_limits(plant.rig()));
+    let mut out = Vec::new();
+    for name in ["fig18", "zigzag", "accelerations"] {
+        out.push(Scenario::load(name)?);
+    }
+    out.extend(Class::ALL.map(|c| workloads::generate(c, seed, &lim, WORKLOAD_S)));
+    out.into_iter()
+        .map(|s| {
+            let t = eval::run_in_process(
+                &s,
+                plant,
+                &ModelParams::PAPER,
+                ModelKind::None,
+                1,
+                &mut |_| {},
+            )
+            .context(|| format!("probe workload {}", s.name))?;
+            Ok((s, t))
+        })
+        .collect()
 }
 
 /// The workloads of the table: every preset and one generated member of every class.

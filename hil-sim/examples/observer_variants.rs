@@ -1,0 +1,333 @@
+//! Candidate changes to Model 4's slip observer, measured before any is built into the drive
+//! (README, "Why this structure"). The observer is emulated here in `f64` (the definition of
+//! `estimator_core::model::slip`, without its integer rounding) so that a variant costs one
+//! edit and a minute, not a blob version. Every variant refits the observer's parameters by
+//! Nelder-Mead from the calibrated ones, with the joint least squares of Model 4's other terms
+//! around it, on the calibration recordings only, then prints the fit and the RMS of e on fig18,
+//! zigzag, accelerations and one generated workload of every class (seed 11), all held out.
+//!
+//! - `as-is`: the calibrated observer, not refitted. Its figures are the drive's (the
+//!   generalisation table's Model 4 column, within 0.3 um: the drive rounds in integers), which
+//!   checks the emulation.
+//! - `refit`: the same six parameters refitted from the calibrated ones (600 evaluations): how
+//!   much of a variant's change is only a longer search.
+//! - `braking-slip`: gross slip in the load's direction whatever the direction of motion (the
+//!   drive slips only while the load drives the motion).
+//! - `carriage`: the carriage on an elastic span as one more load: a second-order model carriage
+//!   (natural frequency and damping fitted) follows the motor's position, and its lag behind the
+//!   pulley, weighted, adds to the load; plus a load per unit of the pulley's speed.
+//! - `encoder-accel`: the pulley's acceleration from the encoder (second difference through the
+//!   current's 2 ms low pass), weighted, adds to the load (the rotor's share of the current).
+//!
+//! `cargo run --profile ci -p hil-sim --example observer_variants -- [plant-name-part] [variant,...]`
+//! (about 70 s per refitted variant and plant).
+#![allow(clippy::print_stdout)]
+
+use estimator_core::model::slip::SlipParams;
+use estimator_core::reference::Reference;
+use hil_sim::calibrate::model4_row;
+use hil_sim::eval;
+use hil_sim::run::Trace;
+
+/// One recording as the observer and the least squares see it.
+struct Run {
+    name: String,
+    x_counts: Vec<i32>,
+    current_a: Vec<f64>,
+    forward: Vec<bool>,
+    /// Model 4's terms but the observer's, one row per tick.
+    rows: Vec<Vec<f64>>,
+    dx_um: Vec<f64>,
+}
+
+#[derive(Clone, Copy, PartialEq)]
+enum Variant {
+    AsIs,
+    Refit,
+    BrakingSlip,
+    Carriage,
+    EncoderAccel,
+}
+
+impl Variant {
+    const ALL: [(Variant, &'static str); 5] = [
+        (Variant::AsIs, "as-is"),
+        (Variant::Refit, "refit"),
+        (Variant::BrakingSlip, "braking-slip"),
+        (Variant::Carriage, "carriage"),
+        (Variant::EncoderAccel, "encoder-accel"),
+    ];
+
+    /// Start and initial step of the coordinates beyond the six of `SlipParams`.
+    fn extra(self) -> (&'static [f64], &'static [f64]) {
+        match self {
+            // Load per um of carriage lag, natural frequency Hz, damping ratio, load per um/tick.
+            Variant::Carriage => (&[0.0, 15.0, 0.5, 0.0], &[0.1, 5.0, 0.3, 0.2]),
+            // Load per um/tick² of pulley acceleration (scaled by 1000).
+            Variant::EncoderAccel => (&[0.0], &[0.03]),
+            _ => (&[], &[]),
+        }
+    }
+}
+
+/// The observer's parameters in the emulation's units (um, counts, ticks).
+#[derive(Clone, Copy, Debug)]
+struct Obs {
+    load_um: [f64; 2],
+    um_per_a: [f64; 2],
+    creep_per_mm: f64,
+    limit_um: f64,
+    half_gap_um: f64,
+    braking_slip: bool,
+    lag_weight: f64,
+    natural_hz: f64,
+    damping: f64,
+    speed_weight: f64,
+    accel_weight: f64,
+}
+
+impl Obs {
+    /// The coordinates of the search, as `hil_sim::calibrate` maps its six.
+    fn of(v: &[f64], variant: Variant) -> Obs {
+        let asym = v[1].clamp(-0.9, 0.9);
+        let load = v[0].abs().min(2000.0);
+        let mut o = Obs {
+            load_um: [load * (1.0 - asym), load * (1.0 + asym)],
+            um_per_a: [v[2] * (1.0 - asym), v[2] * (1.0 + asym)],
+            creep_per_mm: v[3].abs().min(1.0),
+            limit_um: v[4].abs().clamp(1.0, 2000.0),
+            half_gap_um: v[5].abs().clamp(1.0, 2000.0),
+            braking_slip: variant == Variant::BrakingSlip,
+            lag_weight: 0.0,
+            natural_hz: 20.0,
+            damping: 0.5,
+            speed_weight: 0.0,
+            accel_weight: 0.0,
+        };
+        match variant {
+            Variant::Carriage => {
+                o.lag_weight = v[6].abs();
+                o.natural_hz = v[7].abs().clamp(5.0, 60.0);
+                o.damping = v[8].abs().clamp(0.3, 3.0);
+                o.speed_weight = v[9];
+            }
+            Variant::EncoderAccel => o.accel_weight = v[6],
+            _ => {}
+        }
+        o
+    }
+
+    /// The observer's offset `g` (um) along `r`, tick by tick.
+    fn offsets(&self, r: &Run, counts_per_mm: f64) -> Vec<f64> {
+        let um_per_count = 1000.0 / counts_per_mm;
+        let kappa_per_count = self.creep_per_mm / counts_per_mm;
+        let (limit, cap, h) = (self.limit_um, 0.95 * self.limit_um, self.half_gap_um);
+        let omega = 2.0 * std::f64::consts::PI * self.natural_hz / 2000.0;
+        let (w2, c) = (omega * omega, 2.0 * self.damping * omega);
+        let mut g = if r.forward[0] { h } else { -h };
+        let (mut z, mut lp) = (0.0, r.current_a[0]);
+        let mut x_prev = r.x_counts[0];
+        // The model carriage: its lag behind the pulley and its speed, um and um per tick.
+        let (mut lag, mut v_carriage) = (0.0, 0.0);
+        let (mut accel, mut v_prev) = (0.0, 0.0);
+        let mut out = Vec::with_capacity(r.x_counts.len());
+        out.push(g);
+        for i in 1..r.x_counts.len() {
+            let ds = r.x_counts[i].wrapping_sub(x_prev) as f64;
+            x_prev = r.x_counts[i];
+            lp += (r.current_a[i] - lp) / 4.0;
+            let v = ds * um_per_count;
+            let lag_now = lag + v;
+            v_carriage += w2 * lag_now + c * (v - v_carriage);
+            lag = lag_now - v_carriage;
+            accel += (v - v_prev - accel) / 4.0;
+            v_prev = v;
+            let k = r.forward[i] as usize;
+            let raw = if k == 1 {
+                self.load_um[1]
+            } else {
+                -self.load_um[0]
+            } + self.um_per_a[k] * lp
+                + self.lag_weight * lag
+                + self.speed_weight * v
+                + self.accel_weight * accel * 1000.0;
+            if ds != 0.0 {
+                let travel = ds.abs() * um_per_count;
+                let drives = (ds > 0.0) == (raw > 0.0);
+                if raw.abs() > limit && (drives || self.braking_slip) {
+                    g = (g + raw.signum() * travel).clamp(-h, h);
+                    z = raw.signum() * cap;
+                    out.push(g);
+                    continue;
+                }
+                let req = raw.clamp(-cap, cap);
+                if !((g >= h && req > z) || (g <= -h && req < z)) {
+                    let dz = (req - z).clamp(-travel, travel);
+                    g += dz;
+                    z += dz;
+                    if g > h {
+                        z -= g - h;
+                        g = h;
+                    } else if g < -h {
+                        z += -h - g;
+                        g = -h;
+                    }
+                }
+                let step = ds.abs() * kappa_per_count;
+                if (g >= h && z > 0.0) || (g <= -h && z < 0.0) {
+                    z -= z * step.min(1.0);
+                } else {
+                    let factor = (limit / (limit - z.abs()).max(1e-9)).min(32.0);
+                    g = (g + z * factor * step.min(128.0)).clamp(-h, h);
+                }
+            }
+            out.push(g);
+        }
+        out
+    }
+}
+
+/// The joint least squares of Model 4's terms and the offset `g`: weights and residual sum.
+fn fit(runs: &[Run], offsets: &[Vec<f64>]) -> Option<(Vec<f64>, f64)> {
+    let n = runs[0].rows[0].len() + 1;
+    let (mut a, mut b, mut yy) = (vec![0.0; n * n], vec![0.0; n], 0.0);
+    for (r, g) in runs.iter().zip(offsets) {
+        for ((row, y), &gv) in r.rows.iter().zip(&r.dx_um).zip(g) {
+            let v: Vec<f64> = row.iter().copied().chain([gv]).collect();
+            yy += y * y;
+            for i in 0..n {
+                if v[i] != 0.0 {
+                    b[i] += v[i] * y;
+                    for j in 0..n {
+                        a[i * n + j] += v[i] * v[j];
+                    }
+                }
+            }
+        }
+    }
+    for i in 0..n {
+        a[i * n + i] += 1e-6 * a[i * n + i] + 1e-9;
+    }
+    let bb = b.clone();
+    let w = hil_sim::tables::solve_spd(a, b)?;
+    let sse = yy - w.iter().zip(&bb).map(|(p, q)| p * q).sum::<f64>();
+    Some((w, sse))
+}
+
+fn rms(r: &Run, g: &[f64], w: &[f64]) -> f64 {
+    let (last, rest) = w.split_last().expect("weights");
+    let s: f64 = r
+        .rows
+        .iter()
+        .zip(&r.dx_um)
+        .zip(g)
+        .map(|((row, y), gv)| {
+            let p: f64 = row.iter().zip(rest).map(|(a, b)| a * b).sum::<f64>() + gv * last;
+            (y - p).powi(2)
+        })
+        .sum();
+    (s / r.dx_um.len() as f64).sqrt()
+}
+
+fn main() {
+    let which = std::env::args().nth(1);
+    let plant = hil_sim::generalise::plant_named(which.as_deref())
+        .expect("built-in plants")
+        .expect("a built-in plant of that name");
+    let chosen: Vec<Variant> = match std::env::args().nth(2) {
+        None => Variant::ALL.iter().map(|v| v.0).collect(),
+        Some(list) => list
+            .split(',')
+            .map(|n| {
+                Variant::ALL
+                    .iter()
+                    .find(|v| v.1 == n)
+                    .expect("a variant of that name")
+                    .0
+            })
+            .collect(),
+    };
+    let rig = plant.rig();
+    let cpm = rig.counts_per_mm();
+    let traces = eval::record_calibration(&plant, &mut |_, _| {}).expect("recordings");
+    let cal = hil_sim::calibrate::calibrate(&traces, &rig, &mut |_, _| {}).expect("calibration");
+    let prepare = |t: &Trace| -> Run {
+        let mut m = Reference::new(&cal.params, &rig, t.records[0].motor_counts.0).expect("ref");
+        let mut r = Run {
+            name: t.scenario.clone(),
+            x_counts: Vec::new(),
+            current_a: Vec::new(),
+            forward: Vec::new(),
+            rows: Vec::new(),
+            dx_um: Vec::new(),
+        };
+        for (k, rec) in t.records.iter().enumerate() {
+            let current = rec.out.current_a.to_num::<f64>();
+            let (_, f) = m.model4_step(rec.motor_counts.0, current);
+            r.x_counts.push(rec.motor_counts.0);
+            r.current_a.push(current);
+            r.forward.push(f.forward);
+            r.rows.push(model4_row(&f, cpm).to_vec());
+            r.dx_um.push(t.dx_um(k));
+        }
+        r
+    };
+    let cal_runs: Vec<Run> = traces.iter().map(prepare).collect();
+    let runs: Vec<Run> = hil_sim::generalise::probe_set(&plant, 11)
+        .expect("held-out runs")
+        .iter()
+        .map(|(_, t)| prepare(t))
+        .collect();
+    let s: SlipParams = cal.params.model4.slip;
+    let load = (s.load_um[0] + s.load_um[1]) / 2.0;
+    let asym = (s.load_um[1] - s.load_um[0]) / (s.load_um[1] + s.load_um[0]).max(1e-9);
+    let per_a = (s.um_per_a[0] + s.um_per_a[1]) / 2.0;
+    let start = [load, asym, per_a, s.creep_per_mm, s.limit_um, s.half_gap_um];
+    let steps = [20.0, 0.05, 10.0, 0.01, 40.0, 30.0];
+    let n_cal: usize = cal_runs.iter().map(|r| r.dx_um.len()).sum();
+    println!(
+        "{}",
+        if plant.source.is_empty() {
+            "paper rig"
+        } else {
+            &plant.source
+        }
+    );
+    for variant in chosen {
+        let (more, more_steps) = variant.extra();
+        let x0: Vec<f64> = start.iter().chain(more).copied().collect();
+        let step: Vec<f64> = steps.iter().chain(more_steps).copied().collect();
+        let sse = |v: &[f64]| {
+            let o = Obs::of(v, variant);
+            let g: Vec<Vec<f64>> = cal_runs.iter().map(|r| o.offsets(r, cpm)).collect();
+            fit(&cal_runs, &g).map_or(f64::INFINITY, |f| f.1)
+        };
+        let x = if variant == Variant::AsIs {
+            x0
+        } else {
+            hil_sim::fit::nelder_mead(sse, &x0, &step, 1e-9, 600).x
+        };
+        let o = Obs::of(&x, variant);
+        let g: Vec<Vec<f64>> = cal_runs.iter().map(|r| o.offsets(r, cpm)).collect();
+        let (w, sse) = fit(&cal_runs, &g).expect("fit");
+        let name = Variant::ALL
+            .iter()
+            .find(|v| v.0 == variant)
+            .expect("named")
+            .1;
+        print!("{name:14} fit {:5.2} |", (sse / n_cal as f64).sqrt());
+        let mut generated = 0.0;
+        for r in &runs {
+            let e = rms(r, &o.offsets(r, cpm), &w);
+            if r.name.ends_with("-11") {
+                generated += e * e;
+            }
+            print!(" {} {e:.1}", r.name);
+        }
+        println!(
+            " | generated mean square {:.1} um",
+            (generated / 6.0).sqrt()
+        );
+        println!("{:14} {o:?}", "");
+    }
+}
