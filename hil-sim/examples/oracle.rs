@@ -17,6 +17,7 @@ use hil_sim::calibrate::model4_row;
 use hil_sim::eval::{self, CALIBRATION_PLAN_S, CALIBRATION_PLAN_SEED, CALIBRATION_SCENARIOS};
 use hil_sim::run::Trace;
 use hil_sim::scenario::Scenario;
+use hil_sim::tables::NormalEquations;
 use hil_sim::workloads::{self, Limits};
 use hil_sim::{drive_setup, Plant, PlantParams};
 
@@ -69,22 +70,13 @@ fn rows(run: &Run, extra: usize) -> Vec<Vec<f64>> {
 }
 
 fn fit(runs: &[Run], extra: usize) -> Vec<f64> {
-    let n = runs[0].terms[0].len() + extra;
-    let (mut a, mut b) = (vec![0.0; n * n], vec![0.0; n]);
+    let mut ne = NormalEquations::new(runs[0].terms[0].len() + extra);
     for r in runs {
-        for (row, y) in rows(r, extra).iter().zip(&r.dx_um) {
-            for i in 0..n {
-                b[i] += row[i] * y;
-                for j in 0..n {
-                    a[i * n + j] += row[i] * row[j];
-                }
-            }
+        for (row, &y) in rows(r, extra).iter().zip(&r.dx_um) {
+            ne.add(row, y);
         }
     }
-    for i in 0..n {
-        a[i * n + i] += 1e-6 * a[i * n + i] + 1e-9;
-    }
-    hil_sim::tables::solve_spd(a, b).expect("fit")
+    ne.solve(1e-6).expect("fit").0
 }
 
 fn rms(run: &Run, extra: usize, w: &[f64]) -> f64 {

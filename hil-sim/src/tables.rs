@@ -81,6 +81,53 @@ pub fn strokes(x_counts: &[i32], deadband_counts: u32) -> Vec<Stroke> {
     out
 }
 
+/// The normal equations of a linear least-squares fit, accumulated row by row (the probes'
+/// fits in `examples/`).
+#[derive(Clone, Debug)]
+pub struct NormalEquations {
+    ata: Vec<f64>,
+    atb: Vec<f64>,
+    yy: f64,
+}
+
+impl NormalEquations {
+    /// No rows yet, `n` unknowns.
+    pub fn new(n: usize) -> NormalEquations {
+        NormalEquations {
+            ata: vec![0.0; n * n],
+            atb: vec![0.0; n],
+            yy: 0.0,
+        }
+    }
+
+    /// One observation `y` of `row . w` (`row` has the `n` columns).
+    pub fn add(&mut self, row: &[f64], y: f64) {
+        let n = self.atb.len();
+        self.yy += y * y;
+        for (i, &ri) in row.iter().enumerate().take(n) {
+            if ri != 0.0 {
+                self.atb[i] += ri * y;
+                for (a, &rj) in self.ata[i * n..(i + 1) * n].iter_mut().zip(row) {
+                    *a += ri * rj;
+                }
+            }
+        }
+    }
+
+    /// The weights and the residual sum of squares, with a ridge of `ridge` times each diagonal
+    /// entry (plus 1e-9) against columns the rows hardly reach; `None` if still singular.
+    pub fn solve(mut self, ridge: f64) -> Option<(Vec<f64>, f64)> {
+        let n = self.atb.len();
+        for i in 0..n {
+            self.ata[i * n + i] += ridge * self.ata[i * n + i] + 1e-9;
+        }
+        let atb = self.atb.clone();
+        let w = solve_spd(self.ata, self.atb)?;
+        let sse = self.yy - w.iter().zip(&atb).map(|(p, q)| p * q).sum::<f64>();
+        Some((w, sse))
+    }
+}
+
 /// Solves the symmetric positive definite system `a x = b` (row-major n x n) by Cholesky.
 pub fn solve_spd(mut a: Vec<f64>, mut b: Vec<f64>) -> Option<Vec<f64>> {
     let n = b.len();
@@ -231,6 +278,25 @@ pub fn fit_gap_table(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn normal_equations_recover_a_line_and_its_residual() {
+        let mut ne = NormalEquations::new(2);
+        // y = 2 x + 1 +- 0.5 at x = 0..3: by hand, the line 1.8 x + 1.3 leaves 0.8.
+        for (k, x) in [0.0, 1.0, 2.0, 3.0].into_iter().enumerate() {
+            let noise = if k % 2 == 0 { 0.5 } else { -0.5 };
+            ne.add(&[x, 1.0], 2.0 * x + 1.0 + noise);
+        }
+        let (w, sse) = ne.solve(0.0).unwrap();
+        assert!(
+            (w[0] - 1.8).abs() < 1e-6 && (w[1] - 1.3).abs() < 1e-6,
+            "{w:?}"
+        );
+        assert!((sse - 0.8).abs() < 1e-6, "{sse}");
+        assert!(NormalEquations::new(1)
+            .solve(0.0)
+            .is_some_and(|(w, _)| w[0] == 0.0));
+    }
 
     #[test]
     fn strokes_follow_the_deadband_rule() {
