@@ -18,9 +18,20 @@
 //!   pulley, weighted, adds to the load; plus a load per unit of the pulley's speed.
 //! - `encoder-accel`: the pulley's acceleration from the encoder (second difference through the
 //!   current's 2 ms low pass), weighted, adds to the load (the rotor's share of the current).
+//! - `rest-preslide`: the pre-slide also at a standstill, and not limited by the pulley's travel
+//!   (a load that changes at rest moves the belt on its bristles); `free-preslide`: unlimited
+//!   while moving too.
+//! - `soft-slip`: gross slip ramps in over `z_max (1 +- r)` (`r` fitted) instead of switching at
+//!   `z_max`: the belt stands for that fraction of the pulley's travel.
+//! - `unit-weight`: `g` enters the sum with weight -1 (the carriage lags the motor by what the
+//!   belt lags the pulley) instead of a fitted one, which ties the observer's scale to the
+//!   micrometre (with a fitted weight, scaling `h`, `z_max` and the loads by `s` and the weight by
+//!   `1 / s` changes only the travel limits).
 //!
-//! `cargo run --profile ci -p hil-sim --example observer_variants -- [plant-name-part] [variant,...]`
-//! (about 10 s to record and calibrate a plant, then about 20 s per refitted variant).
+//! `cargo run --profile ci -p hil-sim --example observer_variants -- [plant-name-part]
+//! [variant,...] [plan-seed]` (about 10 s to record and calibrate a plant, then about 20 s per
+//! refitted variant). The plan seed draws another default calibration plan (as `hil-sim
+//! calibrate --plan-seed`).
 #![allow(clippy::print_stdout)]
 
 use estimator_core::model::slip::SlipParams;
@@ -48,15 +59,23 @@ enum Variant {
     BrakingSlip,
     Carriage,
     EncoderAccel,
+    FreePreslide,
+    RestPreslide,
+    SoftSlip,
+    UnitWeight,
 }
 
 impl Variant {
-    const ALL: [(Variant, &'static str); 5] = [
+    const ALL: [(Variant, &'static str); 9] = [
         (Variant::AsIs, "as-is"),
         (Variant::Refit, "refit"),
         (Variant::BrakingSlip, "braking-slip"),
         (Variant::Carriage, "carriage"),
         (Variant::EncoderAccel, "encoder-accel"),
+        (Variant::FreePreslide, "free-preslide"),
+        (Variant::RestPreslide, "rest-preslide"),
+        (Variant::SoftSlip, "soft-slip"),
+        (Variant::UnitWeight, "unit-weight"),
     ];
 
     /// Start and initial step of the coordinates beyond the six of `SlipParams`.
@@ -66,6 +85,8 @@ impl Variant {
             Variant::Carriage => (&[0.0, 15.0, 0.5, 0.0], &[0.1, 5.0, 0.3, 0.2]),
             // Load per um/tick² of pulley acceleration (scaled by 1000).
             Variant::EncoderAccel => (&[0.0], &[0.03]),
+            // Half-width of the slip ramp around the limit, as a fraction of it.
+            Variant::SoftSlip => (&[0.15], &[0.05]),
             _ => (&[], &[]),
         }
     }
@@ -80,6 +101,12 @@ struct Obs {
     limit_um: f64,
     half_gap_um: f64,
     braking_slip: bool,
+    /// Pre-slide not limited by the pulley's travel: while moving, or also at a standstill.
+    free_preslide: bool,
+    rest_preslide: bool,
+    /// Gross slip ramps in over `limit (1 +- ramp)`: the fraction of the pulley's travel the
+    /// belt stands still for.
+    ramp: f64,
     lag_weight: f64,
     natural_hz: f64,
     damping: f64,
@@ -99,6 +126,9 @@ impl Obs {
             limit_um: v[4].abs().clamp(1.0, 2000.0),
             half_gap_um: v[5].abs().clamp(1.0, 2000.0),
             braking_slip: variant == Variant::BrakingSlip,
+            free_preslide: variant == Variant::FreePreslide,
+            rest_preslide: matches!(variant, Variant::FreePreslide | Variant::RestPreslide),
+            ramp: 0.0,
             lag_weight: 0.0,
             natural_hz: 20.0,
             damping: 0.5,
@@ -113,6 +143,7 @@ impl Obs {
                 o.speed_weight = v[9];
             }
             Variant::EncoderAccel => o.accel_weight = v[6],
+            Variant::SoftSlip => o.ramp = v[6].abs().clamp(0.01, 0.5),
             _ => {}
         }
         o
@@ -152,28 +183,37 @@ impl Obs {
                 + self.lag_weight * lag
                 + self.speed_weight * v
                 + self.accel_weight * accel * 1000.0;
+            if ds == 0.0 && self.rest_preslide {
+                pre_slide(&mut g, &mut z, raw.clamp(-cap, cap), f64::INFINITY, h);
+            }
             if ds != 0.0 {
                 let travel = ds.abs() * um_per_count;
                 let drives = (ds > 0.0) == (raw > 0.0);
-                if raw.abs() > limit && (drives || self.braking_slip) {
+                let s = if self.ramp > 0.0 {
+                    ((raw.abs() / limit - 1.0 + self.ramp) / (2.0 * self.ramp)).clamp(0.0, 1.0)
+                } else if raw.abs() > limit {
+                    1.0
+                } else {
+                    0.0
+                };
+                if s >= 1.0 && (drives || self.braking_slip) {
                     g = (g + raw.signum() * travel).clamp(-h, h);
                     z = raw.signum() * cap;
                     out.push(g);
                     continue;
                 }
-                let req = raw.clamp(-cap, cap);
-                if !((g >= h && req > z) || (g <= -h && req < z)) {
-                    let dz = (req - z).clamp(-travel, travel);
-                    g += dz;
-                    z += dz;
-                    if g > h {
-                        z -= g - h;
-                        g = h;
-                    } else if g < -h {
-                        z += -h - g;
-                        g = -h;
-                    }
-                }
+                let (travel, ds) = if s > 0.0 && drives {
+                    g = (g + raw.signum() * s * travel).clamp(-h, h);
+                    ((1.0 - s) * travel, (1.0 - s) * ds)
+                } else {
+                    (travel, ds)
+                };
+                let slide = if self.free_preslide {
+                    f64::INFINITY
+                } else {
+                    travel
+                };
+                pre_slide(&mut g, &mut z, raw.clamp(-cap, cap), slide, h);
                 let step = ds.abs() * kappa_per_count;
                 if (g >= h && z > 0.0) || (g <= -h && z < 0.0) {
                     z -= z * step.min(1.0);
@@ -189,18 +229,46 @@ impl Obs {
 }
 
 /// The joint least squares of Model 4's terms and the offset `g`: weights and residual sum.
-fn fit(runs: &[Run], offsets: &[Vec<f64>]) -> Option<(Vec<f64>, f64)> {
-    let mut ne = NormalEquations::new(runs[0].rows[0].len() + 1);
+/// Pre-sliding: out of contact `z` moves towards `req` by at most `slide` and `g` with it; at a
+/// flank the excess goes back out of `z`.
+fn pre_slide(g: &mut f64, z: &mut f64, req: f64, slide: f64, h: f64) {
+    if (*g >= h && req > *z) || (*g <= -h && req < *z) {
+        return;
+    }
+    let dz = (req - *z).clamp(-slide, slide);
+    *g += dz;
+    *z += dz;
+    if *g > h {
+        *z -= *g - h;
+        *g = h;
+    } else if *g < -h {
+        *z += -h - *g;
+        *g = -h;
+    }
+}
+
+/// With `unit`, the offset's weight is held at -1 (the carriage lags the motor by what the belt
+/// lags the pulley) and only the other terms are fitted; the returned weights end with it.
+fn fit(runs: &[Run], offsets: &[Vec<f64>], unit: bool) -> Option<(Vec<f64>, f64)> {
+    let mut ne = NormalEquations::new(runs[0].rows[0].len() + usize::from(!unit));
     let mut row = Vec::new();
     for (r, g) in runs.iter().zip(offsets) {
         for ((terms, &y), &gv) in r.rows.iter().zip(&r.dx_um).zip(g) {
             row.clear();
             row.extend_from_slice(terms);
-            row.push(gv);
-            ne.add(&row, y);
+            if unit {
+                ne.add(&row, y + gv);
+            } else {
+                row.push(gv);
+                ne.add(&row, y);
+            }
         }
     }
-    ne.solve(1e-6)
+    let (mut w, sse) = ne.solve(1e-6)?;
+    if unit {
+        w.push(-1.0);
+    }
+    Some((w, sse))
 }
 
 fn rms(r: &Run, g: &[f64], w: &[f64]) -> f64 {
@@ -238,7 +306,11 @@ fn main() {
     };
     let rig = plant.rig();
     let cpm = rig.counts_per_mm();
-    let traces = eval::record_calibration(&plant, &mut |_, _| {}).expect("recordings");
+    let plan_seed = match std::env::args().nth(3) {
+        None => eval::CALIBRATION_PLAN_SEED,
+        Some(s) => s.parse().expect("a plan seed (an integer)"),
+    };
+    let traces = eval::record_calibration(&plant, plan_seed, &mut |_, _| {}).expect("recordings");
     let cal = hil_sim::calibrate::calibrate(&traces, &rig, &mut |_, _| {}).expect("calibration");
     let prepare = |t: &Trace| -> Run {
         let mut m = Reference::new(&cal.params, &rig, t.records[0].motor_counts.0).expect("ref");
@@ -284,12 +356,23 @@ fn main() {
     );
     for variant in chosen {
         let (more, more_steps) = variant.extra();
-        let x0: Vec<f64> = start.iter().chain(more).copied().collect();
+        let unit = variant == Variant::UnitWeight;
+        // Held at -1, the observer's scale is the calibrated one times |weight|.
+        let scale = if unit { s.weight.abs().max(0.1) } else { 1.0 };
+        let scaled = [
+            start[0] * scale,
+            start[1],
+            start[2] * scale,
+            start[3],
+            start[4] * scale,
+            start[5] * scale,
+        ];
+        let x0: Vec<f64> = scaled.iter().chain(more).copied().collect();
         let step: Vec<f64> = steps.iter().chain(more_steps).copied().collect();
         let sse = |v: &[f64]| {
             let o = Obs::of(v, variant);
             let g: Vec<Vec<f64>> = cal_runs.iter().map(|r| o.offsets(r, cpm)).collect();
-            fit(&cal_runs, &g).map_or(f64::INFINITY, |f| f.1)
+            fit(&cal_runs, &g, unit).map_or(f64::INFINITY, |f| f.1)
         };
         let x = if variant == Variant::AsIs {
             x0
@@ -298,7 +381,7 @@ fn main() {
         };
         let o = Obs::of(&x, variant);
         let g: Vec<Vec<f64>> = cal_runs.iter().map(|r| o.offsets(r, cpm)).collect();
-        let (w, sse) = fit(&cal_runs, &g).expect("fit");
+        let (w, sse) = fit(&cal_runs, &g, unit).expect("fit");
         let name = Variant::ALL
             .iter()
             .find(|v| v.0 == variant)

@@ -95,7 +95,8 @@ fn main() {
         .expect("built-in plants")
         .expect("a built-in plant of that name");
     let rig = plant.rig();
-    let traces = eval::record_calibration(&plant, &mut |_, _| {}).expect("recordings");
+    let traces = eval::record_calibration(&plant, eval::CALIBRATION_PLAN_SEED, &mut |_, _| {})
+        .expect("recordings");
     let cal = hil_sim::calibrate::calibrate(&traces, &rig, &mut |_, _| {}).expect("calibration");
     let lim = Limits::of(&drive_setup::drive_limits(rig));
     let mut cal_scenarios: Vec<Scenario> = CALIBRATION_SCENARIOS

@@ -49,7 +49,8 @@ fn main() {
     let k = plant.motor.rotor_inertia_kg_m2 * plant.gearbox.ratio
         / (r * plant.motor.torque_constant_nm_per_a);
     println!("{} k = {k:.3} A per m/s^2", plant.name());
-    let cal_traces = eval::record_calibration(&plant, &mut |_, _| {}).unwrap();
+    let cal_traces =
+        eval::record_calibration(&plant, eval::CALIBRATION_PLAN_SEED, &mut |_, _| {}).unwrap();
     let lim = Limits::of(&drive_setup::drive_limits(plant.rig()));
     let mut held: Vec<_> = ["fig18", "zigzag", "accelerations"]
         .iter()

@@ -80,10 +80,12 @@ pub fn run_with(
     run(scenario, plant, rig, controller, &rc, progress)
 }
 
-/// Records the calibration scenarios with the Table 2 presets loaded (the models do not
-/// influence the motion: the loop closes on the motor encoder).
+/// Records the calibration scenarios and the default plan drawn with `plan_seed`
+/// ([`CALIBRATION_PLAN_SEED`] unless a study asks for another draw), with the Table 2 presets
+/// loaded (the models do not influence the motion: the loop closes on the motor encoder).
 pub fn record_calibration(
     plant: &PlantParams,
+    plan_seed: u64,
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Vec<Trace>, Error> {
     let mut traces = Vec::new();
@@ -98,7 +100,7 @@ pub fn record_calibration(
     }
     // The default plan across the drive's configured range (see `workloads::calibration_plan`).
     let lim = crate::workloads::Limits::of(&drive_limits(plant.rig()));
-    let plan = crate::workloads::calibration_plan(&lim, CALIBRATION_PLAN_SEED, CALIBRATION_PLAN_S);
+    let plan = crate::workloads::calibration_plan(&lim, plan_seed, CALIBRATION_PLAN_S);
     plan.check_against(&drive_limits(plant.rig()), plant)
         .context(|| "calibration plan".into())?;
     let names: Vec<String> = CALIBRATION_SCENARIOS
@@ -140,12 +142,21 @@ pub fn is_paper_fig18(scenario: &Scenario) -> bool {
         .is_ok_and(|f| f.start_mm == scenario.start_mm && f.moves == scenario.moves)
 }
 
-/// Records the calibration scenarios and calibrates.
+/// Records the calibration scenarios and the default plan, and calibrates.
 pub fn calibrate_plant(
     plant: &PlantParams,
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Calibration, Error> {
-    let traces = record_calibration(plant, progress)?;
+    calibrate_plant_with_plan(plant, CALIBRATION_PLAN_SEED, progress)
+}
+
+/// [`calibrate_plant`] with the default plan drawn with `plan_seed`.
+pub fn calibrate_plant_with_plan(
+    plant: &PlantParams,
+    plan_seed: u64,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Calibration, Error> {
+    let traces = record_calibration(plant, plan_seed, progress)?;
     Ok(calibrate(&traces, &plant.rig(), progress)?)
 }
 

@@ -188,14 +188,15 @@ pub fn workloads(plant: &PlantParams, seed: u64) -> Result<Vec<Scenario>, Error>
     Ok(out)
 }
 
-/// Calibrates `plant` and measures every estimator and the floor on `scenarios` (those the
-/// plant's drive limits refuse are left out).
+/// Calibrates `plant` (default plan drawn with `plan_seed`) and measures every estimator and
+/// the floor on `scenarios` (those the plant's drive limits refuse are left out).
 pub fn measure(
     plant: &PlantParams,
     scenarios: &[Scenario],
+    plan_seed: u64,
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<PlantTable, Error> {
-    let cal = eval::calibrate_plant(plant, progress)?;
+    let cal = eval::calibrate_plant_with_plan(plant, plan_seed, progress)?;
     let coeffs = cal.params.build(&plant.rig())?;
     let limits = drive_setup::drive_limits(plant.rig());
     let mut rows = Vec::new();

@@ -150,6 +150,10 @@ enum Cmd {
         /// Output directory for calibration.bin and calibration.toml.
         #[arg(long, default_value = "out/calibration")]
         out: PathBuf,
+        /// Seed of the default calibration plan's moves: another seed draws another plan from
+        /// the same ranges (how much the fit depends on the draw).
+        #[arg(long, default_value_t = eval::CALIBRATION_PLAN_SEED)]
+        plan_seed: u64,
     },
     /// Run a scenario and write every tick as CSV.
     Run {
@@ -205,6 +209,9 @@ enum Cmd {
         /// `generalise::drawn_plant`).
         #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u64).range(0..=100))]
         drawn: u64,
+        /// Seed of every plant's default calibration plan (as `calibrate --plan-seed`).
+        #[arg(long, default_value_t = eval::CALIBRATION_PLAN_SEED)]
+        plan_seed: u64,
     },
     /// Calibrate, run the scenario, and write report.md with PNG figures (Figs. 11, 18-24).
     Report {
@@ -486,10 +493,16 @@ fn main() -> ExitCode {
             common,
             json,
         } => evaluate(&scenario, &common, json),
-        Cmd::Calibrate { plant, out } => (|| {
+        Cmd::Calibrate {
+            plant,
+            out,
+            plan_seed,
+        } => (|| {
             let plant = plant_params(&plant)?;
             let mut progress = Progress::new();
-            let cal = eval::calibrate_plant(&plant, &mut |s, f| progress.stage(s, f))?;
+            let cal = eval::calibrate_plant_with_plan(&plant, plan_seed, &mut |s, f| {
+                progress.stage(s, f)
+            })?;
             progress.finish();
             calfile::save(&out, &cal, &plant.rig())?;
             hil_sim::errln!(
@@ -602,6 +615,7 @@ fn main() -> ExitCode {
             seed,
             no_variants,
             drawn,
+            plan_seed,
         } => (|| {
             let mut plants = if no_variants {
                 vec![PlantParams::paper_rig()]
@@ -617,7 +631,7 @@ fn main() -> ExitCode {
             for p in &plants {
                 let name = p.name().to_string();
                 let w = generalise::workloads(p, seed)?;
-                tables.push(generalise::measure(p, &w, &mut |s, f| {
+                tables.push(generalise::measure(p, &w, plan_seed, &mut |s, f| {
                     progress.stage(&format!("{name}: {s}"), f)
                 })?);
             }

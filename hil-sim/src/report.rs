@@ -295,9 +295,12 @@ pub fn write(
     for p in crate::generalise::plants()? {
         let label = format!("generalisation: {}", p.name());
         let w = crate::generalise::workloads(&p, crate::generalise::TABLE_SEED)?;
-        tables.push(crate::generalise::measure(&p, &w, &mut |_, f| {
-            progress.stage(&label, f)
-        })?);
+        tables.push(crate::generalise::measure(
+            &p,
+            &w,
+            crate::eval::CALIBRATION_PLAN_SEED,
+            &mut |_, f| progress.stage(&label, f),
+        )?);
     }
     md += "\n## Generalisation (every estimator, held-out workloads, five plants)\n\n";
     md += "RMS of e in um; floor: RMS of the tick-by-tick difference of x_LS - x_PE between two \

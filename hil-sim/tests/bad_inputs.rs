@@ -36,10 +36,9 @@ dwell_ms = 20
 const CHILD_LIMIT: Duration = Duration::from_secs(60);
 
 fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!(
-        "belt-drive-bad-inputs-{}-{name}",
-        std::process::id()
-    ));
+    // Under `target/`, not the system's temporary directory: the calibration made once per
+    // run is never removed (it lives in a `static`), and `cargo clean` takes it.
+    let d = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("bad-inputs-{name}"));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     d

@@ -1,5 +1,6 @@
 //! Model 4 on workloads that calibration never sees.
 
+use hil_sim::eval;
 use hil_sim::generalise::{self, PlantTable};
 
 /// Neither the calibration plan's seed nor the README table's.
@@ -40,7 +41,13 @@ fn assert_model4_best_held_out(plants: impl IntoIterator<Item = hil_sim::PlantPa
             .filter(|s| s.name.ends_with(&format!("-{HELD_OUT_SEED}")))
             .collect();
         assert_eq!(generated.len(), 6, "{}", plant.name());
-        let t = generalise::measure(&plant, &generated, &mut |_, _| {}).unwrap();
+        let t = generalise::measure(
+            &plant,
+            &generated,
+            eval::CALIBRATION_PLAN_SEED,
+            &mut |_, _| {},
+        )
+        .unwrap();
         assert_eq!(t.rows.len(), 6, "{}: a workload was refused", plant.name());
         let m4 = mean_square(&t, "model4").sqrt();
         report += &format!("{} {:?}: model4 {m4:.1} um", t.plant, plant.rig());
