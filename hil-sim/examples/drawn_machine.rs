@@ -1,21 +1,32 @@
-//! Where Model 4 loses on a machine drawn at random (README, "Machines drawn at random"): the
-//! `accelerations` preset on `generalise::drawn_plant(N)`, Model 3's and Model 4's RMS move by
-//! move, then the ticks around Model 4's worst error with the observer's offset `g` beside the
-//! plant's true mesh offset `P - b`, and the fitted observer.
+//! Where Model 4 loses, move by move (README, "Machines drawn at random" and "How much Model
+//! 4's figures depend on the calibration draw"): a preset on a plant, Model 3's and Model 4's
+//! RMS move by move, then the ticks around Model 4's worst error with the observer's offset `g`
+//! beside the plant's true mesh offset `P - b`, and the fitted observer.
 //!
-//! `cargo run --profile ci -p hil-sim --example drawn_machine -- [N]` (N defaults to 3).
+//! `cargo run --profile ci -p hil-sim --example drawn_machine -- [PLANT] [PRESET] [PLAN-SEED]`:
+//! PLANT is N for `generalise::drawn_plant(N)` (default 3) or a part of a built-in plant's name
+//! (`paper`, `tight`, ...); PRESET defaults to `accelerations`; PLAN-SEED to the default plan's.
 #![allow(clippy::print_stdout)]
 use estimator_core::model::{ModelKind, ModelParams};
 use hil_sim::eval;
 fn main() {
-    let which: u64 = std::env::args()
-        .nth(1)
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(3);
-    let plant = hil_sim::generalise::drawn_plant(which);
-    let cal = eval::calibrate_plant(&plant, &mut |_, _| {}).unwrap();
+    let arg = |k: usize| std::env::args().nth(k);
+    let plant = match arg(1) {
+        None => hil_sim::generalise::drawn_plant(3),
+        Some(a) => match a.parse::<u64>() {
+            Ok(n) => hil_sim::generalise::drawn_plant(n),
+            Err(_) => hil_sim::generalise::plant_named(Some(&a))
+                .expect("built-in plants")
+                .expect("a built-in plant of that name"),
+        },
+    };
+    let preset = arg(2).unwrap_or_else(|| "accelerations".into());
+    let plan_seed = arg(3).map_or(eval::CALIBRATION_PLAN_SEED, |s| {
+        s.parse().expect("a plan seed (an integer)")
+    });
+    let cal = eval::calibrate_plant_with_plan(&plant, plan_seed, &mut |_, _| {}).unwrap();
     let coeffs = cal.params.build(&plant.rig()).unwrap();
-    let s = hil_sim::scenario::Scenario::load("accelerations").unwrap();
+    let s = hil_sim::scenario::Scenario::load(&preset).unwrap();
     let t = eval::run_in_process(
         &s,
         &plant,

@@ -23,6 +23,11 @@
 //!   while moving too.
 //! - `soft-slip`: gross slip ramps in over `z_max (1 +- r)` (`r` fitted) instead of switching at
 //!   `z_max`: the belt stands for that fraction of the pulley's travel.
+//! - `capstan-slip`: in gross slip the belt is accelerated by the friction limit while the
+//!   pulley takes the whole load, so `g` moves by the pulley's travel times `1 - z_max / |load|`
+//!   (not all of it): continuous at the limit, no new parameter.
+//! - `slow-slip`: gross slip decided on the current through a further 8 ms low pass (the span and
+//!   carriage take time to carry a torque step to the belt); the pre-slide keeps the 2 ms one.
 //! - `unit-weight`: `g` enters the sum with weight -1 (the carriage lags the motor by what the
 //!   belt lags the pulley) instead of a fitted one, which ties the observer's scale to the
 //!   micrometre (with a fitted weight, scaling `h`, `z_max` and the loads by `s` and the weight by
@@ -63,10 +68,12 @@ enum Variant {
     RestPreslide,
     SoftSlip,
     UnitWeight,
+    CapstanSlip,
+    SlowSlip,
 }
 
 impl Variant {
-    const ALL: [(Variant, &'static str); 9] = [
+    const ALL: [(Variant, &'static str); 11] = [
         (Variant::AsIs, "as-is"),
         (Variant::Refit, "refit"),
         (Variant::BrakingSlip, "braking-slip"),
@@ -76,6 +83,8 @@ impl Variant {
         (Variant::RestPreslide, "rest-preslide"),
         (Variant::SoftSlip, "soft-slip"),
         (Variant::UnitWeight, "unit-weight"),
+        (Variant::CapstanSlip, "capstan-slip"),
+        (Variant::SlowSlip, "slow-slip"),
     ];
 
     /// Start and initial step of the coordinates beyond the six of `SlipParams`.
@@ -107,6 +116,12 @@ struct Obs {
     /// Gross slip ramps in over `limit (1 +- ramp)`: the fraction of the pulley's travel the
     /// belt stands still for.
     ramp: f64,
+    /// In gross slip the belt is accelerated by the friction limit, the pulley by the whole
+    /// load: `g` moves by the pulley's travel times `1 - z_max / |load|`.
+    capstan: bool,
+    /// Gross slip decided on the current through a further low pass of `2^slow_shift` ticks
+    /// (the span and carriage take time to carry a torque step to the belt); 0: the same.
+    slow_shift: u32,
     lag_weight: f64,
     natural_hz: f64,
     damping: f64,
@@ -129,6 +144,8 @@ impl Obs {
             free_preslide: variant == Variant::FreePreslide,
             rest_preslide: matches!(variant, Variant::FreePreslide | Variant::RestPreslide),
             ramp: 0.0,
+            capstan: variant == Variant::CapstanSlip,
+            slow_shift: if variant == Variant::SlowSlip { 4 } else { 0 },
             lag_weight: 0.0,
             natural_hz: 20.0,
             damping: 0.5,
@@ -158,6 +175,7 @@ impl Obs {
         let (w2, c) = (omega * omega, 2.0 * self.damping * omega);
         let mut g = if r.forward[0] { h } else { -h };
         let (mut z, mut lp) = (0.0, r.current_a[0]);
+        let mut slow = lp;
         let mut x_prev = r.x_counts[0];
         // The model carriage: its lag behind the pulley and its speed, um and um per tick.
         let (mut lag, mut v_carriage) = (0.0, 0.0);
@@ -168,6 +186,7 @@ impl Obs {
             let ds = r.x_counts[i].wrapping_sub(x_prev) as f64;
             x_prev = r.x_counts[i];
             lp += (r.current_a[i] - lp) / 4.0;
+            slow += (lp - slow) / f64::from(1u32 << self.slow_shift);
             let v = ds * um_per_count;
             let lag_now = lag + v;
             v_carriage += w2 * lag_now + c * (v - v_carriage);
@@ -188,22 +207,30 @@ impl Obs {
             }
             if ds != 0.0 {
                 let travel = ds.abs() * um_per_count;
-                let drives = (ds > 0.0) == (raw > 0.0);
+                // The load gross slip is decided on (the same unless `slow_shift`).
+                let slip_load = raw + self.um_per_a[k] * (slow - lp);
+                let drives = (ds > 0.0) == (slip_load > 0.0);
                 let s = if self.ramp > 0.0 {
-                    ((raw.abs() / limit - 1.0 + self.ramp) / (2.0 * self.ramp)).clamp(0.0, 1.0)
-                } else if raw.abs() > limit {
+                    ((slip_load.abs() / limit - 1.0 + self.ramp) / (2.0 * self.ramp))
+                        .clamp(0.0, 1.0)
+                } else if slip_load.abs() > limit {
                     1.0
                 } else {
                     0.0
                 };
                 if s >= 1.0 && (drives || self.braking_slip) {
-                    g = (g + raw.signum() * travel).clamp(-h, h);
-                    z = raw.signum() * cap;
+                    let share = if self.capstan {
+                        1.0 - limit / slip_load.abs()
+                    } else {
+                        1.0
+                    };
+                    g = (g + slip_load.signum() * share * travel).clamp(-h, h);
+                    z = slip_load.signum() * cap;
                     out.push(g);
                     continue;
                 }
                 let (travel, ds) = if s > 0.0 && drives {
-                    g = (g + raw.signum() * s * travel).clamp(-h, h);
+                    g = (g + slip_load.signum() * s * travel).clamp(-h, h);
                     ((1.0 - s) * travel, (1.0 - s) * ds)
                 } else {
                     (travel, ds)
