@@ -293,9 +293,167 @@ pub fn markdown(tables: &[PlantTable]) -> String {
     out
 }
 
+/// Model 4 over several draws of the calibration plan (`hil-sim generalise --plan-seed A,B,...`):
+/// per draw, the rows where it is best and, per plant, its mean square over the generated
+/// workloads (those named `*-{workload_seed}`) and its fig18; the means over the draws beside the
+/// best other estimator's; then every row Model 4 loses, with the number of draws it loses it in.
+/// `draws` holds each plan seed with its tables, every draw the same plants and rows.
+pub fn draws_markdown(draws: &[(u64, Vec<PlantTable>)], workload_seed: u64) -> String {
+    let Some((_, first)) = draws.first() else {
+        return String::new();
+    };
+    let suffix = format!("-{workload_seed}");
+    let rms = |r: &Row, e: &str| r.rms_um.iter().find(|(k, _)| *k == e).map(|x| x.1);
+    // Root of the mean square of `e` over the generated rows (each workload weighs the same).
+    let generated = |t: &PlantTable, e: &str| -> Option<f64> {
+        let v: Vec<f64> = t
+            .rows
+            .iter()
+            .filter(|r| r.workload.ends_with(&suffix))
+            .filter_map(|r| rms(r, e))
+            .collect();
+        (!v.is_empty()).then(|| (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt())
+    };
+    let others = || {
+        eval::ESTIMATORS
+            .iter()
+            .filter(|e| !matches!(**e, "none" | "model4"))
+    };
+    let cell = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.1}"));
+    let n = draws.len() as f64;
+    let mut out = format!(
+        "\n**Model 4 over {} draws of the calibration plan** (workload seed {workload_seed}): \
+         its mean square over the generated workloads / fig18, um\n\n| plan seed | best rows |",
+        draws.len()
+    );
+    for t in first {
+        out += &format!(" {} |", t.plant);
+    }
+    out += &format!("\n|---:|---:|{}\n", "---:|".repeat(first.len()));
+    let mut sums = vec![(0.0, 0.0, 0.0); first.len()];
+    let mut best_total = 0usize;
+    // Plant and row positions (for the order), plant, workload, draws lost.
+    let mut lost: Vec<(usize, usize, String, String, usize)> = Vec::new();
+    for (seed, tables) in draws {
+        let best = tables
+            .iter()
+            .flat_map(|t| &t.rows)
+            .filter(|r| r.best() == "model4")
+            .count();
+        best_total += best;
+        out += &format!("| {seed} | {best} |");
+        for (k, t) in tables.iter().enumerate() {
+            let gen = generated(t, "model4");
+            let fig = t
+                .rows
+                .iter()
+                .find(|r| r.workload == "fig18")
+                .and_then(|r| rms(r, "model4"));
+            let other = others()
+                .filter_map(|e| generated(t, e))
+                .fold(f64::INFINITY, f64::min);
+            if let Some(s) = sums.get_mut(k) {
+                s.0 += gen.unwrap_or(f64::NAN);
+                s.1 += fig.unwrap_or(f64::NAN);
+                s.2 += other;
+            }
+            out += &format!(" {} / {} |", cell(gen), cell(fig));
+            for (i, r) in t.rows.iter().enumerate() {
+                if r.best() == "model4" {
+                    continue;
+                }
+                match lost
+                    .iter_mut()
+                    .find(|l| l.2 == t.plant && l.3 == r.workload)
+                {
+                    Some(l) => l.4 += 1,
+                    None => lost.push((k, i, t.plant.clone(), r.workload.clone(), 1)),
+                }
+            }
+        }
+        out += "\n";
+    }
+    out += &format!("| mean | {:.1} |", best_total as f64 / n);
+    for s in &sums {
+        out += &format!(" {:.1} / {:.1} |", s.0 / n, s.1 / n);
+    }
+    out += "\n| best other, mean | |";
+    for s in &sums {
+        out += &format!(" {:.1} |", s.2 / n);
+    }
+    out += "\n\nRows Model 4 loses, in how many draws:\n\n| plant | workload | draws |\n|---|---|---:|\n";
+    lost.sort_by_key(|l| (l.0, l.1));
+    for (_, _, plant, workload, k) in &lost {
+        out += &format!("| {plant} | {workload} | {k} of {} |\n", draws.len());
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn row(workload: &str, m1: f64, m4: f64) -> Row {
+        Row {
+            workload: workload.into(),
+            floor_um: 1.0,
+            rms_um: vec![("none", 100.0), ("model1", m1), ("model4", m4)],
+        }
+    }
+
+    /// The summary's means, the best other estimator and the lost rows, on two hand-made draws.
+    #[test]
+    fn draws_summary_counts_and_averages() {
+        let table = |m4_fig: f64, m4_gen: f64| PlantTable {
+            plant: "rig".into(),
+            fit_rms_um: Vec::new(),
+            rows: vec![
+                row("fig18", 20.0, m4_fig),
+                row("raster-11", 30.0, m4_gen),
+                row("feed-11", 40.0, 0.0),
+                row("feed-12", 1.0, 1.0e6),
+            ],
+        };
+        // Draw 1: Model 4 loses fig18 and feed-12 (best on 2 rows); generated
+        // sqrt((6^2 + 0) / 2). Draw 2: it wins fig18 and loses the raster and feed-12.
+        let md = draws_markdown(
+            &[(5, vec![table(25.0, 6.0)]), (6, vec![table(10.0, 32.0)])],
+            11,
+        );
+        let gen1 = (36.0f64 / 2.0).sqrt();
+        let gen2 = (32.0f64 * 32.0 / 2.0).sqrt();
+        assert!(
+            md.contains(&format!("| 5 | 2 | {gen1:.1} / 25.0 |")),
+            "{md}"
+        );
+        assert!(
+            md.contains(&format!("| 6 | 2 | {gen2:.1} / 10.0 |")),
+            "{md}"
+        );
+        let m1 = ((900.0f64 + 1600.0) / 2.0).sqrt();
+        assert!(
+            md.contains(&format!(
+                "| mean | 2.0 | {:.1} / 17.5 |",
+                (gen1 + gen2) / 2.0
+            )),
+            "{md}"
+        );
+        assert!(
+            md.contains(&format!("| best other, mean | | {m1:.1} |")),
+            "{md}"
+        );
+        // feed-12 is not generated at seed 11 but is a row Model 4 loses in both draws.
+        assert!(md.contains("| rig | fig18 | 1 of 2 |"), "{md}");
+        assert!(md.contains("| rig | raster-11 | 1 of 2 |"), "{md}");
+        assert!(md.contains("| rig | feed-12 | 2 of 2 |"), "{md}");
+        assert!(!md.contains("| rig | feed-11 |"), "{md}");
+        // In the tables' order, whichever draw lost a row first.
+        let at = |w: &str| md.find(&format!("| rig | {w} |")).unwrap();
+        assert!(
+            at("fig18") < at("raster-11") && at("raster-11") < at("feed-12"),
+            "{md}"
+        );
+    }
 
     /// A draw is a valid plant, the same for the same seed, and within the drive's current at
     /// the default acceleration by the rule of [`drawn_plant`].

@@ -209,9 +209,11 @@ enum Cmd {
         /// `generalise::drawn_plant`).
         #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u64).range(0..=100))]
         drawn: u64,
-        /// Seed of every plant's default calibration plan (as `calibrate --plan-seed`).
-        #[arg(long, default_value_t = eval::CALIBRATION_PLAN_SEED)]
-        plan_seed: u64,
+        /// Seed of every plant's default calibration plan (as `calibrate --plan-seed`). Several
+        /// (`3233,7,8`): every draw is measured and a summary of Model 4 over the draws is
+        /// printed instead of the tables.
+        #[arg(long, value_delimiter = ',', default_values_t = [eval::CALIBRATION_PLAN_SEED])]
+        plan_seed: Vec<u64>,
     },
     /// Calibrate, run the scenario, and write report.md with PNG figures (Figs. 11, 18-24).
     Report {
@@ -627,16 +629,23 @@ fn main() -> ExitCode {
             }
             plants.extend((1..=drawn).map(generalise::drawn_plant));
             let mut progress = Progress::new();
-            let mut tables = Vec::new();
-            for p in &plants {
-                let name = p.name().to_string();
-                let w = generalise::workloads(p, seed)?;
-                tables.push(generalise::measure(p, &w, plan_seed, &mut |s, f| {
-                    progress.stage(&format!("{name}: {s}"), f)
-                })?);
+            let mut draws = Vec::new();
+            for &plan in &plan_seed {
+                let mut tables = Vec::new();
+                for p in &plants {
+                    let name = p.name().to_string();
+                    let w = generalise::workloads(p, seed)?;
+                    tables.push(generalise::measure(p, &w, plan, &mut |s, f| {
+                        progress.stage(&format!("plan {plan}: {name}: {s}"), f)
+                    })?);
+                }
+                draws.push((plan, tables));
             }
             progress.finish();
-            hil_sim::out!("{}", generalise::markdown(&tables));
+            match draws.as_slice() {
+                [(_, tables)] => hil_sim::out!("{}", generalise::markdown(tables)),
+                _ => hil_sim::out!("{}", generalise::draws_markdown(&draws, seed)),
+            }
             Ok(())
         })(),
         Cmd::Report {
