@@ -5,7 +5,8 @@
 //!
 //! `cargo run --profile ci -p hil-sim --example drawn_machine -- [PLANT] [PRESET] [PLAN-SEED]`:
 //! PLANT is N for `generalise::drawn_plant(N)` (default 3) or a part of a built-in plant's name
-//! (`paper`, `tight`, ...); PRESET defaults to `accelerations`; PLAN-SEED to the default plan's.
+//! (`paper`, `tight`, ...); PRESET defaults to `accelerations` and may be a generated workload of
+//! the generalisation table (`pick-and-place-11`); PLAN-SEED defaults to the default plan's.
 #![allow(clippy::print_stdout)]
 use estimator_core::model::{ModelKind, ModelParams};
 use hil_sim::eval;
@@ -26,7 +27,15 @@ fn main() {
     });
     let cal = eval::calibrate_plant_with_plan(&plant, plan_seed, &mut |_, _| {}).unwrap();
     let coeffs = cal.params.build(&plant.rig()).unwrap();
-    let s = hil_sim::scenario::Scenario::load(&preset).unwrap();
+    // A preset, or a workload of the generalisation table by name (`pick-and-place-11`).
+    let s = hil_sim::scenario::Scenario::load(&preset).unwrap_or_else(|_| {
+        let seed = preset.rsplit('-').next().and_then(|n| n.parse().ok());
+        hil_sim::generalise::workloads(&plant, seed.expect("a preset or a generated workload"))
+            .unwrap()
+            .into_iter()
+            .find(|w| w.name == preset)
+            .expect("a preset or a generated workload")
+    });
     let t = eval::run_in_process(
         &s,
         &plant,

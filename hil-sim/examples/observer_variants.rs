@@ -28,6 +28,12 @@
 //!   (not all of it): continuous at the limit, no new parameter.
 //! - `slow-slip`: gross slip decided on the current through a further 8 ms low pass (the span and
 //!   carriage take time to carry a torque step to the belt); the pre-slide keeps the 2 ms one.
+//! - `static-limit`: gross slip starts only beyond `z_max` times a fitted static-over-kinetic
+//!   ratio and goes on while the load stays beyond `z_max` (stick-slip: the plant's belt friction
+//!   has mu_s 0.45 against mu_k 0.35 below a 1 mm/s slip speed).
+//! - `high-limit`: refit, then the highest friction limit (up to 3 times the fitted one) whose
+//!   residual sum is within 1 % of the best: where the calibration data hardly tells whether the
+//!   fastest moves cross the gap, assume the belt holds.
 //! - `unit-weight`: `g` enters the sum with weight -1 (the carriage lags the motor by what the
 //!   belt lags the pulley) instead of a fitted one, which ties the observer's scale to the
 //!   micrometre (with a fitted weight, scaling `h`, `z_max` and the loads by `s` and the weight by
@@ -70,10 +76,12 @@ enum Variant {
     UnitWeight,
     CapstanSlip,
     SlowSlip,
+    StaticLimit,
+    HighLimit,
 }
 
 impl Variant {
-    const ALL: [(Variant, &'static str); 11] = [
+    const ALL: [(Variant, &'static str); 13] = [
         (Variant::AsIs, "as-is"),
         (Variant::Refit, "refit"),
         (Variant::BrakingSlip, "braking-slip"),
@@ -85,6 +93,8 @@ impl Variant {
         (Variant::UnitWeight, "unit-weight"),
         (Variant::CapstanSlip, "capstan-slip"),
         (Variant::SlowSlip, "slow-slip"),
+        (Variant::StaticLimit, "static-limit"),
+        (Variant::HighLimit, "high-limit"),
     ];
 
     /// Start and initial step of the coordinates beyond the six of `SlipParams`.
@@ -96,6 +106,8 @@ impl Variant {
             Variant::EncoderAccel => (&[0.0], &[0.03]),
             // Half-width of the slip ramp around the limit, as a fraction of it.
             Variant::SoftSlip => (&[0.15], &[0.05]),
+            // Static over kinetic friction limit (the plant's mu_s / mu_k is 1.29).
+            Variant::StaticLimit => (&[1.2], &[0.1]),
             _ => (&[], &[]),
         }
     }
@@ -122,6 +134,9 @@ struct Obs {
     /// Gross slip decided on the current through a further low pass of `2^slow_shift` ticks
     /// (the span and carriage take time to carry a torque step to the belt); 0: the same.
     slow_shift: u32,
+    /// Gross slip starts beyond `z_max` times this (static friction) and goes on while the load
+    /// is beyond `z_max` (kinetic); 1: one limit.
+    static_ratio: f64,
     lag_weight: f64,
     natural_hz: f64,
     damping: f64,
@@ -146,6 +161,7 @@ impl Obs {
             ramp: 0.0,
             capstan: variant == Variant::CapstanSlip,
             slow_shift: if variant == Variant::SlowSlip { 4 } else { 0 },
+            static_ratio: 1.0,
             lag_weight: 0.0,
             natural_hz: 20.0,
             damping: 0.5,
@@ -161,6 +177,7 @@ impl Obs {
             }
             Variant::EncoderAccel => o.accel_weight = v[6],
             Variant::SoftSlip => o.ramp = v[6].abs().clamp(0.01, 0.5),
+            Variant::StaticLimit => o.static_ratio = v[6].abs().clamp(1.0, 3.0),
             _ => {}
         }
         o
@@ -176,6 +193,7 @@ impl Obs {
         let mut g = if r.forward[0] { h } else { -h };
         let (mut z, mut lp) = (0.0, r.current_a[0]);
         let mut slow = lp;
+        let mut slipping = false;
         let mut x_prev = r.x_counts[0];
         // The model carriage: its lag behind the pulley and its speed, um and um per tick.
         let (mut lag, mut v_carriage) = (0.0, 0.0);
@@ -213,11 +231,18 @@ impl Obs {
                 let s = if self.ramp > 0.0 {
                     ((slip_load.abs() / limit - 1.0 + self.ramp) / (2.0 * self.ramp))
                         .clamp(0.0, 1.0)
-                } else if slip_load.abs() > limit {
+                } else if slip_load.abs()
+                    > if slipping {
+                        limit
+                    } else {
+                        limit * self.static_ratio
+                    }
+                {
                     1.0
                 } else {
                     0.0
                 };
+                slipping = s >= 1.0 && drives;
                 if s >= 1.0 && (drives || self.braking_slip) {
                     let share = if self.capstan {
                         1.0 - limit / slip_load.abs()
@@ -401,11 +426,23 @@ fn main() {
             let g: Vec<Vec<f64>> = cal_runs.iter().map(|r| o.offsets(r, cpm)).collect();
             fit(&cal_runs, &g, unit).map_or(f64::INFINITY, |f| f.1)
         };
-        let x = if variant == Variant::AsIs {
+        let mut x = if variant == Variant::AsIs {
             x0
         } else {
-            hil_sim::fit::nelder_mead(sse, &x0, &step, 1e-9, 600).x
+            hil_sim::fit::nelder_mead(&sse, &x0, &step, 1e-9, 600).x
         };
+        if variant == Variant::HighLimit {
+            // The highest limit whose fit is within 1 % of the best one's residual sum.
+            let best = sse(&x);
+            let limit = x[4];
+            for f in [1.05, 1.1, 1.2, 1.35, 1.5, 2.0, 3.0] {
+                let mut y = x.clone();
+                y[4] = limit * f;
+                if sse(&y) <= 1.01 * best {
+                    x = y;
+                }
+            }
+        }
         let o = Obs::of(&x, variant);
         let g: Vec<Vec<f64>> = cal_runs.iter().map(|r| o.offsets(r, cpm)).collect();
         let (w, sse) = fit(&cal_runs, &g, unit).expect("fit");
