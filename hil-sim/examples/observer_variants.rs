@@ -34,6 +34,8 @@
 //! - `high-limit`: refit, then the highest friction limit (up to 3 times the fitted one) whose
 //!   residual sum is within 1 % of the best: where the calibration data hardly tells whether the
 //!   fastest moves cross the gap, assume the belt holds.
+//! - `slip-threshold`: gross slip starts beyond its own fitted threshold, a multiple of `z_max`,
+//!   which stays the creep factor's pole and the pre-slide's cap.
 //! - `unit-weight`: `g` enters the sum with weight -1 (the carriage lags the motor by what the
 //!   belt lags the pulley) instead of a fitted one, which ties the observer's scale to the
 //!   micrometre (with a fitted weight, scaling `h`, `z_max` and the loads by `s` and the weight by
@@ -78,10 +80,11 @@ enum Variant {
     SlowSlip,
     StaticLimit,
     HighLimit,
+    SlipThreshold,
 }
 
 impl Variant {
-    const ALL: [(Variant, &'static str); 13] = [
+    const ALL: [(Variant, &'static str); 14] = [
         (Variant::AsIs, "as-is"),
         (Variant::Refit, "refit"),
         (Variant::BrakingSlip, "braking-slip"),
@@ -95,6 +98,7 @@ impl Variant {
         (Variant::SlowSlip, "slow-slip"),
         (Variant::StaticLimit, "static-limit"),
         (Variant::HighLimit, "high-limit"),
+        (Variant::SlipThreshold, "slip-threshold"),
     ];
 
     /// Start and initial step of the coordinates beyond the six of `SlipParams`.
@@ -108,6 +112,8 @@ impl Variant {
             Variant::SoftSlip => (&[0.15], &[0.05]),
             // Static over kinetic friction limit (the plant's mu_s / mu_k is 1.29).
             Variant::StaticLimit => (&[1.2], &[0.1]),
+            // Gross-slip threshold over z_max.
+            Variant::SlipThreshold => (&[1.0], &[0.2]),
             _ => (&[], &[]),
         }
     }
@@ -137,6 +143,9 @@ struct Obs {
     /// Gross slip starts beyond `z_max` times this (static friction) and goes on while the load
     /// is beyond `z_max` (kinetic); 1: one limit.
     static_ratio: f64,
+    /// Gross slip starts and goes on beyond `z_max` times this (1: `z_max` itself, which is also
+    /// the creep factor's pole).
+    threshold: f64,
     lag_weight: f64,
     natural_hz: f64,
     damping: f64,
@@ -162,6 +171,7 @@ impl Obs {
             capstan: variant == Variant::CapstanSlip,
             slow_shift: if variant == Variant::SlowSlip { 4 } else { 0 },
             static_ratio: 1.0,
+            threshold: 1.0,
             lag_weight: 0.0,
             natural_hz: 20.0,
             damping: 0.5,
@@ -178,6 +188,7 @@ impl Obs {
             Variant::EncoderAccel => o.accel_weight = v[6],
             Variant::SoftSlip => o.ramp = v[6].abs().clamp(0.01, 0.5),
             Variant::StaticLimit => o.static_ratio = v[6].abs().clamp(1.0, 3.0),
+            Variant::SlipThreshold => o.threshold = v[6].abs().clamp(0.5, 4.0),
             _ => {}
         }
         o
@@ -232,11 +243,12 @@ impl Obs {
                     ((slip_load.abs() / limit - 1.0 + self.ramp) / (2.0 * self.ramp))
                         .clamp(0.0, 1.0)
                 } else if slip_load.abs()
-                    > if slipping {
-                        limit
-                    } else {
-                        limit * self.static_ratio
-                    }
+                    > self.threshold
+                        * if slipping {
+                            limit
+                        } else {
+                            limit * self.static_ratio
+                        }
                 {
                     1.0
                 } else {
