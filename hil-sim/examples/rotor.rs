@@ -8,10 +8,8 @@
 //! Model 4's calibration fit and RMS per held-out workload for no, half and the whole share.
 #![allow(clippy::print_stdout)]
 use estimator_core::fixed::types::I16F16;
-use estimator_core::model::{ModelKind, ModelParams};
 use hil_sim::run::Trace;
-use hil_sim::workloads::{self, Class, Limits};
-use hil_sim::{drive_setup, eval, PlantParams};
+use hil_sim::{eval, PlantParams};
 
 fn shifted(t: &Trace, k_a_per_m_s2: f64, w: usize) -> Trace {
     let mut u = t.clone();
@@ -51,25 +49,10 @@ fn main() {
     println!("{} k = {k:.3} A per m/s^2", plant.name());
     let cal_traces =
         eval::record_calibration(&plant, eval::CALIBRATION_PLAN_SEED, &mut |_, _| {}).unwrap();
-    let lim = Limits::of(&drive_setup::drive_limits(plant.rig()));
-    let mut held: Vec<_> = ["fig18", "zigzag", "accelerations"]
-        .iter()
-        .map(|n| hil_sim::scenario::Scenario::load(n).unwrap())
-        .collect();
-    held.extend(Class::ALL.map(|c| workloads::generate(c, 11, &lim, 20.0)));
-    let held_traces: Vec<Trace> = held
-        .iter()
-        .map(|s| {
-            eval::run_in_process(
-                s,
-                &plant,
-                &ModelParams::PAPER,
-                ModelKind::None,
-                1,
-                &mut |_| {},
-            )
-            .unwrap()
-        })
+    let held_traces: Vec<Trace> = hil_sim::generalise::probe_set(&plant, 11)
+        .unwrap()
+        .into_iter()
+        .map(|(_, t)| t)
         .collect();
     for kk in [0.0, 0.5 * k, k] {
         let cal = hil_sim::calibrate::calibrate(

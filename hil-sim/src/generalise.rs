@@ -134,6 +134,14 @@ impl Row {
             .min_by(|a, b| a.1.total_cmp(&b.1))
             .map_or("none", |(k, _)| k)
     }
+
+    /// The RMS of `estimator` on this row, um.
+    pub fn rms(&self, estimator: &str) -> Option<f64> {
+        self.rms_um
+            .iter()
+            .find(|(k, _)| *k == estimator)
+            .map(|x| x.1)
+    }
 }
 
 /// One plant's table.
@@ -145,6 +153,21 @@ pub struct PlantTable {
     pub fit_rms_um: Vec<(&'static str, f64)>,
     /// Scenario presets first, then the generated workloads.
     pub rows: Vec<Row>,
+}
+
+impl PlantTable {
+    /// Root of the mean square of `estimator` over the workloads generated with
+    /// `workload_seed` (named `*-{seed}`; each weighs the same), um; `None` without any.
+    pub fn held_out_rms(&self, estimator: &str, workload_seed: u64) -> Option<f64> {
+        let suffix = format!("-{workload_seed}");
+        let v: Vec<f64> = self
+            .rows
+            .iter()
+            .filter(|r| r.workload.ends_with(&suffix))
+            .filter_map(|r| r.rms(estimator))
+            .collect();
+        (!v.is_empty()).then(|| (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt())
+    }
 }
 
 /// The held-out set of the Model 4 probes (`examples/oracle.rs`, `examples/observer_variants.rs`):
@@ -274,13 +297,13 @@ pub fn markdown(tables: &[PlantTable]) -> String {
             let best = r.best();
             rows += 1;
             best4 += (best == "model4") as usize;
-            let m4 = r.rms_um.iter().find(|(k, _)| *k == "model4").map(|x| x.1);
+            let m4 = r.rms("model4");
             near += m4.is_some_and(|v| v <= 4.0 * r.floor_um) as usize;
             out += &format!("| {} | {:.1} |", r.workload, r.floor_um);
             for e in eval::ESTIMATORS {
-                match r.rms_um.iter().find(|(k, _)| k == e) {
-                    Some((k, v)) if *k == best => out += &format!(" **{v:.1}** |"),
-                    Some((_, v)) => out += &format!(" {v:.1} |"),
+                match r.rms(e) {
+                    Some(v) if *e == best => out += &format!(" **{v:.1}** |"),
+                    Some(v) => out += &format!(" {v:.1} |"),
                     None => out += " |",
                 }
             }
@@ -302,18 +325,6 @@ pub fn draws_markdown(draws: &[(u64, Vec<PlantTable>)], workload_seed: u64) -> S
     let Some((_, first)) = draws.first() else {
         return String::new();
     };
-    let suffix = format!("-{workload_seed}");
-    let rms = |r: &Row, e: &str| r.rms_um.iter().find(|(k, _)| *k == e).map(|x| x.1);
-    // Root of the mean square of `e` over the generated rows (each workload weighs the same).
-    let generated = |t: &PlantTable, e: &str| -> Option<f64> {
-        let v: Vec<f64> = t
-            .rows
-            .iter()
-            .filter(|r| r.workload.ends_with(&suffix))
-            .filter_map(|r| rms(r, e))
-            .collect();
-        (!v.is_empty()).then(|| (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt())
-    };
     let others = || {
         eval::ESTIMATORS
             .iter()
@@ -332,8 +343,8 @@ pub fn draws_markdown(draws: &[(u64, Vec<PlantTable>)], workload_seed: u64) -> S
     out += &format!("\n|---:|---:|{}\n", "---:|".repeat(first.len()));
     let mut sums = vec![(0.0, 0.0, 0.0); first.len()];
     let mut best_total = 0usize;
-    // Plant and row positions (for the order), plant, workload, draws lost.
-    let mut lost: Vec<(usize, usize, String, String, usize)> = Vec::new();
+    // Draws in which Model 4 loses each row, by plant and row (every draw has the same ones).
+    let mut lost: Vec<Vec<usize>> = first.iter().map(|t| vec![0; t.rows.len()]).collect();
     for (seed, tables) in draws {
         let best = tables
             .iter()
@@ -343,14 +354,14 @@ pub fn draws_markdown(draws: &[(u64, Vec<PlantTable>)], workload_seed: u64) -> S
         best_total += best;
         out += &format!("| {seed} | {best} |");
         for (k, t) in tables.iter().enumerate() {
-            let gen = generated(t, "model4");
+            let gen = t.held_out_rms("model4", workload_seed);
             let fig = t
                 .rows
                 .iter()
                 .find(|r| r.workload == "fig18")
-                .and_then(|r| rms(r, "model4"));
+                .and_then(|r| r.rms("model4"));
             let other = others()
-                .filter_map(|e| generated(t, e))
+                .filter_map(|e| t.held_out_rms(e, workload_seed))
                 .fold(f64::INFINITY, f64::min);
             if let Some(s) = sums.get_mut(k) {
                 s.0 += gen.unwrap_or(f64::NAN);
@@ -358,17 +369,8 @@ pub fn draws_markdown(draws: &[(u64, Vec<PlantTable>)], workload_seed: u64) -> S
                 s.2 += other;
             }
             out += &format!(" {} / {} |", cell(gen), cell(fig));
-            for (i, r) in t.rows.iter().enumerate() {
-                if r.best() == "model4" {
-                    continue;
-                }
-                match lost
-                    .iter_mut()
-                    .find(|l| l.2 == t.plant && l.3 == r.workload)
-                {
-                    Some(l) => l.4 += 1,
-                    None => lost.push((k, i, t.plant.clone(), r.workload.clone(), 1)),
-                }
+            for (count, r) in lost.get_mut(k).into_iter().flatten().zip(&t.rows) {
+                *count += usize::from(r.best() != "model4");
             }
         }
         out += "\n";
@@ -382,9 +384,15 @@ pub fn draws_markdown(draws: &[(u64, Vec<PlantTable>)], workload_seed: u64) -> S
         out += &format!(" {:.1} |", s.2 / n);
     }
     out += "\n\nRows Model 4 loses, in how many draws:\n\n| plant | workload | draws |\n|---|---|---:|\n";
-    lost.sort_by_key(|l| (l.0, l.1));
-    for (_, _, plant, workload, k) in &lost {
-        out += &format!("| {plant} | {workload} | {k} of {} |\n", draws.len());
+    for (t, counts) in first.iter().zip(&lost) {
+        for (r, k) in t.rows.iter().zip(counts).filter(|(_, k)| **k > 0) {
+            out += &format!(
+                "| {} | {} | {k} of {} |\n",
+                t.plant,
+                r.workload,
+                draws.len()
+            );
+        }
     }
     out
 }
@@ -447,7 +455,7 @@ mod tests {
         assert!(md.contains("| rig | raster-11 | 1 of 2 |"), "{md}");
         assert!(md.contains("| rig | feed-12 | 2 of 2 |"), "{md}");
         assert!(!md.contains("| rig | feed-11 |"), "{md}");
-        // In the tables' order, whichever draw lost a row first.
+        // In the tables' order.
         let at = |w: &str| md.find(&format!("| rig | {w} |")).unwrap();
         assert!(
             at("fig18") < at("raster-11") && at("raster-11") < at("feed-12"),

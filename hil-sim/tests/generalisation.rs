@@ -6,15 +6,10 @@ use hil_sim::generalise::{self, PlantTable};
 /// Neither the calibration plan's seed nor the README table's.
 const HELD_OUT_SEED: u64 = 101;
 
-/// The mean square over the set's workloads (each workload weighs the same) of `estimator`.
-fn mean_square(t: &PlantTable, estimator: &str) -> f64 {
-    let v: Vec<f64> = t
-        .rows
-        .iter()
-        .filter_map(|r| r.rms_um.iter().find(|(k, _)| *k == estimator))
-        .map(|(_, v)| v * v)
-        .collect();
-    v.iter().sum::<f64>() / v.len() as f64
+/// The RMS over the set's workloads (each weighs the same) of `estimator`, um.
+fn held_out(t: &PlantTable, estimator: &str) -> f64 {
+    t.held_out_rms(estimator, HELD_OUT_SEED)
+        .expect("every held-out workload measured")
 }
 
 /// Every plant (the paper rig and the four variants), each calibrated by its default plan, runs
@@ -49,13 +44,13 @@ fn assert_model4_best_held_out(plants: impl IntoIterator<Item = hil_sim::PlantPa
         )
         .unwrap();
         assert_eq!(t.rows.len(), 6, "{}: a workload was refused", plant.name());
-        let m4 = mean_square(&t, "model4").sqrt();
+        let m4 = held_out(&t, "model4");
         report += &format!("{} {:?}: model4 {m4:.1} um", t.plant, plant.rig());
         for e in hil_sim::eval::ESTIMATORS {
             if *e == "model4" {
                 continue;
             }
-            let other = mean_square(&t, e).sqrt();
+            let other = held_out(&t, e);
             report += &format!(", {e} {other:.1}");
             if other <= m4 {
                 failed.push(format!("{}: {e} {other:.1} <= model4 {m4:.1}", t.plant));
