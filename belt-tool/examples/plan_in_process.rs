@@ -24,7 +24,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             .map_err(|e| format!("{config}: {}: {e}", field.name()))?;
     }
     let plant = PlantParams::from_toml_str(&std::fs::read_to_string(plant)?)?;
-    let plan = belt_tool::calibrate::plan(&settings, None, None)?;
+    let plan = belt_tool::calibrate::plan(
+        &settings,
+        None,
+        None,
+        hil_sim::eval::CALIBRATION_PLAN_SEED,
+        &[],
+    )?;
     let traces = plan
         .scenarios
         .iter()

@@ -92,11 +92,16 @@ pub struct Plan {
 /// `hil-sim`'s calibration scenarios fitted to the drive: positions mapped from the paper's
 /// travel onto the drive's (scaled down only where the drive's is shorter), speeds and
 /// accelerations clipped to the drive's limits and to the caps given; then `hil-sim`'s default
-/// calibration plan drawn across the drive's own range.
+/// calibration plan drawn across the drive's own range with `plan_seed`; then the user's own
+/// scenarios (`user`: each file's path beside it), in the drive's coordinates as written: a
+/// target outside the travel is refused by file and move, speeds and accelerations are held
+/// to the drive's limits and the caps like the others'.
 pub fn plan(
     settings: &Settings,
     velocity_cap: Option<f64>,
     accel_cap: Option<f64>,
+    plan_seed: u64,
+    user: &[(String, Scenario)],
 ) -> Result<Plan, ToolError> {
     let (p0, p1) = scenario_travel_mm();
     let (d0, d1) = (settings.travel_min_mm, settings.travel_max_mm);
@@ -152,9 +157,44 @@ pub fn plan(
     };
     scenarios.push(hil_sim::workloads::calibration_plan(
         &lim,
-        hil_sim::eval::CALIBRATION_PLAN_SEED,
+        plan_seed,
         hil_sim::eval::CALIBRATION_PLAN_S,
     ));
+    for (path, s) in user {
+        let inside = |x: f64| (d0..=d1).contains(&x);
+        if !inside(s.start_mm) {
+            return Err(ToolError::File {
+                path: path.clone(),
+                reason: format!(
+                    "start_mm = {} is outside the drive's travel {d0}..{d1} mm",
+                    s.start_mm
+                ),
+            });
+        }
+        let mut moves = Vec::with_capacity(s.moves.len());
+        for (i, m) in s.moves.iter().enumerate() {
+            if !inside(m.to_mm) {
+                return Err(ToolError::File {
+                    path: path.clone(),
+                    reason: format!(
+                        "move {}: to_mm = {} is outside the drive's travel {d0}..{d1} mm",
+                        i + 1,
+                        m.to_mm
+                    ),
+                });
+            }
+            let (v, a) = (m.velocity_mm_s.min(vmax), m.accel_mm_s2.min(amax));
+            if v < m.velocity_mm_s || a < m.accel_mm_s2 {
+                clipped += 1;
+            }
+            moves.push(Move {
+                velocity_mm_s: v,
+                accel_mm_s2: a,
+                ..m.clone()
+            });
+        }
+        scenarios.push(Scenario { moves, ..s.clone() });
+    }
     Ok(Plan {
         scenarios,
         position_scale: scale,
@@ -427,6 +467,11 @@ pub struct Options {
     pub velocity_cap: Option<f64>,
     /// Cap on the moves' acceleration, mm/s².
     pub accel_cap: Option<f64>,
+    /// Seed of the default calibration plan (`hil_sim::eval::CALIBRATION_PLAN_SEED` unless
+    /// the user draws another).
+    pub plan_seed: u64,
+    /// The user's own scenarios, each with its file, recorded after the default set.
+    pub scenarios: Vec<(String, Scenario)>,
     /// Model to select after the upload.
     pub model: ModelKind,
     /// Save configuration and calibration in the drive's storage afterwards.
@@ -458,7 +503,13 @@ pub fn run(link: &mut Link, opts: &Options, progress: &mut Progress) -> Result<O
     ops::require_ready(&status, "calibration")?;
     let settings = crate::config::settings(link)?;
     let rig = settings.rig;
-    let plan = plan(&settings, opts.velocity_cap, opts.accel_cap)?;
+    let plan = plan(
+        &settings,
+        opts.velocity_cap,
+        opts.accel_cap,
+        opts.plan_seed,
+        &opts.scenarios,
+    )?;
     if plan.position_scale < 1.0 {
         progress.println(&format!(
             "beltctl: the drive's travel is shorter than the scenarios': positions scaled by {:.3}",
@@ -505,7 +556,11 @@ pub fn run(link: &mut Link, opts: &Options, progress: &mut Progress) -> Result<O
         traces.push(t);
     }
 
-    let cal = hil_sim::calibrate::calibrate(&traces, &rig, &mut |s, f| progress.stage(s, f))?;
+    let mut cal = hil_sim::calibrate::calibrate(&traces, &rig, &mut |s, f| progress.stage(s, f))?;
+    // What the moves covered: calibration.toml keeps it, `hil-sim` warns by it.
+    let coverage = hil_sim::coverage::Coverage::of(&plan.scenarios);
+    progress.println(&coverage.markdown());
+    cal.coverage = Some(coverage);
 
     hil_sim::calfile::save(&opts.out, &cal, &rig)?;
     let mut files = vec![
@@ -626,12 +681,19 @@ mod tests {
 
     #[test]
     fn the_plan_fits_the_drive() {
-        let same = plan(&Settings::PAPER, None, None).unwrap();
+        let seed = hil_sim::eval::CALIBRATION_PLAN_SEED;
+        let same = plan(&Settings::PAPER, None, None, seed, &[]).unwrap();
         assert_eq!(same.position_scale, 1.0);
         assert_eq!(same.clipped_moves, 0);
         let names: Vec<_> = same.scenarios.iter().map(|s| s.name.as_str()).collect();
         assert_eq!(names[..3], *hil_sim::eval::CALIBRATION_SCENARIOS);
         assert!(names[3].starts_with("calibration-plan"), "{names:?}");
+        // Another seed draws other moves over the same drive.
+        let other = plan(&Settings::PAPER, None, None, seed + 1, &[]).unwrap();
+        for (a, b) in other.scenarios.iter().zip(&same.scenarios).take(3) {
+            assert_eq!(a.moves, b.moves);
+        }
+        assert_ne!(other.scenarios[3].moves, same.scenarios[3].moves);
         for s in &same.scenarios[..3] {
             let orig = Scenario::load(&s.name).unwrap();
             assert_eq!(s.moves, orig.moves);
@@ -640,7 +702,7 @@ mod tests {
         let mut short = Settings::PAPER;
         short.travel_max_mm = 150.0;
         short.max_velocity_mm_s = 30.0;
-        let p = plan(&short, None, Some(600.0)).unwrap();
+        let p = plan(&short, None, Some(600.0), seed, &[]).unwrap();
         assert_eq!(p.position_scale, 0.5);
         assert!(p.clipped_moves > 0);
         for s in &p.scenarios {
@@ -658,6 +720,42 @@ mod tests {
                 d.check_move(t, v, a).unwrap();
             }
         }
+    }
+
+    /// The user's scenarios follow the default set in the drive's own coordinates, held to
+    /// the caps; one that leaves the travel is refused by file and move.
+    #[test]
+    fn user_scenarios_follow_the_default_set_or_are_refused_by_name() {
+        let seed = hil_sim::eval::CALIBRATION_PLAN_SEED;
+        let mine = Scenario::from_toml_str(
+            "name = \"mine\"\nstart_mm = 20.0\n[[move]]\nto_mm = 40.0\nvelocity_mm_s = 200.0\n\
+             accel_mm_s2 = 4000.0\n[[move]]\nto_mm = 21.0\nvelocity_mm_s = 5.0\n\
+             accel_mm_s2 = 300.0\n",
+        )
+        .unwrap();
+        let user = vec![("mine.toml".to_string(), mine.clone())];
+        let base = plan(&Settings::PAPER, None, Some(1000.0), seed, &[]).unwrap();
+        let p = plan(&Settings::PAPER, None, Some(1000.0), seed, &user).unwrap();
+        assert_eq!(p.scenarios.len(), base.scenarios.len() + 1);
+        let last = p.scenarios.last().unwrap();
+        assert_eq!(last.name, "mine");
+        assert_eq!((last.start_mm, last.moves[0].to_mm), (20.0, 40.0));
+        assert_eq!(last.moves[0].accel_mm_s2, 1000.0);
+        assert_eq!(last.moves[1], mine.moves[1]);
+        assert_eq!(p.clipped_moves, base.clipped_moves + 1);
+
+        let mut far = mine.clone();
+        far.moves[1].to_mm = 900.0;
+        let e = plan(
+            &Settings::PAPER,
+            None,
+            None,
+            seed,
+            &[("far.toml".into(), far)],
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.starts_with("far.toml: move 2: to_mm = 900"), "{e}");
     }
 
     /// Every recording starts after a forward stroke of SEAT_MM (or the whole travel) onto its

@@ -118,6 +118,14 @@ pub enum Cmd {
         /// Cap on the moves' acceleration, mm/s^2.
         #[arg(long, value_name = "MM_S2")]
         accel: Option<f64>,
+        /// Seed of the default calibration plan's moves (another seed draws another plan from
+        /// the same ranges: calibrating twice shows how stable the fit is on this machine).
+        #[arg(long, value_name = "N", default_value_t = hil_sim::eval::CALIBRATION_PLAN_SEED)]
+        plan_seed: u64,
+        /// A scenario of your machine's own motions (TOML file, in the drive's coordinates),
+        /// recorded and fitted besides the default set; give it once per file.
+        #[arg(long = "scenario", value_name = "FILE")]
+        scenarios: Vec<PathBuf>,
         /// Model selected after the upload.
         #[arg(long, default_value = "model3")]
         model: String,
@@ -343,13 +351,27 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
             out,
             velocity,
             accel,
+            plan_seed,
+            scenarios,
             model,
             save,
         } => {
+            let scenarios = scenarios
+                .iter()
+                .map(|p| {
+                    let path = p.display().to_string();
+                    // The error names the file, the move and the field.
+                    hil_sim::scenario::Scenario::load(&path)
+                        .map(|s| (path, s))
+                        .map_err(|e| ToolError::Usage(format!("--scenario {e}")))
+                })
+                .collect::<Result<Vec<_>, _>>()?;
             let opts = calibrate::Options {
                 out,
                 velocity_cap: velocity,
                 accel_cap: accel,
+                plan_seed,
+                scenarios,
                 model: model_kind(&model, "--model ")?,
                 save,
             };

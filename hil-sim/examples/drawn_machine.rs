@@ -25,7 +25,7 @@ fn main() {
     let plan_seed = arg(3).map_or(eval::CALIBRATION_PLAN_SEED, |s| {
         s.parse().expect("a plan seed (an integer)")
     });
-    let cal = eval::calibrate_plant_with_plan(&plant, plan_seed, &mut |_, _| {}).unwrap();
+    let cal = eval::calibrate_plant_with(&plant, plan_seed, &[], &mut |_, _| {}).unwrap();
     let coeffs = cal.params.build(&plant.rig()).unwrap();
     // A preset, or a workload of the generalisation table by name (`pick-and-place-11`).
     let s = hil_sim::scenario::Scenario::load(&preset).unwrap_or_else(|_| {

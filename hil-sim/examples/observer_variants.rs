@@ -374,7 +374,8 @@ fn main() {
         None => eval::CALIBRATION_PLAN_SEED,
         Some(s) => s.parse().expect("a plan seed (an integer)"),
     };
-    let traces = eval::record_calibration(&plant, plan_seed, &mut |_, _| {}).expect("recordings");
+    let traces =
+        eval::record_calibration(&plant, plan_seed, &[], &mut |_, _| {}).expect("recordings");
     let cal = hil_sim::calibrate::calibrate(&traces, &rig, &mut |_, _| {}).expect("calibration");
     let prepare = |t: &Trace| -> Run {
         let mut m = Reference::new(&cal.params, &rig, t.records[0].motor_counts.0).expect("ref");

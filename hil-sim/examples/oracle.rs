@@ -14,12 +14,11 @@ use estimator_core::model::ModelParams;
 use estimator_core::reference::Reference;
 use estimator_core::rig::Rig;
 use hil_sim::calibrate::model4_row;
-use hil_sim::eval::{self, CALIBRATION_PLAN_S, CALIBRATION_PLAN_SEED, CALIBRATION_SCENARIOS};
+use hil_sim::eval;
 use hil_sim::run::Trace;
 use hil_sim::scenario::Scenario;
 use hil_sim::tables::NormalEquations;
-use hil_sim::workloads::{self, Limits};
-use hil_sim::{drive_setup, Plant, PlantParams};
+use hil_sim::{Plant, PlantParams};
 
 /// One recording with the plant's state beside it.
 struct Run {
@@ -95,19 +94,11 @@ fn main() {
         .expect("built-in plants")
         .expect("a built-in plant of that name");
     let rig = plant.rig();
-    let traces = eval::record_calibration(&plant, eval::CALIBRATION_PLAN_SEED, &mut |_, _| {})
+    let cal_scenarios = eval::calibration_scenarios(&plant, eval::CALIBRATION_PLAN_SEED, &[])
+        .expect("calibration scenarios");
+    let traces = eval::record_calibration(&plant, eval::CALIBRATION_PLAN_SEED, &[], &mut |_, _| {})
         .expect("recordings");
     let cal = hil_sim::calibrate::calibrate(&traces, &rig, &mut |_, _| {}).expect("calibration");
-    let lim = Limits::of(&drive_setup::drive_limits(rig));
-    let mut cal_scenarios: Vec<Scenario> = CALIBRATION_SCENARIOS
-        .iter()
-        .map(|n| Scenario::load(n).expect("preset"))
-        .collect();
-    cal_scenarios.push(workloads::calibration_plan(
-        &lim,
-        CALIBRATION_PLAN_SEED,
-        CALIBRATION_PLAN_S,
-    ));
     let cal_runs: Vec<Run> = traces
         .iter()
         .zip(&cal_scenarios)

@@ -48,7 +48,7 @@ fn main() {
         / (r * plant.motor.torque_constant_nm_per_a);
     println!("{} k = {k:.3} A per m/s^2", plant.name());
     let cal_traces =
-        eval::record_calibration(&plant, eval::CALIBRATION_PLAN_SEED, &mut |_, _| {}).unwrap();
+        eval::record_calibration(&plant, eval::CALIBRATION_PLAN_SEED, &[], &mut |_, _| {}).unwrap();
     let held_traces: Vec<Trace> = hil_sim::generalise::probe_set(&plant, 11)
         .unwrap()
         .into_iter()

@@ -10,12 +10,16 @@ use estimator_core::rig::Rig;
 use serde::Serialize;
 
 use crate::calibrate::Calibration;
+use crate::coverage::Coverage;
 
 /// The human-readable file.
 #[derive(Serialize)]
 struct CalFile {
     note: String,
     fit_rms_um: toml::Table,
+    /// What the recordings covered (see `crate::coverage`); not in the blob.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    coverage: Option<toml::Table>,
     #[serde(flatten)]
     models: Models,
 }
@@ -106,6 +110,14 @@ pub enum CalFileError {
         /// The model's key.
         model: &'static str,
     },
+    /// The `[coverage]` table is malformed.
+    #[error("{}: {field}", path.display())]
+    BadCoverage {
+        /// The TOML file.
+        path: PathBuf,
+        /// The field and what it must hold.
+        field: String,
+    },
     /// The model sections were edited: the drive loads the blob, so the edit would be ignored.
     #[error(
         "{}: {field} differs from {}: the drive loads the blob, so edits to the model sections \
@@ -155,6 +167,7 @@ pub fn save(dir: &Path, cal: &Calibration, rig: &Rig) -> Result<(), CalFileError
             .iter()
             .map(|(k, v)| (k.as_str().to_string(), toml::Value::Float(*v)))
             .collect(),
+        coverage: cal.coverage.as_ref().map(|c| c.to_toml()),
         models: models_of(&p),
     };
     let path = dir.join("calibration.toml");
@@ -327,6 +340,23 @@ pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, CalFileError> {
         Some(toml::Value::Table(t)) => t,
         _ => return Err(CalFileError::MissingFitRms { path }),
     };
+    let coverage = match found.remove("coverage") {
+        None => None,
+        Some(toml::Value::Table(t)) => {
+            Some(
+                Coverage::from_toml(&t).map_err(|field| CalFileError::BadCoverage {
+                    path: path.clone(),
+                    field,
+                })?,
+            )
+        }
+        Some(_) => {
+            return Err(CalFileError::BadCoverage {
+                path,
+                field: "coverage: not a table".into(),
+            })
+        }
+    };
     // The model sections mirror the blob: an edit there would be silently ignored, so it is
     // refused instead, naming the field.
     let want =
@@ -359,5 +389,6 @@ pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, CalFileError> {
             (K::Operator, rms("model4")?),
         ],
         samples: 0,
+        coverage,
     })
 }

@@ -102,6 +102,9 @@ pub struct Calibration {
     pub fit_rms_um: [(ModelKind, f64); 4],
     /// Samples used.
     pub samples: usize,
+    /// The region of motion the recordings cover, where the caller knows their scenarios (a
+    /// fit from traces alone does not; older calibration files hold none).
+    pub coverage: Option<crate::coverage::Coverage>,
 }
 
 /// One calibration run prepared for fitting.
@@ -525,6 +528,7 @@ pub fn calibrate(
         params,
         fit_rms_um,
         samples: runs.iter().map(|r| r.x_counts.len()).sum(),
+        coverage: None,
     })
 }
 

@@ -80,37 +80,62 @@ pub fn run_with(
     run(scenario, plant, rig, controller, &rc, progress)
 }
 
-/// Records the calibration scenarios and the default plan drawn with `plan_seed`
-/// ([`CALIBRATION_PLAN_SEED`] unless a study asks for another draw), with the Table 2 presets
-/// loaded (the models do not influence the motion: the loop closes on the motor encoder).
-pub fn record_calibration(
+/// What a calibration records, in order: the paper's calibration scenarios, the default plan
+/// drawn with `plan_seed` ([`CALIBRATION_PLAN_SEED`] unless a study asks for another draw), and
+/// the user's own scenarios, every one checked against the plant and the drive's limits before
+/// anything is recorded (a scenario they do not fit fails at once, by name).
+pub fn calibration_scenarios(
     plant: &PlantParams,
     plan_seed: u64,
-    progress: &mut dyn FnMut(&str, f64),
-) -> Result<Vec<Trace>, Error> {
-    let mut traces = Vec::new();
-    let scenarios = CALIBRATION_SCENARIOS
+    user: &[Scenario],
+) -> Result<Vec<Scenario>, Error> {
+    let limits = drive_limits(plant.rig());
+    let mut scenarios = CALIBRATION_SCENARIOS
         .iter()
         .map(|name| Scenario::load(name))
         .collect::<Result<Vec<_>, _>>()?;
-    // All checked before the first is recorded: a plant they do not fit fails at once.
     for s in &scenarios {
-        s.check_against(&drive_limits(plant.rig()), plant)
+        s.check_against(&limits, plant)
             .context(|| "calibration scenario".into())?;
     }
     // The default plan across the drive's configured range (see `workloads::calibration_plan`).
-    let lim = crate::workloads::Limits::of(&drive_limits(plant.rig()));
+    let lim = crate::workloads::Limits::of(&limits);
     let plan = crate::workloads::calibration_plan(&lim, plan_seed, CALIBRATION_PLAN_S);
-    plan.check_against(&drive_limits(plant.rig()), plant)
+    plan.check_against(&limits, plant)
         .context(|| "calibration plan".into())?;
-    let names: Vec<String> = CALIBRATION_SCENARIOS
-        .iter()
-        .map(|s| s.to_string())
-        .chain([plan.name.clone()])
-        .collect();
-    let scenarios: Vec<Scenario> = scenarios.into_iter().chain([plan]).collect();
-    for (k, (name, s)) in names.iter().zip(&scenarios).enumerate() {
-        let label = format!("record {name}");
+    scenarios.push(plan);
+    for s in user {
+        s.check_against(&limits, plant)
+            .context(|| format!("calibration scenario {}", s.source()))?;
+        scenarios.push(s.clone());
+    }
+    Ok(scenarios)
+}
+
+/// Records [`calibration_scenarios`] with the Table 2 presets loaded (the models do not
+/// influence the motion: the loop closes on the motor encoder).
+pub fn record_calibration(
+    plant: &PlantParams,
+    plan_seed: u64,
+    user: &[Scenario],
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Vec<Trace>, Error> {
+    record(
+        plant,
+        &calibration_scenarios(plant, plan_seed, user)?,
+        progress,
+    )
+}
+
+/// Records calibration runs of `scenarios`, each with its own noise seed.
+fn record(
+    plant: &PlantParams,
+    scenarios: &[Scenario],
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Vec<Trace>, Error> {
+    let mut traces = Vec::new();
+    for (k, s) in scenarios.iter().enumerate() {
+        let label = format!("record {}", s.name);
         let t = run_in_process(
             s,
             plant,
@@ -119,7 +144,7 @@ pub fn record_calibration(
             CALIBRATION_SEED_BASE + k as u64,
             &mut |f| progress(&label, f),
         )
-        .context(|| name.clone())?;
+        .context(|| s.name.clone())?;
         traces.push(t);
     }
     Ok(traces)
@@ -147,17 +172,22 @@ pub fn calibrate_plant(
     plant: &PlantParams,
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Calibration, Error> {
-    calibrate_plant_with_plan(plant, CALIBRATION_PLAN_SEED, progress)
+    calibrate_plant_with(plant, CALIBRATION_PLAN_SEED, &[], progress)
 }
 
-/// [`calibrate_plant`] with the default plan drawn with `plan_seed`.
-pub fn calibrate_plant_with_plan(
+/// [`calibrate_plant`] with the default plan drawn with `plan_seed` and the user's scenarios
+/// recorded besides; the calibration records the region their moves cover.
+pub fn calibrate_plant_with(
     plant: &PlantParams,
     plan_seed: u64,
+    user: &[Scenario],
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Calibration, Error> {
-    let traces = record_calibration(plant, plan_seed, progress)?;
-    Ok(calibrate(&traces, &plant.rig(), progress)?)
+    let scenarios = calibration_scenarios(plant, plan_seed, user)?;
+    let traces = record(plant, &scenarios, progress)?;
+    let mut cal = calibrate(&traces, &plant.rig(), progress)?;
+    cal.coverage = Some(crate::coverage::Coverage::of(&scenarios));
+    Ok(cal)
 }
 
 /// Every estimator's y along `trace`, um, in `ESTIMATORS` order: every compensator of the drive

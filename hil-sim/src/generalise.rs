@@ -123,6 +123,11 @@ pub struct Row {
     pub floor_um: f64,
     /// RMS of `e = x_LS - x_PE - y` of each estimator, in `eval::ESTIMATORS` order, um.
     pub rms_um: Vec<(&'static str, f64)>,
+    /// Moves that travel, and those outside the region the calibration covered
+    /// (`crate::coverage`).
+    pub moves: usize,
+    /// See `moves`.
+    pub moves_outside: usize,
 }
 
 impl Row {
@@ -219,7 +224,7 @@ pub fn measure(
     plan_seed: u64,
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<PlantTable, Error> {
-    let cal = eval::calibrate_plant_with_plan(plant, plan_seed, progress)?;
+    let cal = eval::calibrate_plant_with(plant, plan_seed, &[], progress)?;
     let coeffs = cal.params.build(&plant.rig())?;
     let limits = drive_setup::drive_limits(plant.rig());
     let mut rows = Vec::new();
@@ -255,10 +260,13 @@ pub fn measure(
             .into_iter()
             .map(|(k, st)| (k, st.rms_um))
             .collect();
+        let check = cal.coverage.as_ref().map(|c| c.check(s));
         rows.push(Row {
             workload: s.name.clone(),
             floor_um,
             rms_um,
+            moves: check.as_ref().map_or(0, |c| c.moves),
+            moves_outside: check.as_ref().map_or(0, |c| c.moves_outside()),
         });
     }
     let fit_rms_um = cal
@@ -282,10 +290,10 @@ pub fn markdown(tables: &[PlantTable]) -> String {
     let (mut rows, mut best4, mut near) = (0, 0, 0);
     for t in tables {
         out += &format!(
-            "\n**{}**\n\n| workload | floor |{head}\n|---|---:|{rule}\n",
+            "\n**{}**\n\n| workload | outside | floor |{head}\n|---|---:|---:|{rule}\n",
             t.plant
         );
-        out += "| (calibration fit) | |";
+        out += "| (calibration fit) | | |";
         for e in eval::ESTIMATORS {
             match t.fit_rms_um.iter().find(|(k, _)| k == e) {
                 Some((_, v)) => out += &format!(" {v:.1} |"),
@@ -299,7 +307,10 @@ pub fn markdown(tables: &[PlantTable]) -> String {
             best4 += (best == "model4") as usize;
             let m4 = r.rms("model4");
             near += m4.is_some_and(|v| v <= 4.0 * r.floor_um) as usize;
-            out += &format!("| {} | {:.1} |", r.workload, r.floor_um);
+            out += &format!(
+                "| {} | {}/{} | {:.1} |",
+                r.workload, r.moves_outside, r.moves, r.floor_um
+            );
             for e in eval::ESTIMATORS {
                 match r.rms(e) {
                     Some(v) if *e == best => out += &format!(" **{v:.1}** |"),
@@ -406,6 +417,8 @@ mod tests {
             workload: workload.into(),
             floor_um: 1.0,
             rms_um: vec![("none", 100.0), ("model1", m1), ("model4", m4)],
+            moves: 10,
+            moves_outside: 0,
         }
     }
 

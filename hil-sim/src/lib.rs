@@ -11,6 +11,7 @@ pub mod baseline;
 pub mod calfile;
 pub mod calibrate;
 pub mod controller;
+pub mod coverage;
 pub mod drive_setup;
 pub mod error;
 pub mod eval;

@@ -154,6 +154,10 @@ enum Cmd {
         /// the same ranges (how much the fit depends on the draw).
         #[arg(long, default_value_t = eval::CALIBRATION_PLAN_SEED)]
         plan_seed: u64,
+        /// A scenario of your machine's own motions (file or preset name), recorded and fitted
+        /// besides the default set; give it once per scenario.
+        #[arg(long = "scenario", value_name = "FILE")]
+        scenarios: Vec<String>,
     },
     /// Run a scenario and write every tick as CSV.
     Run {
@@ -306,10 +310,28 @@ fn scenario_and_plant(
     Ok((scenario, plant))
 }
 
+/// Says which moves of `scenario` leave the region the calibration covers (every model
+/// extrapolates there), or that the calibration file does not record it.
+fn warn_outside(scenario: &Scenario, cal: &Calibration) {
+    match &cal.coverage {
+        Some(c) => {
+            if let Some(w) = c.check(scenario).warning() {
+                hil_sim::errln!("warning: {w}");
+            }
+        }
+        None => hil_sim::errln!(
+            "note: the calibration records no coverage (an older file): whether {} stays \
+             within the calibrated motions is not checked",
+            scenario.name
+        ),
+    }
+}
+
 fn session(scenario: &str, common: &Common) -> Result<Session, Error> {
     let (scenario, plant) = scenario_and_plant(scenario, &common.plant)?;
     let mut progress = Progress::new();
     let cal = calibration(common, &plant, &mut progress)?;
+    warn_outside(&scenario, &cal);
     let trace = common.run(
         &scenario,
         &plant,
@@ -373,7 +395,9 @@ fn run_csv(scenario: &str, common: &Common, model: &str, out: &str) -> Result<()
     let (scenario, plant) = scenario_and_plant(scenario, &common.plant)?;
     let mut progress = Progress::new();
     // As documented for every command: the given calibration, or one made now on this plant.
-    let params = calibration(common, &plant, &mut progress)?.params;
+    let cal = calibration(common, &plant, &mut progress)?;
+    warn_outside(&scenario, &cal);
+    let params = cal.params;
     let trace = common.run(&scenario, &plant, &params, kind, &mut progress)?;
     progress.finish();
     let mut w: Box<dyn std::io::Write> = if out == "-" {
@@ -499,14 +523,22 @@ fn main() -> ExitCode {
             plant,
             out,
             plan_seed,
+            scenarios,
         } => (|| {
             let plant = plant_params(&plant)?;
+            let user = scenarios
+                .iter()
+                .map(|s| Scenario::load(s))
+                .collect::<Result<Vec<_>, _>>()?;
             let mut progress = Progress::new();
-            let cal = eval::calibrate_plant_with_plan(&plant, plan_seed, &mut |s, f| {
+            let cal = eval::calibrate_plant_with(&plant, plan_seed, &user, &mut |s, f| {
                 progress.stage(s, f)
             })?;
             progress.finish();
             calfile::save(&out, &cal, &plant.rig())?;
+            if let Some(c) = &cal.coverage {
+                hil_sim::errln!("{}", c.markdown());
+            }
             hil_sim::errln!(
                 "reversal dead band: {} counts",
                 cal.params.reversal_deadband_counts

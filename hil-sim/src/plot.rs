@@ -254,3 +254,96 @@ pub fn arrivals(path: &Path, title: &str, series: &[(&str, Vec<(usize, f64)>)]) 
     root.present()?;
     Ok(())
 }
+
+/// The calibration's region of motion: a grey square per half-octave cell of (peak speed,
+/// acceleration) its moves reached, darker with more moves; a run's moves on top, blue inside
+/// and red outside (no calibration move within a factor of two in both).
+pub fn coverage(
+    path: &Path,
+    title: &str,
+    region: &crate::coverage::Coverage,
+    run: &crate::coverage::Check,
+    moves: &[(usize, crate::coverage::MoveExtent)],
+) -> PlotResult {
+    use crate::coverage::{band, band_floor, Outside};
+    init_fonts()?;
+    let root = BitMapBackend::new(path, (900, 700)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let cells = region.cells.keys();
+    let mut s_bands = cells
+        .clone()
+        .map(|c| c.0)
+        .chain(moves.iter().map(|(_, m)| band(m.peak_mm_s)));
+    let mut a_bands = cells
+        .map(|c| c.1)
+        .chain(moves.iter().map(|(_, m)| band(m.accel_mm_s2)));
+    let span = |b: &mut dyn Iterator<Item = i32>| {
+        let (lo, hi) = b.fold((i32::MAX, i32::MIN), |(l, h), k| (l.min(k), h.max(k)));
+        if lo > hi {
+            (1.0, 10.0)
+        } else {
+            (band_floor(lo - 1), band_floor(hi + 2))
+        }
+    };
+    let (s_lo, s_hi) = span(&mut s_bands);
+    let (a_lo, a_hi) = span(&mut a_bands);
+    let mut c = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 22))
+        .margin(12)
+        .x_label_area_size(45)
+        .y_label_area_size(70)
+        .build_cartesian_2d((s_lo..s_hi).log_scale(), (a_lo..a_hi).log_scale())?;
+    c.configure_mesh()
+        .x_desc("peak speed (mm/s)")
+        .y_desc("acceleration (mm/s²)")
+        .x_label_formatter(&|v| crate::coverage::fmt_value(*v))
+        .y_label_formatter(&|v| crate::coverage::fmt_value(*v))
+        .light_line_style(WHITE)
+        .draw()?;
+    let most = region.cells.values().copied().max().unwrap_or(1).max(1) as f64;
+    c.draw_series(region.cells.iter().map(|(&(s, a), &n)| {
+        let shade = 0.25 + 0.6 * (n as f64).ln_1p() / most.ln_1p();
+        Rectangle::new(
+            [
+                (band_floor(s), band_floor(a)),
+                (band_floor(s + 1), band_floor(a + 1)),
+            ],
+            BLACK.mix(shade).filled(),
+        )
+    }))?
+    .label("calibration moves (darker: more)")
+    .legend(|(x, y)| Rectangle::new([(x + 4, y - 5), (x + 14, y + 5)], BLACK.mix(0.5).filled()));
+    let out: Vec<usize> = run
+        .outside
+        .iter()
+        .filter_map(|o| match o {
+            Outside::SpeedAccel { index, .. } => Some(*index),
+            Outside::Travel { .. } => None,
+        })
+        .collect();
+    let (inside_pts, outside_pts): (Vec<_>, Vec<_>) =
+        moves.iter().partition(|(i, _)| !out.contains(i));
+    let blue = RGBColor(20, 80, 200);
+    let red = RGBColor(200, 30, 30);
+    c.draw_series(
+        inside_pts
+            .iter()
+            .map(|(_, m)| Circle::new((m.peak_mm_s, m.accel_mm_s2), 4, blue.filled())),
+    )?
+    .label(format!("{}: inside", run.scenario))
+    .legend(move |(x, y)| Circle::new((x + 10, y), 4, blue.filled()));
+    c.draw_series(
+        outside_pts
+            .iter()
+            .map(|(_, m)| Cross::new((m.peak_mm_s, m.accel_mm_s2), 6, red.stroke_width(2))),
+    )?
+    .label(format!("{}: outside", run.scenario))
+    .legend(move |(x, y)| Cross::new((x + 10, y), 6, red.stroke_width(2)));
+    c.configure_series_labels()
+        .position(SeriesLabelPosition::UpperLeft)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()?;
+    root.present()?;
+    Ok(())
+}

@@ -257,6 +257,30 @@ pub fn write(
             &shown,
         ),
     );
+    // The scenario's moves against what the calibration covered, where it records that.
+    let region = cal
+        .coverage
+        .as_ref()
+        .map(|c| (c, c.check(setting.scenario)));
+    if let Some((c, check)) = &region {
+        fig(
+            "coverage.png",
+            format!(
+                "The moves of `{}` (peak speed, acceleration) over the calibration's moves: {} of \
+                 {} outside in speed and acceleration",
+                trace.scenario,
+                check.speed_accel(),
+                check.moves
+            ),
+            plot::coverage(
+                &dir.join("coverage.png"),
+                &format!("Calibrated region and the moves of {}", trace.scenario),
+                c,
+                check,
+                &crate::coverage::extents(setting.scenario),
+            ),
+        );
+    }
     progress.stage("figures", 1.0);
 
     let spread = repeatability_spread_um(&overlay);
@@ -277,6 +301,19 @@ pub fn write(
         ".\n\nRun-to-run repeatability of Delta x over {FIG11_RUNS} runs (RMS of the deviation from the mean, binned by \
          position and direction): {spread:.1} um. This is the floor under every model's error.\n\n"
     );
+    match &region {
+        Some((c, check)) => {
+            md += &format!(
+                "**The calibrated region** (every model is fitted on the same moves). {}\n{}\n\n",
+                c.markdown(),
+                check.warning().unwrap_or_else(|| format!(
+                    "Every move of `{}` lies within the calibrated region.",
+                    trace.scenario
+                ))
+            );
+        }
+        None => md += "The calibration records no region (an older file): not checked.\n\n",
+    }
     let rows: Vec<_> = placed.iter().map(|p| (p.name, p.positioning)).collect();
     md += &placement_markdown(&rows);
     md += "\n";
