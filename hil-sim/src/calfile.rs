@@ -159,7 +159,8 @@ pub fn save(dir: &Path, cal: &Calibration, rig: &Rig) -> Result<(), CalFileError
             "belt-drive calibration from {} samples; units in the names; the drive loads the \
              coefficients built from calibration.bin ({n} bytes), which holds the model sections \
              below: edit neither by hand (a calibration.toml that no longer matches its \
-             calibration.bin is refused)",
+             calibration.bin is refused); [coverage] is the region the calibration moves covered, \
+             for warnings only (not in calibration.bin)",
             cal.samples
         ),
         fit_rms_um: cal

@@ -22,7 +22,8 @@ pub fn band_floor(k: i32) -> f64 {
 }
 
 /// A move judged inside when some calibration move is within this many half-octave bands in
-/// both speed and acceleration (two bands: a factor of two either way).
+/// both speed and acceleration (two bands: a factor of 2 to 2.8, as the values fall in their
+/// bands; a move flagged outside has no calibration move within a factor of two).
 pub const NEAR_BANDS: i32 = 2;
 
 /// Positions may lie this far beyond the calibrated travel, mm.
@@ -58,36 +59,68 @@ fn travelled(d: f64, vp: f64, a: f64, t_s: f64) -> f64 {
     .min(d)
 }
 
+/// Speed `t_s` into the same trapezoid as [`travelled`].
+fn speed_at(d: f64, vp: f64, a: f64, t_s: f64) -> f64 {
+    let ta = vp / a;
+    let tc = ((d - vp * vp / a) / vp).max(0.0);
+    if t_s <= ta {
+        a * t_s
+    } else if t_s <= ta + tc {
+        vp
+    } else {
+        (vp - a * (t_s - ta - tc)).max(0.0)
+    }
+}
+
 /// The moves of `scenario` that travel, with where each starts (the previous target, or where
-/// a retargeted move had reached when the next one was commanded).
+/// a retargeted move had reached when the next one was commanded). A move that follows a cut
+/// starts at the speed of the cut: it reaches at least that speed, and where it cannot stop
+/// short of its target or turns back it brakes past where it was (the drive's replanning).
 pub fn extents(scenario: &Scenario) -> Vec<(usize, MoveExtent)> {
+    // Targets as the drive takes them, on its micrometre grid.
+    let um = |x: f64| (x * 1000.0).round() / 1000.0;
     let mut out = Vec::new();
-    let mut x = scenario.start_mm;
+    let mut x = um(scenario.start_mm);
+    // Speed and direction at a cut, carried into the next move.
+    let mut carry: Option<(f64, f64)> = None;
     for (i, m) in scenario.moves.iter().enumerate() {
-        let d = (m.to_mm - x).abs();
+        let to = um(m.to_mm);
+        let d = (to - x).abs();
         let (v, a) = (m.velocity_mm_s, m.accel_mm_s2);
-        if !(d > 0.0 && v > 0.0 && a > 0.0) {
-            x = m.to_mm;
+        let moving = carry.is_some_and(|(v0, _)| v0 > 0.0);
+        if !((d > 0.0 || moving) && v > 0.0 && a > 0.0) {
+            x = to;
+            carry = None;
             continue;
         }
         let vp = v.min((a * d).sqrt());
-        let (peak, end) = match m.retarget_after_ms {
-            Some(ms) => {
+        let (peak, end, next) = match m.retarget_after_ms {
+            Some(ms) if d > 0.0 => {
                 let t = ms as f64 / 1000.0;
-                let s = travelled(d, vp, a, t);
-                (vp.min(a * t), x + (m.to_mm - x).signum() * s)
+                let dir = (to - x).signum();
+                let cut = (dir * travelled(d, vp, a, t), speed_at(d, vp, a, t));
+                (vp.min(a * t), x + cut.0, Some((cut.1, dir)))
             }
-            None => (vp, m.to_mm),
+            _ => (vp, to, None),
         };
+        let (mut lo, mut hi) = (x.min(end), x.max(end));
+        let mut peak = peak;
+        if let Some((v0, dir0)) = carry {
+            let braked = x + dir0 * v0 * v0 / (2.0 * a);
+            lo = lo.min(braked);
+            hi = hi.max(braked);
+            peak = peak.max(v0);
+        }
         out.push((
             i,
             MoveExtent {
-                span_mm: [x.min(end), x.max(end)],
+                span_mm: [lo, hi],
                 peak_mm_s: peak,
                 accel_mm_s2: a,
             },
         ));
         x = end;
+        carry = next;
     }
     out
 }
@@ -371,6 +404,12 @@ impl Coverage {
 
     /// Reads [`Coverage::to_toml`]'s table; the error names the field.
     pub fn from_toml(t: &toml::Table) -> Result<Coverage, String> {
+        if let Some(k) = t
+            .keys()
+            .find(|k| !["travel_mm", "half_octave_cells"].contains(&k.as_str()))
+        {
+            return Err(format!("coverage.{k}: not a coverage field"));
+        }
         let travel = match t.get("travel_mm") {
             Some(toml::Value::Array(a)) if a.len() == 2 => {
                 let x: Vec<f64> = a
@@ -410,11 +449,17 @@ impl Coverage {
                     _ => None,
                 })
                 .collect();
-            if n.len() != 3 || r.len() != 3 || n[0].abs() > 64 || n[1].abs() > 64 || n[2] < 1 {
+            let band_ok = |b: i64| (-64..=64).contains(&b);
+            if n.len() != 3 || r.len() != 3 || !band_ok(n[0]) || !band_ok(n[1]) || n[2] < 1 {
                 return Err(bad());
             }
             let moves = u32::try_from(n[2]).map_err(|_| bad())?;
-            cells.insert((n[0] as i32, n[1] as i32), moves);
+            if cells.insert((n[0] as i32, n[1] as i32), moves).is_some() {
+                return Err(format!(
+                    "coverage.half_octave_cells[{i}]: cell [{}, {}] is listed twice",
+                    n[0], n[1]
+                ));
+            }
         }
         Ok(Coverage {
             travel_mm: travel,
@@ -423,12 +468,14 @@ impl Coverage {
     }
 }
 
-/// A value for people: integers from 10 up, one decimal below.
+/// A value for people: integers from 10 up, one decimal down to 0.1, three below.
 pub(crate) fn fmt_value(x: f64) -> String {
     if x >= 10.0 {
         format!("{x:.0}")
-    } else {
+    } else if x >= 0.1 {
         format!("{x:.1}")
+    } else {
+        format!("{x:.3}")
     }
 }
 
@@ -493,7 +540,29 @@ mod tests {
         assert!((e[1].1.peak_mm_s - 1000f64.sqrt()).abs() < 1e-9);
         assert!((e[2].1.peak_mm_s - 50.0).abs() < 1e-9);
         assert!((e[2].1.span_mm[0] - 197.75).abs() < 1e-9, "{:?}", e[2]);
+        // It starts at the cut's 50 mm/s and brakes within its stroke.
         assert_eq!(e[3].1.span_mm, [150.0, 197.75]);
+        assert_eq!(e[3].1.peak_mm_s, 50.0);
+    }
+
+    #[test]
+    fn a_move_that_turns_back_after_a_cut_brakes_past_the_cut() {
+        let s = scenario(
+            100.0,
+            vec![
+                // Cut after 200 ms at 100 mm/s, 15 mm up.
+                mv(200.0, 100.0, 1000.0, Some(200)),
+                // Back down at 500 mm/s²: 10 mm to stop first.
+                mv(110.0, 20.0, 500.0, None),
+                // Nothing to travel and nothing carried: not a move.
+                mv(110.0000001, 20.0, 500.0, None),
+            ],
+        );
+        let e = extents(&s);
+        assert_eq!(e.len(), 2, "{e:?}");
+        assert_eq!(e[0].1.span_mm, [100.0, 115.0]);
+        assert_eq!(e[1].1.span_mm, [110.0, 125.0]);
+        assert_eq!(e[1].1.peak_mm_s, 100.0);
     }
 
     #[test]
@@ -519,18 +588,25 @@ mod tests {
             vec![
                 mv(200.0, 200.0, 8000.0, None),
                 mv(280.0, 100.0, 1000.0, None),
+                // Both ways at once: counted once among the moves.
+                mv(290.0, 2.0, 1000.0, None),
             ],
         );
         let k = c.check(&far);
-        assert_eq!(k.moves, 2);
-        assert_eq!(k.speed_accel(), 1);
-        assert_eq!(k.travel(), 1);
-        assert_eq!(k.moves_outside(), 2);
+        assert_eq!(k.moves, 3);
+        assert_eq!(k.speed_accel(), 2);
+        assert_eq!(k.travel(), 2);
+        assert_eq!(k.outside.len(), 4);
+        assert_eq!(k.moves_outside(), 3);
         let w = k.warning().unwrap();
-        assert!(w.contains("(move 1: 200 mm/s at 8000 mm/s²)"), "{w}");
+        assert!(
+            w.contains("(move 1: 200 mm/s at 8000 mm/s²; move 3: 2.0 mm/s at 1000 mm/s²)"),
+            "{w}"
+        );
         assert!(
             w.contains(
-                "1 of 2 moves outside the calibrated travel 10.0-250.0 mm (move 2: 200.0-280.0 mm)"
+                "2 of 3 moves outside the calibrated travel 10.0-250.0 mm (move 2: 200.0-280.0 mm; \
+                 move 3: 280.0-290.0 mm)"
             ),
             "{w}"
         );
@@ -560,6 +636,26 @@ mod tests {
         );
         let e = Coverage::from_toml(&t).unwrap_err();
         assert!(e.contains("coverage.half_octave_cells[0]"), "{e}");
+        let cell = |s: i64| toml::Value::Array([s, 2, 1].map(toml::Value::Integer).to_vec());
+        for (cells, field) in [
+            (vec![cell(i64::MIN)], "half_octave_cells[0]"),
+            (vec![cell(65)], "half_octave_cells[0]"),
+            (
+                vec![cell(1), cell(1)],
+                "half_octave_cells[1]: cell [1, 2] is listed twice",
+            ),
+        ] {
+            let mut t = c.to_toml();
+            t.insert("half_octave_cells".into(), toml::Value::Array(cells));
+            let e = Coverage::from_toml(&t).unwrap_err();
+            assert!(e.contains(field), "{e}");
+        }
+        let mut t = c.to_toml();
+        t.insert("extra".into(), toml::Value::Integer(1));
+        assert_eq!(
+            Coverage::from_toml(&t).unwrap_err(),
+            "coverage.extra: not a coverage field"
+        );
     }
 
     #[test]

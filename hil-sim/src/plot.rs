@@ -313,7 +313,7 @@ pub fn coverage(
     }))?
     .label("calibration moves (darker: more)")
     .legend(|(x, y)| Rectangle::new([(x + 4, y - 5), (x + 14, y + 5)], BLACK.mix(0.5).filled()));
-    let out: Vec<usize> = run
+    let out: std::collections::BTreeSet<usize> = run
         .outside
         .iter()
         .filter_map(|o| match o {

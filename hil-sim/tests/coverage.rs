@@ -9,7 +9,7 @@ use hil_sim::eval;
 use hil_sim::scenario::Scenario;
 use hil_sim::PlantParams;
 
-/// Slow feeds at 0.6 mm/s: a quarter of the slowest speed the default set reaches.
+/// Slow feeds at 0.6 mm/s: a seventh of the slowest peak speed of the default set (4 mm/s).
 const CREEP: &str = "name = \"creep\"
 start_mm = 120.0
 [[move]]
@@ -91,7 +91,8 @@ fn a_user_scenario_is_recorded_fitted_and_widens_the_region() {
         .coverage
         .expect("a calibration from scenarios records its region");
     assert_eq!(coverage.check(&creep).warning(), None);
-    assert_eq!(coverage, Coverage::of(&with));
+    let moves = |c: &Coverage| c.cells.values().sum::<u32>();
+    assert_eq!(moves(&coverage), moves(&Coverage::of(&default)) + 2);
 }
 
 #[test]
@@ -161,6 +162,19 @@ fn calibrate_writes_the_region_and_evaluate_warns_outside_it() {
     let (code, err) = evaluate("zigzag");
     assert_eq!(code, Some(0), "{err}");
     assert!(!err.contains("warning"), "{err}");
+
+    // A file made before the region was recorded: loaded, with a note that nothing is checked.
+    let start = text.find("\n[coverage]\n").unwrap() + 1;
+    let end = start + text[start..].find("\n[").unwrap() + 1;
+    let old = format!("{}{}", &text[..start], &text[end..]);
+    assert!(!old.contains("half_octave_cells"), "{old}");
+    std::fs::write(cal.join("calibration.toml"), &old).unwrap();
+    let (code, err) = evaluate(&creep);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(
+        err.contains("note: the calibration records no coverage") && !err.contains("warning"),
+        "{err}"
+    );
 
     // A damaged region is refused by field, naming the file.
     let bad = text.replace("half_octave_cells = [[", "half_octave_cells = [[\"x\", ");
