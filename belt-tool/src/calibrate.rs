@@ -560,6 +560,10 @@ pub fn run(link: &mut Link, opts: &Options, progress: &mut Progress) -> Result<O
     // What the moves covered: calibration.toml keeps it, `hil-sim` warns by it.
     let coverage = hil_sim::coverage::Coverage::of(&plan.scenarios);
     progress.println(&coverage.markdown());
+    // Caps below the drive's limits leave its fastest moves uncalibrated: say so now.
+    for w in coverage.short_of(settings.max_velocity_mm_s, settings.max_accel_mm_s2) {
+        progress.println(&format!("beltctl: warning: {w}"));
+    }
     cal.coverage = Some(coverage);
 
     hil_sim::calfile::save(&opts.out, &cal, &rig)?;

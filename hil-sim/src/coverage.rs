@@ -304,6 +304,42 @@ impl Coverage {
             .any(|&(s, a)| (s - sb).abs() <= NEAR_BANDS && (a - ab).abs() <= NEAR_BANDS)
     }
 
+    /// The highest peak speed (mm/s) and acceleration (mm/s²) the moves reached, to within
+    /// their half-octave band (the band's upper edge); `None` without moves.
+    pub fn reach(&self) -> Option<(f64, f64)> {
+        let s = self.cells.keys().map(|c| c.0).max()?;
+        let a = self.cells.keys().map(|c| c.1).max()?;
+        Some((band_floor(s + 1), band_floor(a + 1)))
+    }
+
+    /// What a drive allowed `max_velocity_mm_s` and `max_accel_mm_s2` may do beyond this
+    /// region: a sentence per limit that no calibration move comes within a factor of two of.
+    pub fn short_of(&self, max_velocity_mm_s: f64, max_accel_mm_s2: f64) -> Vec<String> {
+        let Some((v, a)) = self.reach() else {
+            return vec!["no calibration move travels".into()];
+        };
+        let mut out = Vec::new();
+        let top_s = self.cells.keys().map(|c| c.0).max().unwrap_or(i32::MIN);
+        let top_a = self.cells.keys().map(|c| c.1).max().unwrap_or(i32::MIN);
+        if band(max_velocity_mm_s) > top_s + NEAR_BANDS {
+            out.push(format!(
+                "the calibration's moves reach {} mm/s at most and the drive allows {}: faster \
+                 moves are outside the calibrated region",
+                fmt_value(v),
+                fmt_value(max_velocity_mm_s)
+            ));
+        }
+        if band(max_accel_mm_s2) > top_a + NEAR_BANDS {
+            out.push(format!(
+                "the calibration's moves reach {} mm/s² at most and the drive allows {}: \
+                 moves that accelerate harder are outside the calibrated region",
+                fmt_value(a),
+                fmt_value(max_accel_mm_s2)
+            ));
+        }
+        out
+    }
+
     /// The moves of `scenario` outside this region.
     pub fn check(&self, scenario: &Scenario) -> Check {
         let ext = extents(scenario);
@@ -610,6 +646,29 @@ mod tests {
             ),
             "{w}"
         );
+    }
+
+    #[test]
+    fn limits_beyond_the_calibration_are_named() {
+        let cal = scenario(10.0, vec![mv(200.0, 100.0, 1000.0, None)]);
+        let c = Coverage::of([&cal]);
+        // Band edges: 90.5-128 mm/s, 724-1024 mm/s².
+        assert_eq!(
+            c.reach().map(|(v, a)| (v.round(), a.round())),
+            Some((128.0, 1024.0))
+        );
+        assert!(c.short_of(250.0, 2000.0).is_empty());
+        let w = c.short_of(500.0, 5000.0);
+        assert_eq!(w.len(), 2, "{w:?}");
+        assert!(
+            w[0].contains("reach 128 mm/s at most and the drive allows 500"),
+            "{w:?}"
+        );
+        assert!(
+            w[1].contains("reach 1024 mm/s² at most and the drive allows 5000"),
+            "{w:?}"
+        );
+        assert_eq!(Coverage::default().short_of(1.0, 1.0).len(), 1);
     }
 
     #[test]

@@ -538,6 +538,10 @@ fn main() -> ExitCode {
             calfile::save(&out, &cal, &plant.rig())?;
             if let Some(c) = &cal.coverage {
                 hil_sim::errln!("{}", c.markdown());
+                let lim = hil_sim::workloads::Limits::of(&drive_setup::drive_limits(plant.rig()));
+                for w in c.short_of(lim.max_velocity_mm_s, lim.max_accel_mm_s2) {
+                    hil_sim::errln!("warning: {w}");
+                }
             }
             hil_sim::errln!(
                 "reversal dead band: {} counts",
