@@ -120,25 +120,23 @@ pub fn plan(
         c.min(settings.max_accel_mm_s2)
     });
     let mut clipped = 0;
+    // A move to `to_mm` held to the limits and caps, counted when that slows it.
+    let mut held = |m: &Move, to_mm: f64| {
+        let (v, a) = (m.velocity_mm_s.min(vmax), m.accel_mm_s2.min(amax));
+        if v < m.velocity_mm_s || a < m.accel_mm_s2 {
+            clipped += 1;
+        }
+        Move {
+            to_mm,
+            velocity_mm_s: v,
+            accel_mm_s2: a,
+            ..m.clone()
+        }
+    };
     let mut scenarios = Vec::new();
     for name in hil_sim::eval::CALIBRATION_SCENARIOS {
         let s = Scenario::load(name).map_err(|e| ToolError::Drive(e.to_string()))?;
-        let moves = s
-            .moves
-            .iter()
-            .map(|m| {
-                let (v, a) = (m.velocity_mm_s.min(vmax), m.accel_mm_s2.min(amax));
-                if v < m.velocity_mm_s || a < m.accel_mm_s2 {
-                    clipped += 1;
-                }
-                Move {
-                    to_mm: map(m.to_mm),
-                    velocity_mm_s: v,
-                    accel_mm_s2: a,
-                    ..m.clone()
-                }
-            })
-            .collect();
+        let moves = s.moves.iter().map(|m| held(m, map(m.to_mm))).collect();
         scenarios.push(Scenario {
             start_mm: map(s.start_mm),
             moves,
@@ -183,15 +181,7 @@ pub fn plan(
                     ),
                 });
             }
-            let (v, a) = (m.velocity_mm_s.min(vmax), m.accel_mm_s2.min(amax));
-            if v < m.velocity_mm_s || a < m.accel_mm_s2 {
-                clipped += 1;
-            }
-            moves.push(Move {
-                velocity_mm_s: v,
-                accel_mm_s2: a,
-                ..m.clone()
-            });
+            moves.push(held(m, m.to_mm));
         }
         scenarios.push(Scenario { moves, ..s.clone() });
     }

@@ -40,35 +40,21 @@ pub struct MoveExtent {
     pub accel_mm_s2: f64,
 }
 
-/// Distance covered `t_s` into a symmetric trapezoid of length `d`, top speed `vp` and
-/// acceleration `a`.
-fn travelled(d: f64, vp: f64, a: f64, t_s: f64) -> f64 {
+/// Distance covered and speed `t_s` into a symmetric trapezoid of length `d`, top speed `vp`
+/// and acceleration `a`.
+fn trapezoid_at(d: f64, vp: f64, a: f64, t_s: f64) -> (f64, f64) {
     let ta = vp / a;
     let da = vp * vp / (2.0 * a);
     let tc = ((d - 2.0 * da) / vp).max(0.0);
     if t_s <= ta {
-        0.5 * a * t_s * t_s
+        (0.5 * a * t_s * t_s, a * t_s)
     } else if t_s <= ta + tc {
-        da + vp * (t_s - ta)
+        (da + vp * (t_s - ta), vp)
     } else if t_s <= 2.0 * ta + tc {
         let tau = t_s - ta - tc;
-        da + vp * tc + vp * tau - 0.5 * a * tau * tau
+        (da + vp * tc + vp * tau - 0.5 * a * tau * tau, vp - a * tau)
     } else {
-        d
-    }
-    .min(d)
-}
-
-/// Speed `t_s` into the same trapezoid as [`travelled`].
-fn speed_at(d: f64, vp: f64, a: f64, t_s: f64) -> f64 {
-    let ta = vp / a;
-    let tc = ((d - vp * vp / a) / vp).max(0.0);
-    if t_s <= ta {
-        a * t_s
-    } else if t_s <= ta + tc {
-        vp
-    } else {
-        (vp - a * (t_s - ta - tc)).max(0.0)
+        (d, 0.0)
     }
 }
 
@@ -98,8 +84,8 @@ pub fn extents(scenario: &Scenario) -> Vec<(usize, MoveExtent)> {
             Some(ms) if d > 0.0 => {
                 let t = ms as f64 / 1000.0;
                 let dir = (to - x).signum();
-                let cut = (dir * travelled(d, vp, a, t), speed_at(d, vp, a, t));
-                (vp.min(a * t), x + cut.0, Some((cut.1, dir)))
+                let (s, v_cut) = trapezoid_at(d, vp, a, t);
+                (vp.min(a * t), x + dir * s.min(d), Some((v_cut, dir)))
             }
             _ => (vp, to, None),
         };
@@ -185,8 +171,8 @@ impl fmt::Display for Outside {
 pub struct Check {
     /// The scenario's name.
     pub scenario: String,
-    /// Moves that travel.
-    pub moves: usize,
+    /// Its moves that travel, as [`extents`] gives them.
+    pub extents: Vec<(usize, MoveExtent)>,
     /// Moves outside in speed and acceleration, and moves outside the travel.
     pub outside: Vec<Outside>,
     /// The calibrated travel, mm.
@@ -194,6 +180,11 @@ pub struct Check {
 }
 
 impl Check {
+    /// Moves that travel.
+    pub fn moves(&self) -> usize {
+        self.extents.len()
+    }
+
     /// Moves outside in speed and acceleration.
     pub fn speed_accel(&self) -> usize {
         self.outside
@@ -248,7 +239,7 @@ impl Check {
                 "{} of {} moves with no calibration move within a factor of two in both peak \
                  speed and acceleration ({})",
                 self.speed_accel(),
-                self.moves,
+                self.moves(),
                 examples(true)
             ));
         }
@@ -256,7 +247,7 @@ impl Check {
             parts.push(format!(
                 "{} of {} moves outside the calibrated travel {:.1}-{:.1} mm ({})",
                 self.travel(),
-                self.moves,
+                self.moves(),
                 self.travel_mm[0],
                 self.travel_mm[1],
                 examples(false)
@@ -304,23 +295,27 @@ impl Coverage {
             .any(|&(s, a)| (s - sb).abs() <= NEAR_BANDS && (a - ab).abs() <= NEAR_BANDS)
     }
 
+    /// The highest speed band and acceleration band any move reached.
+    fn top_bands(&self) -> Option<(i32, i32)> {
+        let s = self.cells.keys().map(|c| c.0).max()?;
+        let a = self.cells.keys().map(|c| c.1).max()?;
+        Some((s, a))
+    }
+
     /// The highest peak speed (mm/s) and acceleration (mm/s²) the moves reached, to within
     /// their half-octave band (the band's upper edge); `None` without moves.
     pub fn reach(&self) -> Option<(f64, f64)> {
-        let s = self.cells.keys().map(|c| c.0).max()?;
-        let a = self.cells.keys().map(|c| c.1).max()?;
+        let (s, a) = self.top_bands()?;
         Some((band_floor(s + 1), band_floor(a + 1)))
     }
 
     /// What a drive allowed `max_velocity_mm_s` and `max_accel_mm_s2` may do beyond this
     /// region: a sentence per limit that no calibration move comes within a factor of two of.
     pub fn short_of(&self, max_velocity_mm_s: f64, max_accel_mm_s2: f64) -> Vec<String> {
-        let Some((v, a)) = self.reach() else {
+        let (Some((top_s, top_a)), Some((v, a))) = (self.top_bands(), self.reach()) else {
             return vec!["no calibration move travels".into()];
         };
         let mut out = Vec::new();
-        let top_s = self.cells.keys().map(|c| c.0).max().unwrap_or(i32::MIN);
-        let top_a = self.cells.keys().map(|c| c.1).max().unwrap_or(i32::MIN);
         if band(max_velocity_mm_s) > top_s + NEAR_BANDS {
             out.push(format!(
                 "the calibration's moves reach {} mm/s at most and the drive allows {}: faster \
@@ -363,7 +358,7 @@ impl Coverage {
         }
         Check {
             scenario: scenario.name.clone(),
-            moves: ext.len(),
+            extents: ext,
             outside,
             travel_mm: self.travel_mm,
         }
@@ -629,7 +624,7 @@ mod tests {
             ],
         );
         let k = c.check(&far);
-        assert_eq!(k.moves, 3);
+        assert_eq!(k.moves(), 3);
         assert_eq!(k.speed_accel(), 2);
         assert_eq!(k.travel(), 2);
         assert_eq!(k.outside.len(), 4);

@@ -265,7 +265,7 @@ pub fn measure(
             workload: s.name.clone(),
             floor_um,
             rms_um,
-            moves: check.as_ref().map_or(0, |c| c.moves),
+            moves: check.as_ref().map_or(0, |c| c.moves()),
             moves_outside: check.as_ref().map_or(0, |c| c.moves_outside()),
         });
     }

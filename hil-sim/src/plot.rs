@@ -263,10 +263,10 @@ pub fn coverage(
     title: &str,
     region: &crate::coverage::Coverage,
     run: &crate::coverage::Check,
-    moves: &[(usize, crate::coverage::MoveExtent)],
 ) -> PlotResult {
     use crate::coverage::{band, band_floor, Outside};
     init_fonts()?;
+    let moves = &run.extents;
     let root = BitMapBackend::new(path, (900, 700)).into_drawing_area();
     root.fill(&WHITE)?;
     let cells = region.cells.keys();

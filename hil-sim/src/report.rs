@@ -270,14 +270,13 @@ pub fn write(
                  {} outside in speed and acceleration",
                 trace.scenario,
                 check.speed_accel(),
-                check.moves
+                check.moves()
             ),
             plot::coverage(
                 &dir.join("coverage.png"),
                 &format!("Calibrated region and the moves of {}", trace.scenario),
                 c,
                 check,
-                &crate::coverage::extents(setting.scenario),
             ),
         );
     }

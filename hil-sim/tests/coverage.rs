@@ -60,7 +60,7 @@ fn a_user_scenario_is_recorded_fitted_and_widens_the_region() {
     // Without it, the default set leaves the slow feed outside, by name.
     let default = eval::calibration_scenarios(&plant, seed, &[]).unwrap();
     let check = Coverage::of(&default).check(&creep);
-    assert_eq!(check.moves, 2);
+    assert_eq!(check.moves(), 2);
     assert_eq!(check.speed_accel(), 2, "{check:?}");
     let w = check.warning().unwrap();
     assert!(w.starts_with("creep leaves the calibrated region"), "{w}");
@@ -199,8 +199,7 @@ fn the_region_is_drawn_with_the_run_over_it() {
     let creep = Scenario::load(&write(&dir, "creep.toml", CREEP)).unwrap();
     let check = region.check(&creep);
     let png = dir.join("coverage.png");
-    let moves = hil_sim::coverage::extents(&creep);
-    match hil_sim::plot::coverage(&png, "region", &region, &check, &moves) {
+    match hil_sim::plot::coverage(&png, "region", &region, &check) {
         Ok(()) => {
             let bytes = std::fs::read(&png).unwrap();
             assert!(
