@@ -115,6 +115,9 @@ pub enum Error {
     /// A font file that plotters cannot use.
     #[error("{0}: not a usable TrueType font")]
     BadFont(String),
+    /// A picture that could not be drawn or written: `{file}: figure not drawn: {why}`.
+    #[error("{0}: figure not drawn: {1}")]
+    Figure(String, String),
     /// No font for plot text.
     #[error("no font found (tried {0}); install fonts-dejavu-core")]
     NoFont(String),

@@ -281,6 +281,20 @@ pub fn measure(
     })
 }
 
+/// `path` with the plan seed before its extension (`gen.png`, 7 -> `gen-plan7.png`): one
+/// picture per draw of `hil-sim generalise --plot`.
+pub fn seeded_path(path: &std::path::Path, plan_seed: u64) -> std::path::PathBuf {
+    let stem = path.file_stem().map_or_else(
+        || "generalisation".into(),
+        |s| s.to_string_lossy().into_owned(),
+    );
+    let name = match path.extension() {
+        Some(ext) => format!("{stem}-plan{plan_seed}.{}", ext.to_string_lossy()),
+        None => format!("{stem}-plan{plan_seed}"),
+    };
+    path.with_file_name(name)
+}
+
 /// The tables as Markdown, the best estimator of each row in bold, with a count of the rows
 /// where Model 4 is best and where it is within 4x of the floor.
 pub fn markdown(tables: &[PlantTable]) -> String {

@@ -218,6 +218,10 @@ enum Cmd {
         /// printed instead of the tables.
         #[arg(long, value_delimiter = ',', default_values_t = [eval::CALIBRATION_PLAN_SEED])]
         plan_seed: Vec<u64>,
+        /// Also draw the tables as a PNG picture to this file (with several plan seeds, one
+        /// picture per draw: the seed is added to the file's name).
+        #[arg(long)]
+        plot: Option<PathBuf>,
     },
     /// Calibrate, run the scenario, and write report.md with PNG figures (Figs. 11, 18-24).
     Report {
@@ -654,7 +658,19 @@ fn main() -> ExitCode {
             no_variants,
             drawn,
             plan_seed,
+            plot,
         } => (|| {
+            // A picture that cannot be written is refused before minutes of measuring.
+            if let Some(path) = &plot {
+                let parent = path.parent().filter(|p| !p.as_os_str().is_empty());
+                if path.is_dir() || parent.is_some_and(|p| !p.is_dir()) {
+                    return Err(Error::Argument {
+                        flag: "--plot",
+                        value: path.display().to_string(),
+                        rule: "a file name in a directory that exists".into(),
+                    });
+                }
+            }
             let mut plants = if no_variants {
                 vec![PlantParams::paper_rig()]
             } else {
@@ -681,6 +697,16 @@ fn main() -> ExitCode {
             match draws.as_slice() {
                 [(_, tables)] => hil_sim::out!("{}", generalise::markdown(tables)),
                 _ => hil_sim::out!("{}", generalise::draws_markdown(&draws, seed)),
+            }
+            if let Some(path) = &plot {
+                for (plan, tables) in &draws {
+                    let file = match draws.len() {
+                        1 => path.clone(),
+                        _ => generalise::seeded_path(path, *plan),
+                    };
+                    hil_sim::plot::generalisation(&file, tables)
+                        .map_err(|e| Error::Figure(file.display().to_string(), e.to_string()))?;
+                }
             }
             Ok(())
         })(),

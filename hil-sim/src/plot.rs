@@ -347,3 +347,238 @@ pub fn coverage(
     root.present()?;
     Ok(())
 }
+
+/// Model 4's colour where it is the best estimator of a row, and where it is not.
+pub const GENERALISATION_BEST: RGBColor = RGBColor(40, 150, 60);
+/// See [`GENERALISATION_BEST`].
+pub const GENERALISATION_LOST: RGBColor = RGBColor(210, 30, 30);
+const GENERALISATION_OTHER: RGBColor = RGBColor(230, 140, 0);
+
+/// Size of [`generalisation`]'s picture for `plants` panels, pixels.
+pub fn generalisation_size(plants: usize) -> (u32, u32) {
+    (1200, 60 + 280 * plants.max(1) as u32)
+}
+
+/// The generalisation tables as a picture, one panel per plant, RMS of e on a log scale per
+/// workload: the band from the floor to 4x the floor, no model, the best other estimator, and
+/// Model 4, green where it is the best of the row and red where it is not.
+pub fn generalisation(path: &Path, tables: &[crate::generalise::PlantTable]) -> PlotResult {
+    init_fonts()?;
+    let root = BitMapBackend::new(path, generalisation_size(tables.len())).into_drawing_area();
+    generalisation_on(&root, tables)?;
+    root.present()?;
+    Ok(())
+}
+
+/// [`generalisation`] on any drawing area (tests draw into a buffer and read the pixels).
+pub fn generalisation_on<DB: DrawingBackend>(
+    root: &DrawingArea<DB, plotters::coord::Shift>,
+    tables: &[crate::generalise::PlantTable],
+) -> PlotResult
+where
+    DB::ErrorType: 'static,
+{
+    root.fill(&WHITE)?;
+    let (legend, body) = root.split_vertically(60);
+    // One scale for every panel, so that plants compare at a glance.
+    let values = tables.iter().flat_map(|t| {
+        t.rows
+            .iter()
+            .flat_map(|r| r.rms_um.iter().map(|x| x.1).chain([r.floor_um]))
+    });
+    let (lo, hi) = values
+        .filter(|v| v.is_finite() && *v > 0.0)
+        .fold((f64::INFINITY, 0.0_f64), |(l, h), v| (l.min(v), h.max(v)));
+    let (lo, hi) = if lo < hi {
+        (lo / 1.5, hi * 1.5)
+    } else {
+        (0.1, 1000.0)
+    };
+    let font = ("sans-serif", 15).into_font();
+    // The legend, once, above the panels.
+    let items: [(&str, RGBColor); 5] = [
+        ("floor to 4x floor", RGBColor(150, 150, 150)),
+        ("no model", RGBColor(120, 120, 120)),
+        ("best other estimator", GENERALISATION_OTHER),
+        ("Model 4, best of the row", GENERALISATION_BEST),
+        ("Model 4, not the best", GENERALISATION_LOST),
+    ];
+    legend.draw_text(
+        "Generalisation: RMS of e per held-out workload (um, log scale)",
+        &("sans-serif", 20).into_font().color(&BLACK),
+        (12, 6),
+    )?;
+    let mut x = 14;
+    for (k, (name, color)) in items.iter().enumerate() {
+        let at = (x + 6, 44);
+        match k {
+            0 => legend.draw(&Rectangle::new(
+                [(x, 37), (x + 12, 51)],
+                color.mix(0.35).filled(),
+            ))?,
+            1 => legend.draw(&Cross::new(at, 5, color.stroke_width(2)))?,
+            2 => legend.draw(&TriangleMarker::new(at, 6, color.filled()))?,
+            _ => legend.draw(&Circle::new(at, 5, color.filled()))?,
+        }
+        legend.draw_text(name, &font.color(&BLACK), (x + 18, 36))?;
+        x += 30 + 8 * name.len() as i32;
+    }
+    if tables.is_empty() {
+        return Ok(());
+    }
+    for (t, area) in tables.iter().zip(body.split_evenly((tables.len(), 1))) {
+        let n = t.rows.len();
+        let mut c = ChartBuilder::on(&area)
+            .caption(&t.plant, ("sans-serif", 17))
+            .margin(8)
+            .x_label_area_size(44)
+            .y_label_area_size(60)
+            .build_cartesian_2d(-0.5..n as f64 - 0.5, (lo..hi).log_scale())?;
+        c.configure_mesh()
+            .disable_x_mesh()
+            .x_labels(0)
+            .y_desc("um")
+            .draw()?;
+        let band = RGBColor(150, 150, 150);
+        c.draw_series(t.rows.iter().enumerate().map(|(i, r)| {
+            let i = i as f64;
+            Rectangle::new(
+                [(i - 0.3, r.floor_um), (i + 0.3, 4.0 * r.floor_um)],
+                band.mix(0.35).filled(),
+            )
+        }))?;
+        c.draw_series(t.rows.iter().enumerate().filter_map(|(i, r)| {
+            let v = r.rms("none")?;
+            Some(Cross::new(
+                (i as f64, v),
+                5,
+                RGBColor(120, 120, 120).stroke_width(2),
+            ))
+        }))?;
+        c.draw_series(t.rows.iter().enumerate().filter_map(|(i, r)| {
+            // The lowest estimator other than none and Model 4, left of Model 4 so that neither
+            // hides the other where they are close.
+            let v = r
+                .rms_um
+                .iter()
+                .filter(|(k, _)| *k != "none" && *k != "model4")
+                .map(|x| x.1)
+                .min_by(f64::total_cmp)?;
+            Some(TriangleMarker::new(
+                (i as f64 - 0.13, v),
+                6,
+                GENERALISATION_OTHER.filled(),
+            ))
+        }))?;
+        c.draw_series(t.rows.iter().enumerate().filter_map(|(i, r)| {
+            let v = r.rms("model4")?;
+            let color = if r.best() == "model4" {
+                GENERALISATION_BEST
+            } else {
+                GENERALISATION_LOST
+            };
+            Some(Circle::new((i as f64 + 0.13, v), 5, color.filled()))
+        }))?;
+        // Workload names under the panel, staggered on two lines so that long ones fit.
+        for (i, r) in t.rows.iter().enumerate() {
+            let (px, py) = c.backend_coord(&(i as f64, lo));
+            let (ax, ay) = area.get_base_pixel();
+            let name = short_workload(&r.workload);
+            let w = 7 * name.len() as i32;
+            area.draw_text(
+                &name,
+                &("sans-serif", 13).into_font().color(&BLACK),
+                (px - ax - w / 2, py - ay + 6 + 16 * (i % 2) as i32),
+            )?;
+        }
+    }
+    Ok(())
+}
+
+/// A generated workload's name without its seed (`printer-raster-11` -> `printer-raster`).
+fn short_workload(name: &str) -> String {
+    match name.rsplit_once('-') {
+        Some((head, seed)) if !seed.is_empty() && seed.bytes().all(|b| b.is_ascii_digit()) => {
+            head.to_string()
+        }
+        _ => name.to_string(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::generalise::{PlantTable, Row};
+
+    fn row(name: &str, model4: f64, model3: f64) -> Row {
+        Row {
+            workload: name.into(),
+            floor_um: 1.5,
+            rms_um: vec![("none", 200.0), ("model3", model3), ("model4", model4)],
+            moves: 4,
+            moves_outside: 0,
+        }
+    }
+
+    /// Pixels of exactly `color` below the legend, in a picture of `tables`.
+    fn pixels_of(tables: &[PlantTable], color: RGBColor) -> Option<usize> {
+        init_fonts().ok()?;
+        let (w, h) = generalisation_size(tables.len());
+        let mut buf = vec![0u8; (w * h * 3) as usize];
+        {
+            let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+            generalisation_on(&root, tables).expect("drawn");
+            root.present().expect("presented");
+        }
+        let body = &buf[(60 * w * 3) as usize..];
+        Some(
+            body.chunks(3)
+                .filter(|p| p == &[color.0, color.1, color.2])
+                .count(),
+        )
+    }
+
+    /// Model 4 is drawn red on the rows it loses and only there; the plot survives a table with
+    /// no rows and a value that is not a number.
+    #[test]
+    fn model4_is_red_where_it_loses() {
+        let table = |rows| PlantTable {
+            plant: "a plant".into(),
+            fit_rms_um: vec![],
+            rows,
+        };
+        let won = [table(vec![
+            row("fig18", 10.0, 20.0),
+            row("raster-11", 30.0, 40.0),
+        ])];
+        let lost = [table(vec![
+            row("fig18", 10.0, 20.0),
+            row("raster-11", 50.0, 40.0),
+        ])];
+        let (Some(red_won), Some(red_lost), Some(green_won)) = (
+            pixels_of(&won, GENERALISATION_LOST),
+            pixels_of(&lost, GENERALISATION_LOST),
+            pixels_of(&won, GENERALISATION_BEST),
+        ) else {
+            // No font here: `hil-sim report` says so by name (tests/coverage.rs).
+            return;
+        };
+        assert_eq!(red_won, 0);
+        assert!(red_lost > 20, "{red_lost}");
+        assert!(green_won > 40, "{green_won}");
+        let odd = [table(vec![]), table(vec![row("nan", f64::NAN, 20.0)])];
+        assert!(pixels_of(&odd, GENERALISATION_BEST).is_some());
+        assert!(pixels_of(&[], GENERALISATION_BEST).is_some());
+    }
+
+    #[test]
+    fn workload_names_lose_their_seed_only() {
+        assert_eq!(short_workload("printer-raster-11"), "printer-raster");
+        assert_eq!(short_workload("fig18"), "fig18");
+        assert_eq!(
+            short_workload("high-accel-reversals"),
+            "high-accel-reversals"
+        );
+        assert_eq!(short_workload("x-"), "x-");
+    }
+}

@@ -343,6 +343,19 @@ pub fn write(
            noise seeds, / sqrt 2. Each plant is calibrated by its own default plan; generated \
            workloads use seed 11 (`hil-sim generalise`).\n";
     md += &crate::generalise::markdown(&tables);
+    let picture = dir.join("generalisation.png");
+    match crate::plot::generalisation(&picture, &tables) {
+        Ok(()) => {
+            md += "\n![Generalisation: Model 4 against the best other estimator and the floor, \
+                   per plant and workload](generalisation.png)\n\n*Generalisation: RMS of e per \
+                   workload on a log scale; Model 4 green where best, red where not; the grey \
+                   band runs from the floor to 4x the floor.*\n";
+        }
+        Err(e) => {
+            md += &format!("\nFigure not drawn: generalisation.png: {e}\n");
+            crate::errln!("hil-sim: figure not drawn: generalisation.png: {e}");
+        }
+    }
     let csv = dir.join(format!("{}.csv", trace.scenario));
     let mut w =
         std::io::BufWriter::new(std::fs::File::create(&csv).map_err(|e| Error::io(&csv, e))?);

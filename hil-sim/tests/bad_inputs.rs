@@ -554,3 +554,24 @@ fn mutated_scenario_plant_and_calibration_files_never_crash() {
         panic!("{e}");
     }
 }
+
+/// `generalise --plot` into a directory that does not exist, or onto a directory, is refused by
+/// the option before minutes of measuring: nothing is printed (the tables come before the
+/// picture).
+#[test]
+fn a_picture_that_cannot_be_written_is_refused_before_measuring() {
+    let dir = scratch("plot");
+    let missing = dir.join("missing").join("g.png");
+    let tables = dir.join("tables.md");
+    for target in [missing.to_str().unwrap(), dir.to_str().unwrap()] {
+        let stdout = std::fs::File::create(&tables).unwrap();
+        let out = run_to(
+            &["generalise", "--no-variants", "--plot", target],
+            Stdio::from(stdout),
+        );
+        assert_eq!(out.code, Some(1), "{}", out.stderr);
+        let last = out.stderr.lines().last().unwrap_or("");
+        assert!(last.contains("--plot") && last.contains(target), "{last}");
+        assert_eq!(std::fs::read(&tables).unwrap().len(), 0, "measured first");
+    }
+}
