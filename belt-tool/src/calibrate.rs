@@ -716,6 +716,26 @@ mod tests {
         }
     }
 
+    /// Caps and drive limits below the plan's own floors (0.5 mm/s, 10 mm/s²) hold every move
+    /// under them; they once made the plan panic (`clamp` with its floor above its limit).
+    #[test]
+    fn caps_below_the_plan_s_floors_hold_every_move() {
+        let seed = hil_sim::eval::CALIBRATION_PLAN_SEED;
+        let mut slow = Settings::PAPER;
+        slow.max_velocity_mm_s = 0.45;
+        for (settings, v_cap, a_cap, v_max, a_max) in [
+            (Settings::PAPER, Some(0.3), Some(5.0), 0.3, 5.0),
+            (slow, None, None, 0.45, slow.max_accel_mm_s2),
+        ] {
+            let p = plan(&settings, v_cap, a_cap, seed, &[]).unwrap();
+            assert!(p.clipped_moves > 0);
+            for m in p.scenarios.iter().flat_map(|s| &s.moves) {
+                assert!(m.velocity_mm_s > 0.0 && m.velocity_mm_s <= v_max, "{m:?}");
+                assert!(m.accel_mm_s2 > 0.0 && m.accel_mm_s2 <= a_max, "{m:?}");
+            }
+        }
+    }
+
     /// The user's scenarios follow the default set in the drive's own coordinates, held to
     /// the caps; one that leaves the travel is refused by file and move.
     #[test]

@@ -113,10 +113,10 @@ pub enum Cmd {
         #[arg(long, value_name = "DIR")]
         out: PathBuf,
         /// Cap on the moves' speed, mm/s (they never exceed the drive's limit either).
-        #[arg(long, value_name = "MM_S")]
+        #[arg(long, value_name = "MM_S", value_parser = cap_value)]
         velocity: Option<f64>,
         /// Cap on the moves' acceleration, mm/s^2.
-        #[arg(long, value_name = "MM_S2")]
+        #[arg(long, value_name = "MM_S2", value_parser = cap_value)]
         accel: Option<f64>,
         /// Seed of the default calibration plan's moves (another seed draws another plan from
         /// the same ranges: calibrating twice shows how stable the fit is on this machine).
@@ -210,7 +210,7 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
     let load = match &cli.cmd {
         Cmd::Config(ConfigCmd::Load { file }) => {
             let text =
-                std::fs::read_to_string(file).map_err(|e| ToolError::file(file.display(), e))?;
+                hil_sim::input::read_text(file).map_err(|e| ToolError::file(file.display(), e))?;
             config::parse_file(file, &text)?
         }
         _ => Vec::new(),
@@ -488,4 +488,27 @@ fn moves(
         );
     }
     Ok(())
+}
+
+/// A calibration cap: a number of at least 0.001 (the drive's unit), refused before the port
+/// is opened (NaN would otherwise leave the moves uncapped, 0 ask for moves that never end).
+fn cap_value(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.001 => Ok(v),
+        Ok(_) => Err("must be a number of at least 0.001".into()),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn calibration_caps_are_numbers_of_at_least_the_drive_s_unit() {
+        for ok in ["0.001", "10", " 250.5 ", "1e6"] {
+            assert!(super::cap_value(ok).is_ok(), "{ok}");
+        }
+        for bad in ["nan", "NaN", "inf", "-inf", "0", "-1", "0.0009", "", "ten"] {
+            assert!(super::cap_value(bad).is_err(), "{bad}");
+        }
+    }
 }

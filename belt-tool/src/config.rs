@@ -250,7 +250,8 @@ pub fn set_and_apply(
 /// and the field.
 pub fn parse_file(path: &Path, text: &str) -> Result<Vec<(&'static Field, f64)>, ToolError> {
     let file = |reason: String| ToolError::file(path.display(), reason);
-    let table: toml::Table = toml::from_str(text).map_err(|e| file(e.to_string()))?;
+    // One line with the place, not the parser's multi-line echo of the input.
+    let table: toml::Table = hil_sim::input::from_toml(text).map_err(|e| file(e.to_string()))?;
     let mut flat = Vec::new();
     flatten("", &table, &mut flat);
     let mut out: Vec<(&'static Field, f64)> = Vec::new();

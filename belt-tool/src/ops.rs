@@ -69,7 +69,8 @@ impl MoveLimits {
             let x = (v * 1000.0).round();
             if !(x.is_finite() && x >= 1.0 && x <= u32::MAX as f64) {
                 return Err(ToolError::Usage(format!(
-                    "{name} {v}: must be at least 0.001 {unit}"
+                    "{name} {v}: must be from 0.001 to {} {unit}",
+                    u32::MAX as f64 / 1000.0
                 )));
             }
             Ok(x as u32)

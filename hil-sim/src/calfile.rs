@@ -314,7 +314,7 @@ fn first_difference(path: &str, want: &toml::Value, found: &toml::Value) -> Opti
 /// compensator, the baselines included) and the fit quality from the TOML file.
 pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, CalFileError> {
     let bin = dir.join("calibration.bin");
-    let bytes = std::fs::read(&bin).map_err(io(&bin))?;
+    let bytes = crate::input::read_file(&bin).map_err(io(&bin))?;
     let params: ModelParams = blob::decode(&bytes, rig).map_err(|source| {
         // Say which geometries differ: the blob records the geometry it was made for.
         match (source, blob::calibrated_rig(&bytes)) {
@@ -330,7 +330,7 @@ pub fn load(dir: &Path, rig: &Rig) -> Result<Calibration, CalFileError> {
         }
     })?;
     let path = dir.join("calibration.toml");
-    let text = std::fs::read_to_string(&path).map_err(io(&path))?;
+    let text = crate::input::read_text(&path).map_err(io(&path))?;
     let mut found: toml::Table =
         crate::input::from_toml(&text).map_err(|source| CalFileError::Toml {
             path: path.clone(),

@@ -144,7 +144,11 @@ fn record(
             CALIBRATION_SEED_BASE + k as u64,
             &mut |f| progress(&label, f),
         )
-        .context(|| s.name.clone())?;
+        // The file where there is one (a user's scenario), else the name (the default plan).
+        .context(|| match s.source.is_empty() {
+            true => s.name.clone(),
+            false => s.source().to_string(),
+        })?;
         traces.push(t);
     }
     Ok(traces)

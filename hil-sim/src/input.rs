@@ -1,6 +1,63 @@
 //! Reading input files: TOML errors as one line (`line L, column C: message`), so that every
 //! refusal is one line naming the file, the place and the reason.
 
+/// Largest input file read, bytes: far above any real scenario, plant, calibration or ELF, low
+/// enough that a wrong path (a device, a disk image) is refused instead of filling memory.
+pub const MAX_INPUT_BYTES: u64 = 256 << 20;
+
+/// The bytes of the regular file at `path`; a device, a FIFO or a file larger than
+/// [`MAX_INPUT_BYTES`] is an error (`/dev/zero` would otherwise be read until memory runs out).
+pub fn read_file(path: impl AsRef<std::path::Path>) -> std::io::Result<Vec<u8>> {
+    use std::io::{Error, ErrorKind, Read};
+    let file = std::fs::File::open(path)?;
+    let meta = file.metadata()?;
+    if meta.is_dir() {
+        return Err(Error::new(ErrorKind::IsADirectory, "is a directory"));
+    }
+    if !meta.is_file() {
+        return Err(Error::new(
+            ErrorKind::InvalidInput,
+            "not a regular file (a device, a FIFO or a socket)",
+        ));
+    }
+    let too_large = || {
+        Error::new(
+            ErrorKind::InvalidData,
+            format!("larger than {} MiB", MAX_INPUT_BYTES >> 20),
+        )
+    };
+    if meta.len() > MAX_INPUT_BYTES {
+        return Err(too_large());
+    }
+    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    // The limit holds even if the file grows while it is read.
+    file.take(MAX_INPUT_BYTES + 1).read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > MAX_INPUT_BYTES {
+        return Err(too_large());
+    }
+    Ok(bytes)
+}
+
+/// [`read_file`] as UTF-8 text.
+pub fn read_text(path: impl AsRef<std::path::Path>) -> std::io::Result<String> {
+    String::from_utf8(read_file(path)?).map_err(|_| {
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            "stream did not contain valid UTF-8",
+        )
+    })
+}
+
+/// A number as a person reads it in a message: plain, or in scientific notation when very
+/// large or small (`1e300`, not three hundred digits).
+pub fn show(v: f64) -> String {
+    if v == 0.0 || (1e-4..1e9).contains(&v.abs()) || !v.is_finite() {
+        format!("{v}")
+    } else {
+        format!("{v:e}")
+    }
+}
+
 /// A TOML input that does not parse (a syntax error, a missing, unknown or mistyped key).
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 #[error("{}{message}", place(*at))]
@@ -44,5 +101,29 @@ mod tests {
         let shown = e.to_string();
         assert!(shown.starts_with("line 2, column "), "{shown}");
         assert!(!shown.contains('\n'), "{shown}");
+    }
+
+    /// Only regular files are read: a device that never ends, a directory, and a file that is
+    /// not text are errors that say so.
+    #[test]
+    fn devices_and_directories_are_not_read() {
+        let e = super::read_file("/dev/zero").unwrap_err();
+        assert!(e.to_string().contains("not a regular file"), "{e}");
+        let e = super::read_file(std::env::temp_dir()).unwrap_err();
+        assert!(e.to_string().contains("directory"), "{e}");
+        let p = std::env::temp_dir().join(format!("belt-input-{}.bin", std::process::id()));
+        std::fs::write(&p, [b'a', 0xff, b'b']).unwrap();
+        assert_eq!(super::read_file(&p).unwrap(), [b'a', 0xff, b'b']);
+        let e = super::read_text(&p).unwrap_err();
+        assert!(e.to_string().contains("UTF-8"), "{e}");
+        let _ = std::fs::remove_file(&p);
+    }
+
+    #[test]
+    fn numbers_in_messages_stay_short() {
+        assert_eq!(super::show(1e300), "1e300");
+        assert_eq!(super::show(0.25), "0.25");
+        assert_eq!(super::show(f64::NAN), "NaN");
+        assert_eq!(super::show(-2e-9), "-2e-9");
     }
 }

@@ -12,7 +12,7 @@ use hil_sim::error::{Context, Error};
 use hil_sim::pil::PilOptions;
 use hil_sim::plant::PlantParams;
 use hil_sim::progress::Progress;
-use hil_sim::scenario::{preset_names, Scenario};
+use hil_sim::scenario::Scenario;
 use hil_sim::{calfile, drive_setup, eval, generalise, report};
 
 #[derive(Parser)]
@@ -265,6 +265,52 @@ enum Cmd {
     },
 }
 
+/// A file the run will write (`flag`'s value): a regular file, or a new one in a directory that
+/// exists; with `!regular_only` also a device or a FIFO (`--log /dev/null`). Checked before
+/// anything starts, so that a drive does not run without its storage or its log.
+fn output_file(flag: &'static str, path: &Path, regular_only: bool) -> Result<(), Error> {
+    let refuse = |rule: String| Error::Argument {
+        flag,
+        value: path.display().to_string(),
+        rule,
+    };
+    match std::fs::metadata(path) {
+        Ok(m) if m.is_file() => std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .open(path)
+            .map(drop)
+            .map_err(|e| refuse(format!("cannot be opened to read and write: {e}"))),
+        Ok(m) if m.is_dir() => Err(refuse("is a directory".into())),
+        Ok(_) if !regular_only => Ok(()),
+        Ok(_) => Err(refuse("is not a regular file (a device or a FIFO)".into())),
+        Err(_) => {
+            let parent = path.parent().filter(|p| !p.as_os_str().is_empty());
+            match parent {
+                Some(dir) if !dir.is_dir() => Err(refuse(format!(
+                    "its directory {} does not exist",
+                    dir.display()
+                ))),
+                _ => Ok(()),
+            }
+        }
+    }
+}
+
+/// A directory the command writes its files into (made, with its parents, when it writes):
+/// a path that is a file fails before minutes of simulation, not after. Nothing is made here,
+/// so that a refused run leaves nothing behind.
+fn output_dir(flag: &'static str, path: &Path) -> Result<(), Error> {
+    if path.exists() && !path.is_dir() {
+        return Err(Error::Argument {
+            flag,
+            value: path.display().to_string(),
+            rule: "is not a directory".into(),
+        });
+    }
+    Ok(())
+}
+
 fn plant_params(path: &Option<PathBuf>) -> Result<PlantParams, Error> {
     match path {
         None => Ok(PlantParams::paper_rig()),
@@ -396,6 +442,9 @@ fn run_csv(scenario: &str, common: &Common, model: &str, out: &str) -> Result<()
         value: model.to_string(),
         rule: format!("{e}"),
     })?;
+    if out != "-" {
+        output_file("--out", Path::new(out), false)?;
+    }
     let (scenario, plant) = scenario_and_plant(scenario, &common.plant)?;
     let mut progress = Progress::new();
     // As documented for every command: the given calibration, or one made now on this plant.
@@ -529,6 +578,7 @@ fn main() -> ExitCode {
             plan_seed,
             scenarios,
         } => (|| {
+            output_dir("--out", &out)?;
             let plant = plant_params(&plant)?;
             let user = scenarios
                 .iter()
@@ -617,6 +667,10 @@ fn main() -> ExitCode {
                     value: speed.to_string(),
                     rule: "must be 0 or more".into(),
                 });
+            }
+            output_file("--storage", &storage, true)?;
+            if let Some(path) = &log {
+                output_file("--log", path, false)?;
             }
             let mut pil = PilOptions::new(elf);
             pil.storage = Some(storage.clone());
@@ -715,6 +769,7 @@ fn main() -> ExitCode {
             common,
             out,
         } => (|| {
+            output_dir("--out", &out)?;
             let Session {
                 scenario,
                 plant,
@@ -749,11 +804,8 @@ fn main() -> ExitCode {
     hil_sim::stdout::exit_code(match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
+            // A missing scenario's error lists the presets itself; other files are no preset.
             hil_sim::errln!("hil-sim: {e}");
-            let e = e.to_string();
-            if e.contains("No such file") && !e.contains(&preset_names()) {
-                hil_sim::errln!("presets: {}", preset_names());
-            }
             ExitCode::FAILURE
         }
     })

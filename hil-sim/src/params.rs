@@ -267,6 +267,27 @@ pub enum ParamsError {
         /// Its value and the rule it breaks.
         reason: String,
     },
+    /// A geometry the drive's configuration cannot take (its gains and limits in counts go out
+    /// of their ranges).
+    #[error(
+        "encoder.lines {lines}, gearbox.ratio {ratio}, pulley.teeth {teeth}, belt.pitch_m \
+         {pitch_m} ({counts_per_mm:.4} counts/mm): the drive cannot run this geometry, its \
+         configuration refuses {refused}"
+    )]
+    Geometry {
+        /// `encoder.lines`.
+        lines: u32,
+        /// `gearbox.ratio`.
+        ratio: f64,
+        /// `pulley.teeth`.
+        teeth: u32,
+        /// `belt.pitch_m`.
+        pitch_m: f64,
+        /// What that makes of one millimetre.
+        counts_per_mm: f64,
+        /// The drive's refusal (its field and rule).
+        refused: estimator_core::ConfigError,
+    },
     /// One of the above, in a file.
     #[error("{}: {source}", path.display())]
     InFile {
@@ -292,7 +313,7 @@ impl PlantParams {
 
     /// Loads a plant file; errors name it.
     pub fn load(path: &std::path::Path) -> Result<Self, ParamsError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ParamsError::Io {
+        let text = crate::input::read_text(path).map_err(|source| ParamsError::Io {
             path: path.to_path_buf(),
             source,
         })?;
@@ -370,7 +391,13 @@ impl PlantParams {
             (3..=1000).contains(&p.teeth),
             "must be in 3..=1000",
         );
-        c.nonneg("pulley.eccentricity_m", p.eccentricity_m);
+        // Run-out is a small fraction of the pulley (the paper rig's is 6 um on 16 mm).
+        c.range(
+            "pulley.eccentricity_m",
+            p.eccentricity_m,
+            0.0,
+            0.1 * self.nominal_radius_m(),
+        );
         c.finite("pulley.eccentricity_angle_rad", p.eccentricity_angle_rad);
         c.range(
             "pulley.wrap_angle_rad",
@@ -410,7 +437,7 @@ impl PlantParams {
         c.range("friction.stribeck_exponent", f.stribeck_exponent, 0.1, 10.0);
         c.range("friction.renewal_factor", f.renewal_factor, 0.0, 10.0);
         let k = &self.carriage;
-        c.pos("carriage.mass_kg", k.mass_kg);
+        c.range("carriage.mass_kg", k.mass_kg, 1e-3, 1e4);
         c.nonneg("carriage.coulomb_n", k.coulomb_n);
         c.range("carriage.coulomb_ripple", k.coulomb_ripple, 0.0, 0.9);
         c.pos(
@@ -454,10 +481,11 @@ impl PlantParams {
             (1..=100_000).contains(&self.scale.lines_per_mm),
             "must be in 1..=100000",
         );
-        c.nonneg("scale.noise_sd_m", self.scale.noise_sd_m);
+        // Beyond these the scale's reading leaves the range its counter represents.
+        c.range("scale.noise_sd_m", self.scale.noise_sd_m, 0.0, 1e-3);
         let ab = &self.abbe;
-        c.finite("abbe.offset_y_m", ab.offset_y_m);
-        c.finite("abbe.offset_z_m", ab.offset_z_m);
+        c.range("abbe.offset_y_m", ab.offset_y_m, -1.0, 1.0);
+        c.range("abbe.offset_z_m", ab.offset_z_m, -1.0, 1.0);
         for (name, waves) in [("abbe.eps_y", &ab.eps_y), ("abbe.eps_z", &ab.eps_z)] {
             for w in waves.iter() {
                 c.range(name, w.amplitude_rad, 0.0, 1e-2);
@@ -508,6 +536,21 @@ impl PlantParams {
                 &format!("too long for the contact damping ({d:.0} /s): need c h / m < 1"),
             );
         }
+        if c.err.is_none() {
+            let rig = self.rig();
+            if let Err(refused) =
+                estimator_core::drive::Drive::new(&crate::drive_setup::drive_limits(rig))
+            {
+                return Err(ParamsError::Geometry {
+                    lines: self.encoder.lines,
+                    ratio: self.gearbox.ratio,
+                    teeth: self.pulley.teeth,
+                    pitch_m: self.belt.pitch_m,
+                    counts_per_mm: rig.counts_per_mm(),
+                    refused,
+                });
+            }
+        }
         c.err.map_or(Ok(()), Err)
     }
 
@@ -524,7 +567,10 @@ impl PlantParams {
         let belt = (self.belt.tooth_stiffness_n_per_m + k_span) / m_belt;
         let gear = self.gearbox.stiffness_nm_per_rad / self.gearbox.output_inertia_kg_m2
             + self.belt.tooth_stiffness_n_per_m / m_pulley;
-        tooth.max(belt).max(gear).sqrt()
+        // The spans between the belt and the carriage (only a light carriage makes it the
+        // stiffest).
+        let carriage = k_span * (1.0 / m_belt + 1.0 / self.carriage.mass_kg);
+        tooth.max(belt).max(gear).max(carriage).sqrt()
     }
 
     /// Largest `c / m` of the explicit dampers on the lumped belt and the pulley; the friction's
@@ -542,9 +588,12 @@ impl PlantParams {
         let belt = (c_contact + self.belt.span_damping_n_s_per_m) / self.belt.lumped_mass_kg;
         let pulley = c_contact / m_pulley
             + self.gearbox.damping_nm_s_per_rad / self.gearbox.output_inertia_kg_m2;
-        belt.max(pulley)
+        let carriage = self.belt.span_damping_n_s_per_m / self.carriage.mass_kg;
+        belt.max(pulley).max(carriage)
     }
 }
+
+use crate::input::show;
 
 /// Collects the first validation failure.
 #[derive(Default)]
@@ -562,22 +611,26 @@ impl Check {
         }
     }
     fn finite(&mut self, field: &'static str, v: f64) {
-        self.test(field, v.is_finite(), &format!("{v} is not a finite number"));
+        self.test(
+            field,
+            v.is_finite(),
+            &format!("{} is not a finite number", show(v)),
+        );
     }
     fn pos(&mut self, field: &'static str, v: f64) {
         self.finite(field, v);
-        self.test(field, v > 0.0, &format!("{v} must be > 0"));
+        self.test(field, v > 0.0, &format!("{} must be > 0", show(v)));
     }
     fn nonneg(&mut self, field: &'static str, v: f64) {
         self.finite(field, v);
-        self.test(field, v >= 0.0, &format!("{v} must be >= 0"));
+        self.test(field, v >= 0.0, &format!("{} must be >= 0", show(v)));
     }
     fn range(&mut self, field: &'static str, v: f64, lo: f64, hi: f64) {
         self.finite(field, v);
         self.test(
             field,
             (lo..=hi).contains(&v),
-            &format!("{v} must be in [{lo}, {hi}]"),
+            &format!("{} must be in [{}, {}]", show(v), show(lo), show(hi)),
         );
     }
 }

@@ -89,7 +89,14 @@ pub enum RunError {
         t_s: f64,
     },
     /// The scenario did not finish within its time budget.
-    Timeout(f64),
+    Timeout {
+        /// Simulated time, seconds.
+        t_s: f64,
+        /// The move under way (counted from 1) and the number of moves.
+        move_n: usize,
+        /// See `move_n`.
+        moves: usize,
+    },
     /// The scenario does not fit the drive or the plant (checked before the run).
     Scenario(crate::scenario::ScenarioError),
     /// The plant refused its parameters or the start position.
@@ -105,9 +112,12 @@ impl std::fmt::Display for RunError {
             RunError::Fault { faults, t_s } => {
                 write!(f, "drive fault {faults} at t = {t_s:.4} s")
             }
-            RunError::Timeout(t) => {
-                write!(f, "scenario still moving after {t:.1} s of simulated time")
-            }
+            RunError::Timeout { t_s, move_n, moves } => write!(
+                f,
+                "move {move_n} of {moves} still under way after {t_s:.1} s of simulated time, \
+                 twice the scenario's estimated duration and more: the drive does not arrive \
+                 (a target it cannot reach, or a speed too low for it to settle)"
+            ),
             RunError::Scenario(e) => write!(f, "{e}"),
             RunError::Plant(e) => write!(f, "{e}"),
             RunError::Drive(e) => write!(f, "drive configuration: {e}"),
@@ -126,9 +136,12 @@ impl From<ControlError> for RunError {
 /// Ticks between two keep-alives of the simulated host (100 ms at 2 kHz).
 pub const KEEPALIVE_TICKS: u64 = 200;
 
-/// Rough upper bound of a scenario's duration, for the time-out.
+/// Rough upper bound of a scenario's duration, for the time-out: twice the estimate, 5 s, a few
+/// ticks a move (a move of no length still takes them), and the first move's way from where
+/// homing leaves the drive (up to the transmission error, well under 1 mm, off `start_mm`).
 fn budget_s(s: &Scenario) -> f64 {
-    2.0 * s.duration_estimate_s() + 5.0
+    let first = s.moves.first().map_or(0.0, |m| 1.0 / m.velocity_mm_s);
+    2.0 * s.duration_estimate_s() + 5.0 + 0.005 * s.moves.len() as f64 + 2.0 * first
 }
 
 /// Records reserved up front (about 10 s at 2 kHz); longer runs grow the buffer as they go.
@@ -264,7 +277,11 @@ pub fn run(
             rest_since = Some(t + extra);
         }
         if t > budget {
-            return Err(RunError::Timeout(t));
+            return Err(RunError::Timeout {
+                t_s: t,
+                move_n: next.max(1),
+                moves: scenario.moves.len(),
+            });
         }
     }
     Ok(Trace {

@@ -187,7 +187,7 @@ impl Scenario {
             s.source = source;
             return Ok(s);
         }
-        let text = std::fs::read_to_string(path_or_preset).map_err(|source| ScenarioError::Io {
+        let text = crate::input::read_text(path_or_preset).map_err(|source| ScenarioError::Io {
             path: path_or_preset.to_string(),
             source,
         })?;
@@ -205,19 +205,32 @@ impl Scenario {
         }
     }
 
-    /// Estimated duration, seconds: each move at its cruise speed plus its ramps, its dwell.
-    /// An upper bound of a run's length up to a factor of two (the run's time-out).
+    /// Estimated duration, seconds: each move at its cruise speed plus its ramps, its dwell;
+    /// a move that is retargeted lasts until the next one starts if that is later. An upper
+    /// bound of a run's length up to a factor of two (the run's time-out).
     pub fn duration_estimate_s(&self) -> f64 {
-        let mut x = self.start_mm;
-        let mut t = 0.0;
-        for m in &self.moves {
-            let d = (m.to_mm - x).abs();
-            t += d / m.velocity_mm_s
-                + 2.0 * m.velocity_mm_s / m.accel_mm_s2
-                + m.dwell_ms as f64 / 1000.0;
-            x = m.to_mm;
-        }
-        t
+        self.move_times_s().map(|(t, _)| t).sum()
+    }
+
+    /// Each move's share of [`Scenario::duration_estimate_s`], with the field that makes most
+    /// of it (`""` for a move that takes no time).
+    fn move_times_s(&self) -> impl Iterator<Item = (f64, &'static str)> + '_ {
+        let froms = core::iter::once(self.start_mm).chain(self.moves.iter().map(|m| m.to_mm));
+        self.moves.iter().zip(froms).map(|(m, x)| {
+            let parts = [
+                ((m.to_mm - x).abs() / m.velocity_mm_s, "velocity_mm_s"),
+                (2.0 * m.velocity_mm_s / m.accel_mm_s2, "accel_mm_s2"),
+                (m.dwell_ms as f64 / 1000.0, "dwell_ms"),
+            ];
+            let full: f64 = parts.iter().map(|p| p.0).sum();
+            let (most, field) = parts
+                .iter()
+                .fold((0.0, ""), |a, &(t, f)| if t > a.0 { (t, f) } else { a });
+            match m.retarget_after_ms.map(|ms| ms as f64 / 1000.0) {
+                Some(wait) if wait > full => (wait, "retarget_after_ms"),
+                _ => (full, if most > 0.0 { field } else { "" }),
+            }
+        })
     }
 
     /// Checks the scenario against the drive's limits (the checks `Drive::command` makes, in
@@ -255,6 +268,16 @@ impl Scenario {
         };
         if !in_plant(self.start_mm) {
             return Err(outside_plant(None, self.start_mm));
+        }
+        // The drive trips its travel limit at once where it starts outside its travel.
+        let (d0, d1) = (drive.settings.travel_min_mm, drive.settings.travel_max_mm);
+        if !(d0..=d1).contains(&self.start_mm) {
+            return Err(ScenarioError::Field {
+                move_n: None,
+                field: "start_mm",
+                value: show(self.start_mm),
+                rule: format!("mm is outside the drive's travel {d0}..={d1} mm"),
+            });
         }
         // The drive's own range checks, on the integers the run will send.
         let checker = estimator_core::drive::Drive::new(drive).map_err(ScenarioError::Drive)?;
@@ -368,23 +391,16 @@ impl Scenario {
         let t = self.duration_estimate_s();
         if t > MAX_DURATION_S {
             // Name the move that takes longest, and what makes it long.
-            let mut x = self.start_mm;
-            let mut worst = (0usize, 0.0f64, "");
-            for (i, m) in self.moves.iter().enumerate() {
-                let parts = [
-                    ((m.to_mm - x).abs() / m.velocity_mm_s, "velocity_mm_s"),
-                    (2.0 * m.velocity_mm_s / m.accel_mm_s2, "accel_mm_s2"),
-                    (m.dwell_ms as f64 / 1000.0, "dwell_ms"),
-                ];
-                let (ti, field) = parts
-                    .iter()
-                    .fold((0.0, ""), |a, &(t, f)| if t > a.0 { (t, f) } else { a });
-                let total: f64 = parts.iter().map(|p| p.0).sum();
-                if total > worst.1 {
-                    worst = (i + 1, total, if ti > 0.0 { field } else { "" });
-                }
-                x = m.to_mm;
-            }
+            let worst =
+                self.move_times_s()
+                    .enumerate()
+                    .fold((0usize, 0.0f64, ""), |w, (i, (t, field))| {
+                        if t > w.1 {
+                            (i + 1, t, field)
+                        } else {
+                            w
+                        }
+                    });
             return Err(ScenarioError::TooLong {
                 seconds: t,
                 longest_move: worst.0,
@@ -398,11 +414,7 @@ impl Scenario {
 
 /// A number as a person reads it: plain, or in scientific notation when very large or small.
 fn show(v: f64) -> String {
-    if v == 0.0 || (1e-4..1e9).contains(&v.abs()) || !v.is_finite() {
-        format!("{v}")
-    } else {
-        format!("{v:e}")
-    }
+    crate::input::show(v)
 }
 
 /// Comma-separated preset names, for error messages and `--help`.

@@ -93,6 +93,12 @@ fn between(r: &mut Rng, lo: f64, hi: f64) -> f64 {
     lo + r.uniform() * (hi - lo)
 }
 
+/// `v` at least `floor` and at most `max`; a limit below the floor (a drive capped to slow
+/// moves) wins over it. Never panics, unlike `clamp`, whatever the limit.
+fn held(v: f64, floor: f64, max: f64) -> f64 {
+    v.max(floor.min(max)).min(max)
+}
+
 /// Builds moves, keeping targets inside the travel and values on the drive's integer grid.
 struct Builder {
     lim: Limits,
@@ -110,12 +116,14 @@ impl Builder {
     }
 
     fn to(&mut self, to_mm: f64, v: f64, a: f64, dwell_ms: u32, retarget_after_ms: Option<u32>) {
-        let to_mm = to_mm.clamp(self.lim.travel_min_mm, self.lim.travel_max_mm);
+        let to_mm = to_mm
+            .max(self.lim.travel_min_mm)
+            .min(self.lim.travel_max_mm);
         let round3 = |v: f64| (v * 1000.0).round() / 1000.0;
         self.moves.push(Move {
             to_mm: round3(to_mm),
-            velocity_mm_s: round3(v.clamp(0.5, self.lim.max_velocity_mm_s)),
-            accel_mm_s2: round3(a.clamp(10.0, self.lim.max_accel_mm_s2)),
+            velocity_mm_s: round3(held(v, 0.5, self.lim.max_velocity_mm_s)),
+            accel_mm_s2: round3(held(a, 10.0, self.lim.max_accel_mm_s2)),
             dwell_ms,
             retarget_after_ms,
         });

@@ -575,3 +575,155 @@ fn a_picture_that_cannot_be_written_is_refused_before_measuring() {
         assert_eq!(std::fs::read(&tables).unwrap().len(), 0, "measured first");
     }
 }
+
+/// Inputs that passed the checks and then hung, ran into nonsense or blamed another file: each
+/// is now refused by its file and field before anything runs, or runs to its end.
+#[test]
+fn plants_specials_and_slow_starts_are_refused_by_field_or_run() {
+    let dir = scratch("audit");
+    let cal = good_calibration().to_str().unwrap().to_string();
+    let fig = "fig18";
+    let mut failures = Vec::new();
+    // (file, the line replaced, its replacement, what the message must say)
+    let plants: [(&str, &str, &str, &[&str]); 5] = [
+        (
+            "lines1.toml",
+            "lines = 2000",
+            "lines = 1",
+            &["encoder.lines 1", "cannot run this geometry"],
+        ),
+        (
+            "ratio.toml",
+            "ratio = 23.7222",
+            "ratio = 9000.0",
+            &["gearbox.ratio 9000", "cannot run this geometry"],
+        ),
+        (
+            "runout.toml",
+            "eccentricity_m = 6.0e-6",
+            "eccentricity_m = 0.02",
+            &["pulley.eccentricity_m"],
+        ),
+        (
+            "light.toml",
+            "mass_kg = 2.5",
+            "mass_kg = 1e-6",
+            &["carriage.mass_kg"],
+        ),
+        (
+            "noise.toml",
+            "noise_sd_m = 0.1e-6",
+            "noise_sd_m = 1e300",
+            &["scale.noise_sd_m", "1e300 must"],
+        ),
+    ];
+    for (name, from, to, says) in plants {
+        assert!(PLANT.contains(from), "{name}: {from}");
+        let p = dir.join(name);
+        std::fs::write(&p, PLANT.replacen(from, to, 1)).unwrap();
+        let p = p.to_str().unwrap();
+        for args in [
+            vec![
+                "run",
+                "--scenario",
+                fig,
+                "--plant",
+                p,
+                "--calibration",
+                &cal,
+                "--out",
+                "/dev/null",
+            ],
+            vec!["faults", "--plant", p],
+        ] {
+            let out = run(&args);
+            let last = out.stderr.lines().last().unwrap_or("").to_string();
+            if out.code != Some(1) || !last.starts_with(&format!("hil-sim: {p}: ")) {
+                failures.push(format!("{args:?}: exit {:?}: {last}", out.code));
+            } else if let Some(m) = says.iter().find(|m| !last.contains(*m)) {
+                failures.push(format!("{name}: the message lacks `{m}`: {last}"));
+            }
+        }
+    }
+    // Scenarios: a start inside the plant's travel but outside the drive's, and a retarget
+    // wait of 49 days (it ran until its time-out).
+    let head = "name = \"x\"\nstart_mm = 100.0\n";
+    let mv = |to: &str, extra: &str| {
+        format!("[[move]]\nto_mm = {to}\nvelocity_mm_s = 10.0\naccel_mm_s2 = 100.0\n{extra}")
+    };
+    for (name, text, says) in [
+        (
+            "start350.toml",
+            format!("name = \"x\"\nstart_mm = 350.0\n{}", mv("100", "")),
+            ["start_mm", "the drive's travel"],
+        ),
+        (
+            "wait.toml",
+            format!(
+                "{head}{}{}",
+                mv("110", "retarget_after_ms = 4294967295\n"),
+                mv("100", "")
+            ),
+            ["move 1", "retarget_after_ms"],
+        ),
+    ] {
+        let s = scenario_with(&dir, name, &text);
+        let out = run(&[
+            "run",
+            "--scenario",
+            &s,
+            "--calibration",
+            &cal,
+            "--out",
+            "/dev/null",
+        ]);
+        let last = out.stderr.lines().last().unwrap_or("").to_string();
+        if out.code != Some(1) || !last.contains(name) {
+            failures.push(format!("{name}: exit {:?}: {last}", out.code));
+        } else if let Some(m) = says.iter().find(|m| !last.contains(*m)) {
+            failures.push(format!("{name}: the message lacks `{m}`: {last}"));
+        }
+    }
+    // A device or a directory where a file is read: refused by name (/dev/zero was read until
+    // memory ran out).
+    for path in ["/dev/zero", dir.to_str().unwrap()] {
+        let out = run(&[
+            "run",
+            "--scenario",
+            path,
+            "--calibration",
+            &cal,
+            "--out",
+            "/dev/null",
+        ]);
+        if let Err(e) = check(path, &out, &[path]) {
+            failures.push(e);
+        } else if out.code != Some(1) {
+            failures.push(format!("{path}: exit {:?}", out.code));
+        }
+    }
+    // A slow first move to where the scenario starts: homing leaves the drive off `start_mm`
+    // by the transmission error, a way the time-out did not count.
+    let slow = scenario_with(
+        &dir,
+        "slow_start.toml",
+        &format!("{head}[[move]]\nto_mm = 100.0\nvelocity_mm_s = 0.01\naccel_mm_s2 = 1.0\n"),
+    );
+    let out = run(&[
+        "run",
+        "--scenario",
+        &slow,
+        "--calibration",
+        &cal,
+        "--out",
+        "/dev/null",
+    ]);
+    if out.code != Some(0) {
+        failures.push(format!(
+            "slow_start.toml: exit {:?}: {}",
+            out.code, out.stderr
+        ));
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}

@@ -324,7 +324,7 @@ fn check_against(
     path: &std::path::Path,
 ) -> Result<Vec<String>, hil_sim::error::Error> {
     use hil_sim::error::Error;
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let text = hil_sim::input::read_text(path).map_err(|e| Error::io(path, e))?;
     let want: serde_json::Value = serde_json::from_str(&text).map_err(|source| Error::Json {
         path: path.to_path_buf(),
         source,

@@ -187,7 +187,7 @@ pub struct Footprint {
 /// Reads the footprint of `elf` (32-bit little-endian ELF).
 pub fn footprint(elf: &Path) -> Result<Footprint, crate::error::Error> {
     use crate::error::Error;
-    let b = std::fs::read(elf).map_err(|e| Error::io(elf, e))?;
+    let b = crate::input::read_file(elf).map_err(|e| Error::io(elf, e))?;
     let u16_at = |o: usize| {
         b.get(o..o + 2)
             .map(|s| u16::from_le_bytes([s[0], s[1]]) as u64)

@@ -175,7 +175,7 @@ pub fn command_line(opts: &QemuOptions) -> Vec<String> {
 impl Qemu {
     /// Starts QEMU on `opts.elf` and the log decoder thread.
     pub fn spawn(opts: &QemuOptions) -> Result<Qemu, QemuError> {
-        let elf = std::fs::read(&opts.elf).map_err(|source| QemuError::ElfRead {
+        let elf = crate::input::read_file(&opts.elf).map_err(|source| QemuError::ElfRead {
             path: opts.elf.clone(),
             source,
         })?;
