@@ -41,10 +41,10 @@
 //!   micrometre (with a fitted weight, scaling `h`, `z_max` and the loads by `s` and the weight by
 //!   `1 / s` changes only the travel limits).
 //!
-//! `cargo run --profile ci -p hil-sim --example observer_variants -- [plant-name-part]
+//! `cargo run --profile ci -p hil-sim --example observer_variants -- [plant-name-part or N]
 //! [variant,...] [plan-seed]` (about 10 s to record and calibrate a plant, then about 20 s per
 //! refitted variant). The plan seed draws another default calibration plan (as `hil-sim
-//! calibrate --plan-seed`).
+//! calibrate --plan-seed`). N is a machine drawn at random (`generalise::drawn_plant(N)`).
 #![allow(clippy::print_stdout)]
 
 use estimator_core::model::slip::SlipParams;
@@ -352,9 +352,13 @@ fn rms(r: &Run, g: &[f64], w: &[f64]) -> f64 {
 
 fn main() {
     let which = std::env::args().nth(1);
-    let plant = hil_sim::generalise::plant_named(which.as_deref())
-        .expect("built-in plants")
-        .expect("a built-in plant of that name");
+    // A number is a machine drawn at random (`generalise::drawn_plant`), as in drawn_machine.rs.
+    let plant = match which.as_deref().map(str::parse::<u64>) {
+        Some(Ok(n)) => hil_sim::generalise::drawn_plant(n),
+        _ => hil_sim::generalise::plant_named(which.as_deref())
+            .expect("built-in plants")
+            .expect("a built-in plant of that name"),
+    };
     let chosen: Vec<Variant> = match std::env::args().nth(2) {
         None => Variant::ALL.iter().map(|v| v.0).collect(),
         Some(list) => list
