@@ -144,11 +144,8 @@ fn record(
             CALIBRATION_SEED_BASE + k as u64,
             &mut |f| progress(&label, f),
         )
-        // The file where there is one (a user's scenario), else the name (the default plan).
-        .context(|| match s.source.is_empty() {
-            true => s.name.clone(),
-            false => s.source().to_string(),
-        })?;
+        // Where the scenario came from: a user's file, `preset NAME` or `workload NAME`.
+        .context(|| s.source().to_string())?;
         traces.push(t);
     }
     Ok(traces)

@@ -5,35 +5,27 @@
 /// enough that a wrong path (a device, a disk image) is refused instead of filling memory.
 pub const MAX_INPUT_BYTES: u64 = 256 << 20;
 
-/// The bytes of the regular file at `path`; a device, a FIFO or a file larger than
-/// [`MAX_INPUT_BYTES`] is an error (`/dev/zero` would otherwise be read until memory runs out).
+/// The bytes of the file at `path`, at most [`MAX_INPUT_BYTES`]: a larger one, or a device
+/// that never ends (`/dev/zero` was read until memory ran out), is an error. A pipe or
+/// `/dev/stdin` is read like a file; a directory is an error.
 pub fn read_file(path: impl AsRef<std::path::Path>) -> std::io::Result<Vec<u8>> {
     use std::io::{Error, ErrorKind, Read};
-    let file = std::fs::File::open(path)?;
-    let meta = file.metadata()?;
-    if meta.is_dir() {
+    // Asked before opening: what it is decides nothing else, and a directory needs no open.
+    if std::fs::metadata(&path)?.is_dir() {
         return Err(Error::new(ErrorKind::IsADirectory, "is a directory"));
     }
-    if !meta.is_file() {
-        return Err(Error::new(
-            ErrorKind::InvalidInput,
-            "not a regular file (a device, a FIFO or a socket)",
-        ));
-    }
-    let too_large = || {
-        Error::new(
-            ErrorKind::InvalidData,
-            format!("larger than {} MiB", MAX_INPUT_BYTES >> 20),
-        )
-    };
-    if meta.len() > MAX_INPUT_BYTES {
-        return Err(too_large());
-    }
-    let mut bytes = Vec::with_capacity(meta.len() as usize);
-    // The limit holds even if the file grows while it is read.
+    let file = std::fs::File::open(path)?;
+    let mut bytes = Vec::new();
+    // The limit holds whatever the file claims to be and if it grows while it is read.
     file.take(MAX_INPUT_BYTES + 1).read_to_end(&mut bytes)?;
     if bytes.len() as u64 > MAX_INPUT_BYTES {
-        return Err(too_large());
+        return Err(Error::new(
+            ErrorKind::InvalidData,
+            format!(
+                "larger than {} MiB: not an input file",
+                MAX_INPUT_BYTES >> 20
+            ),
+        ));
     }
     Ok(bytes)
 }
@@ -103,12 +95,13 @@ mod tests {
         assert!(!shown.contains('\n'), "{shown}");
     }
 
-    /// Only regular files are read: a device that never ends, a directory, and a file that is
-    /// not text are errors that say so.
+    /// A device that never ends, a directory, and a file that is not text are errors that
+    /// say so; an empty device reads as an empty file.
     #[test]
-    fn devices_and_directories_are_not_read() {
+    fn endless_devices_and_directories_are_not_read() {
         let e = super::read_file("/dev/zero").unwrap_err();
-        assert!(e.to_string().contains("not a regular file"), "{e}");
+        assert!(e.to_string().contains("larger than 256 MiB"), "{e}");
+        assert_eq!(super::read_file("/dev/null").unwrap(), b"");
         let e = super::read_file(std::env::temp_dir()).unwrap_err();
         assert!(e.to_string().contains("directory"), "{e}");
         let p = std::env::temp_dir().join(format!("belt-input-{}.bin", std::process::id()));

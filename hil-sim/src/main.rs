@@ -265,9 +265,10 @@ enum Cmd {
     },
 }
 
-/// A file the run will write (`flag`'s value): a regular file, or a new one in a directory that
-/// exists; with `!regular_only` also a device or a FIFO (`--log /dev/null`). Checked before
-/// anything starts, so that a drive does not run without its storage or its log.
+/// A file the run will write (`flag`'s value): a regular file it may write (and, with
+/// `regular_only`, read: the drive's storage), or a new one in a directory that exists; without
+/// `regular_only` also a device or a FIFO (`--log /dev/null`). Checked before anything starts,
+/// so that a drive does not run without its storage or its log.
 fn output_file(flag: &'static str, path: &Path, regular_only: bool) -> Result<(), Error> {
     let refuse = |rule: String| Error::Argument {
         flag,
@@ -276,15 +277,15 @@ fn output_file(flag: &'static str, path: &Path, regular_only: bool) -> Result<()
     };
     match std::fs::metadata(path) {
         Ok(m) if m.is_file() => std::fs::OpenOptions::new()
-            .read(true)
+            .read(regular_only)
             .write(true)
             .open(path)
             .map(drop)
-            .map_err(|e| refuse(format!("cannot be opened to read and write: {e}"))),
+            .map_err(|e| refuse(format!("cannot be opened: {e}"))),
         Ok(m) if m.is_dir() => Err(refuse("is a directory".into())),
         Ok(_) if !regular_only => Ok(()),
         Ok(_) => Err(refuse("is not a regular file (a device or a FIFO)".into())),
-        Err(_) => {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             let parent = path.parent().filter(|p| !p.as_os_str().is_empty());
             match parent {
                 Some(dir) if !dir.is_dir() => Err(refuse(format!(
@@ -294,6 +295,7 @@ fn output_file(flag: &'static str, path: &Path, regular_only: bool) -> Result<()
                 _ => Ok(()),
             }
         }
+        Err(e) => Err(refuse(e.to_string())),
     }
 }
 
@@ -311,11 +313,21 @@ fn output_dir(flag: &'static str, path: &Path) -> Result<(), Error> {
     Ok(())
 }
 
-fn plant_params(path: &Option<PathBuf>) -> Result<PlantParams, Error> {
+/// The plant file (or the built-in paper rig), for a virtual drive: its host configures the
+/// drive, so any valid plant will do.
+fn any_plant(path: &Option<PathBuf>) -> Result<PlantParams, Error> {
     match path {
         None => Ok(PlantParams::paper_rig()),
         Some(p) => Ok(PlantParams::load(p)?),
     }
+}
+
+/// [`any_plant`] for the in-process commands, whose drive is the paper rig's tuning with the
+/// plant's geometry: a geometry it refuses is named by the plant file, not later by a run.
+fn plant_params(path: &Option<PathBuf>) -> Result<PlantParams, Error> {
+    let p = any_plant(path)?;
+    p.check_default_drive()?;
+    Ok(p)
 }
 
 fn calibration(
@@ -656,7 +668,7 @@ fn main() -> ExitCode {
             elf,
             log,
         } => (|| {
-            let plant = plant_params(&plant)?;
+            let plant = any_plant(&plant)?;
             let elf = elf.unwrap_or_else(|| PilOptions::default_elf(None));
             if !elf.exists() {
                 return Err(Error::NoFirmware(elf));
@@ -716,14 +728,17 @@ fn main() -> ExitCode {
         } => (|| {
             // A picture that cannot be written is refused before minutes of measuring.
             if let Some(path) = &plot {
-                let parent = path.parent().filter(|p| !p.as_os_str().is_empty());
-                if path.is_dir() || parent.is_some_and(|p| !p.is_dir()) {
+                let png = path
+                    .extension()
+                    .is_some_and(|e| e.eq_ignore_ascii_case("png"));
+                if !png {
                     return Err(Error::Argument {
                         flag: "--plot",
                         value: path.display().to_string(),
-                        rule: "a file name in a directory that exists".into(),
+                        rule: "must be a .png file".into(),
                     });
                 }
+                output_file("--plot", path, true)?;
             }
             let mut plants = if no_variants {
                 vec![PlantParams::paper_rig()]
@@ -731,7 +746,9 @@ fn main() -> ExitCode {
                 generalise::plants()?
             };
             for p in &plant {
-                plants.push(PlantParams::load(p)?);
+                let p = PlantParams::load(p)?;
+                p.check_default_drive()?;
+                plants.push(p);
             }
             plants.extend((1..=drawn).map(generalise::drawn_plant));
             let mut progress = Progress::new();

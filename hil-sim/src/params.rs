@@ -267,12 +267,12 @@ pub enum ParamsError {
         /// Its value and the rule it breaks.
         reason: String,
     },
-    /// A geometry the drive's configuration cannot take (its gains and limits in counts go out
-    /// of their ranges).
+    /// A geometry hil-sim's drive configuration cannot take (the paper rig's gains and limits
+    /// in counts go out of their ranges; [`PlantParams::check_default_drive`]).
     #[error(
         "encoder.lines {lines}, gearbox.ratio {ratio}, pulley.teeth {teeth}, belt.pitch_m \
-         {pitch_m} ({counts_per_mm:.4} counts/mm): the drive cannot run this geometry, its \
-         configuration refuses {refused}"
+         {pitch_m} ({counts_per_mm:.4} counts/mm): hil-sim's drive (the paper rig's tuning and \
+         limits with this geometry) cannot run it, its configuration refuses {refused}"
     )]
     Geometry {
         /// `encoder.lines`.
@@ -391,13 +391,6 @@ impl PlantParams {
             (3..=1000).contains(&p.teeth),
             "must be in 3..=1000",
         );
-        // Run-out is a small fraction of the pulley (the paper rig's is 6 um on 16 mm).
-        c.range(
-            "pulley.eccentricity_m",
-            p.eccentricity_m,
-            0.0,
-            0.1 * self.nominal_radius_m(),
-        );
         c.finite("pulley.eccentricity_angle_rad", p.eccentricity_angle_rad);
         c.range(
             "pulley.wrap_angle_rad",
@@ -407,6 +400,14 @@ impl PlantParams {
         );
         let b = &self.belt;
         c.range("belt.pitch_m", b.pitch_m, 1e-4, 0.1);
+        // Run-out is a small fraction of the pulley (the paper rig's is 6 um on 16 mm); after
+        // the pitch, which the radius comes from.
+        c.range(
+            "pulley.eccentricity_m",
+            p.eccentricity_m,
+            0.0,
+            0.1 * self.nominal_radius_m(),
+        );
         c.range("belt.pitch_error", b.pitch_error, -0.05, 0.05);
         c.pos("belt.axial_rigidity_n", b.axial_rigidity_n);
         c.pos("belt.preload_n", b.preload_n);
@@ -536,22 +537,35 @@ impl PlantParams {
                 &format!("too long for the contact damping ({d:.0} /s): need c h / m < 1"),
             );
         }
-        if c.err.is_none() {
-            let rig = self.rig();
-            if let Err(refused) =
-                estimator_core::drive::Drive::new(&crate::drive_setup::drive_limits(rig))
-            {
-                return Err(ParamsError::Geometry {
+        c.err.map_or(Ok(()), Err)
+    }
+
+    /// Whether hil-sim's own drive (the paper rig's tuning and limits with this plant's
+    /// geometry, [`crate::drive_setup::drive_limits`]) takes this geometry: every in-process
+    /// run and calibration uses it. A virtual drive is configured by its host and is not
+    /// bound by it. The error names the plant file.
+    pub fn check_default_drive(&self) -> Result<(), ParamsError> {
+        let rig = self.rig();
+        match estimator_core::drive::Drive::new(&crate::drive_setup::drive_limits(rig)) {
+            Ok(_) => Ok(()),
+            Err(refused) => {
+                let e = ParamsError::Geometry {
                     lines: self.encoder.lines,
                     ratio: self.gearbox.ratio,
                     teeth: self.pulley.teeth,
                     pitch_m: self.belt.pitch_m,
                     counts_per_mm: rig.counts_per_mm(),
                     refused,
-                });
+                };
+                Err(match self.source.is_empty() {
+                    true => e,
+                    false => ParamsError::InFile {
+                        path: self.source.clone().into(),
+                        source: Box::new(e),
+                    },
+                })
             }
         }
-        c.err.map_or(Ok(()), Err)
     }
 
     /// Highest natural frequency of the contact springs (tooth and gear against the lightest

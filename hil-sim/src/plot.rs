@@ -439,16 +439,24 @@ where
             .x_labels(0)
             .y_desc("um")
             .draw()?;
+        // A value that is not a positive number has no place on a log scale: left out.
+        let shown = |v: f64| (v.is_finite() && v > 0.0).then_some(v);
         let band = RGBColor(150, 150, 150);
-        c.draw_series(t.rows.iter().enumerate().map(|(i, r)| {
-            let i = i as f64;
-            Rectangle::new(
-                [(i - 0.3, r.floor_um), (i + 0.3, 4.0 * r.floor_um)],
-                band.mix(0.35).filled(),
-            )
-        }))?;
+        c.draw_series(
+            t.rows
+                .iter()
+                .enumerate()
+                .filter(|(_, r)| shown(r.floor_um).is_some())
+                .map(|(i, r)| {
+                    let i = i as f64;
+                    Rectangle::new(
+                        [(i - 0.3, r.floor_um), (i + 0.3, 4.0 * r.floor_um)],
+                        band.mix(0.35).filled(),
+                    )
+                }),
+        )?;
         c.draw_series(t.rows.iter().enumerate().filter_map(|(i, r)| {
-            let v = r.rms("none")?;
+            let v = shown(r.rms("none")?)?;
             Some(Cross::new(
                 (i as f64, v),
                 5,
@@ -462,7 +470,7 @@ where
                 .rms_um
                 .iter()
                 .filter(|(k, _)| *k != "none" && *k != "model4")
-                .map(|x| x.1)
+                .filter_map(|x| shown(x.1))
                 .min_by(f64::total_cmp)?;
             Some(TriangleMarker::new(
                 (i as f64 - 0.13, v),
@@ -471,7 +479,7 @@ where
             ))
         }))?;
         c.draw_series(t.rows.iter().enumerate().filter_map(|(i, r)| {
-            let v = r.rms("model4")?;
+            let v = shown(r.rms("model4")?)?;
             let color = if r.best() == "model4" {
                 GENERALISATION_BEST
             } else {
@@ -555,17 +563,22 @@ mod tests {
             row("fig18", 10.0, 20.0),
             row("raster-11", 50.0, 40.0),
         ])];
-        let (Some(red_won), Some(red_lost), Some(green_won)) = (
+        let (Some(red_won), Some(red_lost), Some(green_won), Some(green_lost)) = (
             pixels_of(&won, GENERALISATION_LOST),
             pixels_of(&lost, GENERALISATION_LOST),
             pixels_of(&won, GENERALISATION_BEST),
+            pixels_of(&lost, GENERALISATION_BEST),
         ) else {
             // No font here: `hil-sim report` says so by name (tests/coverage.rs).
+            assert!(init_fonts().is_err());
             return;
         };
+        // Two rows won: two green points. One lost: one green and one red point, each the
+        // size of the others (coloured row by row, not plant by plant).
         assert_eq!(red_won, 0);
-        assert!(red_lost > 20, "{red_lost}");
         assert!(green_won > 40, "{green_won}");
+        assert_eq!(2 * green_lost, green_won);
+        assert_eq!(red_lost, green_lost);
         let odd = [table(vec![]), table(vec![row("nan", f64::NAN, 20.0)])];
         assert!(pixels_of(&odd, GENERALISATION_BEST).is_some());
         assert!(pixels_of(&[], GENERALISATION_BEST).is_some());

@@ -269,14 +269,21 @@ impl Scenario {
         if !in_plant(self.start_mm) {
             return Err(outside_plant(None, self.start_mm));
         }
-        // The drive trips its travel limit at once where it starts outside its travel.
-        let (d0, d1) = (drive.settings.travel_min_mm, drive.settings.travel_max_mm);
+        // The drive trips its travel limit at once where it starts beyond its travel's margin.
+        let st = &drive.settings;
+        let (d0, d1) = (
+            st.travel_min_mm - st.travel_margin_mm,
+            st.travel_max_mm + st.travel_margin_mm,
+        );
         if !(d0..=d1).contains(&self.start_mm) {
             return Err(ScenarioError::Field {
                 move_n: None,
                 field: "start_mm",
                 value: show(self.start_mm),
-                rule: format!("mm is outside the drive's travel {d0}..={d1} mm"),
+                rule: format!(
+                    "mm is beyond the drive's travel and its margin, {d0}..={d1} mm (the drive \
+                     would stop at once on its travel limit)"
+                ),
             });
         }
         // The drive's own range checks, on the integers the run will send.
