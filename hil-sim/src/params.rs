@@ -8,6 +8,8 @@
 use estimator_core::rig::Rig;
 use serde::{Deserialize, Serialize};
 
+use crate::input::show;
+
 /// The embedded default preset (the paper's rig, Table 1, tuned to section 4's observations).
 pub const PAPER_RIG_TOML: &str = include_str!("../presets/paper-rig.toml");
 
@@ -606,8 +608,6 @@ impl PlantParams {
         belt.max(pulley).max(carriage)
     }
 }
-
-use crate::input::show;
 
 /// Collects the first validation failure.
 #[derive(Default)]

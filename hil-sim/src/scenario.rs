@@ -14,6 +14,7 @@
 use estimator_core::drive::DriveConfig;
 use serde::Deserialize;
 
+use crate::input::show;
 use crate::plant::PlantParams;
 
 /// Longest scenario a run accepts, simulated seconds (its duration estimated from the moves):
@@ -417,11 +418,6 @@ impl Scenario {
         }
         Ok(())
     }
-}
-
-/// A number as a person reads it: plain, or in scientific notation when very large or small.
-fn show(v: f64) -> String {
-    crate::input::show(v)
 }
 
 /// Comma-separated preset names, for error messages and `--help`.

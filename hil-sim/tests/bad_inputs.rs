@@ -133,6 +133,33 @@ fn check(what: &str, out: &Outcome, files: &[&str]) -> Result<(), String> {
     }
 }
 
+/// `hil-sim run` of `scenario` with the calibration in `cal`, its table thrown away.
+fn run_scenario(scenario: &str, cal: &str) -> Outcome {
+    run(&[
+        "run",
+        "--scenario",
+        scenario,
+        "--calibration",
+        cal,
+        "--out",
+        "/dev/null",
+    ])
+}
+
+/// A refusal: exit 1 and one `hil-sim: ` line that names `file` (see [`check`]) and says each
+/// of `says`.
+fn refused(file: &str, out: &Outcome, says: &[&str]) -> Result<(), String> {
+    let last = out.stderr.lines().last().unwrap_or("");
+    if out.code != Some(1) {
+        return Err(format!("{file}: exit {:?}, expected 1: {last}", out.code));
+    }
+    check(file, out, &[file])?;
+    match says.iter().find(|m| !last.contains(*m)) {
+        Some(m) => Err(format!("{file}: the message lacks `{m}`: {last}")),
+        None => Ok(()),
+    }
+}
+
 /// A scenario file with `moves` in place of the short scenario's.
 fn scenario_with(dir: &Path, name: &str, text: &str) -> String {
     let p = dir.join(name);
@@ -245,22 +272,8 @@ fn the_reported_inputs_are_refused_by_file_move_and_field() {
     let mut failures = Vec::new();
     for (name, text, also) in &cases {
         let s = scenario_with(&dir, name, text);
-        let out = run(&[
-            "run",
-            "--scenario",
-            &s,
-            "--calibration",
-            &cal,
-            "--out",
-            "/dev/null",
-        ]);
-        let last = out.stderr.lines().last().unwrap_or("").to_string();
-        if out.code != Some(1) {
-            failures.push(format!("{name}: exit {:?}, expected 1: {last}", out.code));
-        } else if let Err(e) = check(name, &out, &[name]) {
+        if let Err(e) = refused(name, &run_scenario(&s, &cal), also) {
             failures.push(e);
-        } else if let Some(m) = also.iter().find(|m| !last.contains(*m)) {
-            failures.push(format!("{name}: the message lacks `{m}`: {last}"));
         }
     }
 
@@ -668,38 +681,15 @@ fn plants_specials_and_slow_starts_are_refused_by_field_or_run() {
         ),
     ] {
         let s = scenario_with(&dir, name, &text);
-        let out = run(&[
-            "run",
-            "--scenario",
-            &s,
-            "--calibration",
-            &cal,
-            "--out",
-            "/dev/null",
-        ]);
-        let last = out.stderr.lines().last().unwrap_or("").to_string();
-        if out.code != Some(1) || !last.contains(name) {
-            failures.push(format!("{name}: exit {:?}: {last}", out.code));
-        } else if let Some(m) = says.iter().find(|m| !last.contains(*m)) {
-            failures.push(format!("{name}: the message lacks `{m}`: {last}"));
+        if let Err(e) = refused(name, &run_scenario(&s, &cal), &says) {
+            failures.push(e);
         }
     }
     // A device or a directory where a file is read: refused by name (/dev/zero was read until
     // memory ran out).
     for path in ["/dev/zero", dir.to_str().unwrap()] {
-        let out = run(&[
-            "run",
-            "--scenario",
-            path,
-            "--calibration",
-            &cal,
-            "--out",
-            "/dev/null",
-        ]);
-        if let Err(e) = check(path, &out, &[path]) {
+        if let Err(e) = refused(path, &run_scenario(path, &cal), &[]) {
             failures.push(e);
-        } else if out.code != Some(1) {
-            failures.push(format!("{path}: exit {:?}", out.code));
         }
     }
     // A start beyond the travel but within the drive's margin (300 + 5 mm) still runs.
@@ -708,15 +698,7 @@ fn plants_specials_and_slow_starts_are_refused_by_field_or_run() {
         "margin.toml",
         &format!("name = \"m\"\nstart_mm = 302.0\n{}", mv("299", "")),
     );
-    let out = run(&[
-        "run",
-        "--scenario",
-        &margin,
-        "--calibration",
-        &cal,
-        "--out",
-        "/dev/null",
-    ]);
+    let out = run_scenario(&margin, &cal);
     if out.code != Some(0) {
         failures.push(format!("margin.toml: exit {:?}: {}", out.code, out.stderr));
     }
@@ -727,15 +709,7 @@ fn plants_specials_and_slow_starts_are_refused_by_field_or_run() {
         "slow_start.toml",
         &format!("{head}[[move]]\nto_mm = 100.0\nvelocity_mm_s = 0.01\naccel_mm_s2 = 1.0\n"),
     );
-    let out = run(&[
-        "run",
-        "--scenario",
-        &slow,
-        "--calibration",
-        &cal,
-        "--out",
-        "/dev/null",
-    ]);
+    let out = run_scenario(&slow, &cal);
     if out.code != Some(0) {
         failures.push(format!(
             "slow_start.toml: exit {:?}: {}",
