@@ -6,13 +6,16 @@
 #   1. a fresh storage file: the drive boots unconfigured and refuses to enable;
 #   2. beltctl: configuration (tools/commission-config.toml), enable, homing onto the end stop,
 #      calibration with the linear scale fitted (recorded on the drive, fitted on the host with
-#      hil-sim's fitting code), upload, read-back check, save;
+#      hil-sim's fitting code), upload, read-back check; then validation: every compensator
+#      places the carriage on the moves of tools/commission-validate.toml, and the one with the
+#      lowest arrival RMS on the scale becomes the drive's initial model; save;
 #   3. the virtual drive is stopped and started again on the same storage file;
-#   4. it must boot configured with the saved record, home, and place the carriage on targets
-#      with the stored calibration's placement correction (Model 3).
+#   4. it must boot configured with the saved record and the chosen model, home, and place the
+#      carriage on other targets with it.
 #
 # Last line: one JSON object (saved_crc, loaded_crc_after_restart, homed, targets,
-# arrival_rms_um, arrival_max_um); arrival = the scale's reading at rest minus the target.
+# arrival_rms_um, arrival_max_um, model, validation_rms_um); arrival = the scale's reading at
+# rest minus the target; validation_rms_um: each compensator's arrival RMS in step 2.
 # Environment: COMMISSION_PROFILE (cargo profile, default ci), COMMISSION_KEEP=1 keeps the work
 # directory (logs, calibration, plots).
 set -euo pipefail
@@ -77,7 +80,13 @@ ctl config load tools/commission-config.toml
 ctl enable
 ctl home
 ctl calibrate --out "$work/calibration" --json | tee "$work/calibrate.json" >&2
+# The upload left the drive disabled, still homed.
+ctl enable
+validation=$(ctl validate --scenario tools/commission-validate.toml --select --json)
+echo "$validation" >&2
+model=$(json_field "$validation" best)
 ctl disable
+ctl config set "drive.initial_model=$(json_field "$validation" initial_model)"
 saved=$(ctl config save --json)
 echo "$saved" >&2
 saved_crc=$(json_field "$saved" crc)
@@ -88,6 +97,7 @@ start_drive drive2 200
 status=$(ctl status --json)
 echo "$status" >&2
 [ "$(json_field "$status" configured)" = true ] || { echo "the drive did not boot configured" >&2; exit 1; }
+[ "$(json_field "$status" model)" = "$model" ] || { echo "the drive did not boot with $model" >&2; exit 1; }
 loaded_crc=$(json_field "$status" record_crc)
 
 echo "== 4. home and place the carriage" >&2
@@ -99,9 +109,10 @@ cat "$work/moves.json" >&2
 summary=$(tail -n 1 "$work/moves.json")
 stop_drive
 
-python3 - "$saved_crc" "$loaded_crc" "$homed" "$summary" <<'EOF'
+python3 - "$saved_crc" "$loaded_crc" "$homed" "$summary" "$model" "$validation" <<'EOF'
 import json, sys
 saved, loaded, homed, summary = sys.argv[1], sys.argv[2], sys.argv[3] == "true", json.loads(sys.argv[4])
+model, validation = sys.argv[5], json.loads(sys.argv[6])
 print(json.dumps({
     "saved_crc": saved,
     "loaded_crc_after_restart": loaded,
@@ -109,5 +120,7 @@ print(json.dumps({
     "targets": summary["count"],
     "arrival_rms_um": round(summary["rms_um"], 2),
     "arrival_max_um": round(summary["max_um"], 2),
+    "model": model,
+    "validation_rms_um": {k: round(v, 2) for k, v in validation["arrival_rms_um"].items()},
 }))
 EOF

@@ -10,7 +10,7 @@ use serde_json::json;
 use crate::error::ToolError;
 use crate::link::{Link, LinkOptions};
 use crate::ops::{self, Arrival, MoveLimits};
-use crate::{calibrate, config, port, record, status};
+use crate::{calibrate, config, port, record, status, validate};
 use hil_sim::progress::Progress;
 
 /// beltctl: set up, move, record and calibrate a belt-drive controller over its serial link.
@@ -106,7 +106,7 @@ pub enum Cmd {
         #[arg(long, value_name = "FILE.csv")]
         out: PathBuf,
     },
-    /// Calibrate on the drive: run hil-sim's calibration moves while recording, fit Models 1-3
+    /// Calibrate on the drive: run hil-sim's calibration moves while recording, fit Models 1-4
     /// and the baselines, write the calibration files, upload, verify and select the model.
     Calibrate {
         /// Directory for calibration.bin, calibration.toml and the plots.
@@ -133,6 +133,28 @@ pub enum Cmd {
         /// it saves only while disabled).
         #[arg(long)]
         save: bool,
+    },
+    /// Place the carriage on a scenario's moves once per compensator and compare the arrivals
+    /// on the linear scale (commissioning, with the scale fitted); `--select` keeps the best.
+    Validate {
+        /// The moves (TOML scenario file, in the drive's coordinates): your machine's own.
+        #[arg(long, value_name = "FILE")]
+        scenario: PathBuf,
+        /// Compensators to compare, comma-separated.
+        #[arg(
+            long,
+            value_name = "LIST",
+            default_value = "none,model1,model2,model3,backlash,bidir_table,model4"
+        )]
+        models: String,
+        /// Select the compensator with the lowest arrival RMS afterwards (otherwise the one
+        /// active before is selected again). To keep it after a restart, set
+        /// drive.initial_model and save (`beltctl config set`, `config save`).
+        #[arg(long)]
+        select: bool,
+        /// Least rest after arrival before reading the scale, ms (a move's dwell_ms if longer).
+        #[arg(long, default_value_t = 200, value_name = "MS")]
+        settle_ms: u64,
     },
 }
 
@@ -206,6 +228,26 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
             .map(|n| config::lookup(n).map_err(|e| ToolError::Usage(e.to_string())))
             .collect::<Result<Vec<_>, _>>()?,
         _ => Vec::new(),
+    };
+    // The validation's moves and compensators, checked before any port is opened.
+    let validation = match &cli.cmd {
+        Cmd::Validate {
+            scenario,
+            models,
+            select,
+            settle_ms,
+        } => {
+            let path = scenario.display().to_string();
+            let s = hil_sim::scenario::Scenario::load(&path)
+                .map_err(|e| ToolError::Usage(format!("--scenario {e}")))?;
+            Some(validate::Options {
+                scenario: (path, s),
+                models: validate::parse_models(models)?,
+                select: *select,
+                settle: Duration::from_millis(*settle_ms),
+            })
+        }
+        _ => None,
     };
     let load = match &cli.cmd {
         Cmd::Config(ConfigCmd::Load { file }) => {
@@ -413,8 +455,68 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
                 }));
             }
         }
+        Cmd::Validate { .. } => {
+            let Some(opts) = validation else {
+                return Err(ToolError::Usage("validate: no options".into()));
+            };
+            let settings = config::settings(link)?;
+            let mut progress = Progress::named("beltctl");
+            let o = validate::run(link, &settings, &opts, &mut progress)?;
+            progress.finish();
+            print_validation(&o, json);
+        }
     }
     Ok(())
+}
+
+/// The validation's table (or one JSON object): arrival RMS and max per compensator.
+fn print_validation(o: &validate::Outcome, json: bool) {
+    if json {
+        let per = |f: fn(&validate::Placed) -> f64| -> serde_json::Map<String, serde_json::Value> {
+            o.placed
+                .iter()
+                .map(|p| (p.model.as_str().to_string(), json!(f(p))))
+                .collect()
+        };
+        print_json(&json!({
+            "scenario": o.scenario,
+            "arrivals": o.placed.first().map_or(0, |p| p.errors_um.len()),
+            "arrival_rms_um": per(validate::Placed::rms_um),
+            "arrival_max_um": per(validate::Placed::max_um),
+            "best": o.best.as_str(),
+            "active": o.active.as_str(),
+            // What `config set drive.initial_model=N` takes to keep it after a restart.
+            "initial_model": o.active as u8,
+        }));
+        return;
+    }
+    hil_sim::outln!(
+        "{}: {} arrivals per compensator, |scale - target| in um\n\n| compensator | RMS | max |\n|---|---:|---:|",
+        o.scenario,
+        o.placed.first().map_or(0, |p| p.errors_um.len())
+    );
+    for p in &o.placed {
+        let mark = if p.model == o.best { " (best)" } else { "" };
+        hil_sim::outln!(
+            "| {}{mark} | {:.1} | {:.1} |",
+            p.model,
+            p.rms_um(),
+            p.max_um()
+        );
+    }
+    hil_sim::outln!(
+        "\n{} selected{}",
+        o.active,
+        if o.active == o.best {
+            format!(
+                "; to keep it after a restart: `beltctl disable`, `beltctl config set \
+                 drive.initial_model={}`, `beltctl config save` (then home again)",
+                o.active as u8
+            )
+        } else {
+            format!(" again (the best, {}, with --select)", o.best)
+        }
+    );
 }
 
 fn values(n: usize) -> String {

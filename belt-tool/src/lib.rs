@@ -8,7 +8,8 @@
 //! - [`link`]: requests with retries and reply matching, the recording stream;
 //! - [`port`]: opening the serial adapter;
 //! - [`error`]: [`ToolError`], the messages;
-//! - [`status`], [`config`], [`ops`], [`record`], [`calibrate`]: what the commands do;
+//! - [`status`], [`config`], [`ops`], [`record`], [`calibrate`], [`validate`]: what the
+//!   commands do;
 //! - [`cli`]: the command line.
 #![forbid(unsafe_code)]
 // Output only through `stdout` (`out!`, `outln!`, `errln!`): the std macros panic on a closed pipe.
@@ -26,6 +27,7 @@ pub mod record;
 pub mod status;
 #[cfg(test)]
 mod testing;
+pub mod validate;
 
 pub use error::ToolError;
 pub use link::{Link, LinkOptions};

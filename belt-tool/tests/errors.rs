@@ -291,3 +291,134 @@ fn a_bad_config_file_is_refused_by_name_before_any_port_is_opened() {
     );
     let _ = std::fs::remove_file(f);
 }
+
+/// A validation scenario in a scratch file: moves from 100 mm, the second to `second_mm`.
+fn validation_file(tag: &str, second_mm: f64, velocity_mm_s: f64) -> std::path::PathBuf {
+    let f = std::env::temp_dir().join(format!("beltctl-val-{tag}-{}.toml", std::process::id()));
+    let text = format!(
+        "name = \"mine\"\nstart_mm = 100.0\n\
+         [[move]]\nto_mm = 150.0\nvelocity_mm_s = 80.0\naccel_mm_s2 = 1000.0\n\
+         [[move]]\nto_mm = {second_mm:?}\nvelocity_mm_s = {velocity_mm_s:?}\naccel_mm_s2 = 500.0\n\
+         retarget_after_ms = 20\n\
+         [[move]]\nto_mm = 120.0\nvelocity_mm_s = 20.0\naccel_mm_s2 = 300.0\n"
+    );
+    std::fs::write(&f, text).unwrap();
+    f
+}
+
+fn selections(reqs: &[Request]) -> Vec<belt_link::ModelKind> {
+    reqs.iter()
+        .filter_map(|r| match r {
+            Request::Command(belt_link::Command::SelectModel(m)) => Some(*m),
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn validation_places_with_each_compensator_and_selects_the_best_arrivals() {
+    use belt_link::ModelKind;
+    let f = validation_file("ok", 140.0, 50.0);
+    let file = f.display().to_string();
+    for select in [true, false] {
+        let p = pty();
+        let path = p.path.clone();
+        let mut drive = FakeDrive::new(Faults::default());
+        drive.arrival_offset_counts = 0;
+        // 0.5 um a scale count: Model 2 arrives 4 um off, Model 3 3 um, the table -2.5 um.
+        drive.model_offset_counts = [300, 10, 8, 6, 90, -5, 7];
+        let fake = serve(p.master, drive);
+        let mut rest = vec![
+            "--json",
+            "validate",
+            "--scenario",
+            &file,
+            "--settle-ms",
+            "5",
+        ];
+        rest.extend(["--models", "model2,model3,bidir_table,model4"]);
+        if select {
+            rest.push("--select");
+        }
+        let (out, _) = beltctl(&args(&path, &rest), LIMIT);
+        assert!(out.status.success(), "{}", text(&out.stderr));
+        let j: serde_json::Value = serde_json::from_str(text(&out.stdout).trim()).unwrap();
+        // The retargeted second move has no arrival; the other two do.
+        assert_eq!(j["arrivals"], 2);
+        assert!((j["arrival_rms_um"]["model3"].as_f64().unwrap() - 3.0).abs() < 1e-9);
+        assert!((j["arrival_max_um"]["bidir_table"].as_f64().unwrap() - 2.5).abs() < 1e-9);
+        assert_eq!(j["arrival_rms_um"].as_object().unwrap().len(), 4);
+        assert_eq!(j["best"], "bidir_table");
+        let before = ModelKind::Table;
+        assert_eq!(j["active"], if select { "bidir_table" } else { "model3" });
+        let reqs = fake.drive.lock().unwrap().requests.clone();
+        let last = if select {
+            ModelKind::BidirTable
+        } else {
+            before
+        };
+        assert_eq!(
+            selections(&reqs),
+            [
+                ModelKind::Exponential,
+                ModelKind::Table,
+                ModelKind::BidirTable,
+                ModelKind::Operator,
+                last
+            ]
+        );
+        // Carriage moves (the compensator places them), three per pass.
+        let carriage = reqs
+            .iter()
+            .filter(|r| matches!(r, Request::Command(belt_link::Command::MoveTo { .. })))
+            .count();
+        assert_eq!(carriage, 12);
+    }
+    let _ = std::fs::remove_file(f);
+}
+
+#[test]
+fn a_validation_the_drive_cannot_run_is_refused_by_file_move_and_field_before_moving() {
+    for (tag, second_mm, velocity, field) in [
+        (
+            "travel",
+            320.0,
+            50.0,
+            "move 2: to_mm = 320 is outside the drive's travel",
+        ),
+        (
+            "speed",
+            140.0,
+            400.0,
+            "move 2: velocity_mm_s = 400 is above the drive's limit",
+        ),
+    ] {
+        let f = validation_file(tag, second_mm, velocity);
+        let file = f.display().to_string();
+        let p = pty();
+        let path = p.path.clone();
+        let fake = serve(p.master, FakeDrive::new(Faults::default()));
+        let (out, _) = beltctl(&args(&path, &["validate", "--scenario", &file]), LIMIT);
+        let err = assert_clean_failure(&out);
+        assert!(err.contains(&file) && err.contains(field), "{err}");
+        let reqs = fake.drive.lock().unwrap().requests.clone();
+        assert!(
+            !reqs.iter().any(|r| matches!(r, Request::Command(_))),
+            "{reqs:?}"
+        );
+        let _ = std::fs::remove_file(f);
+    }
+    // Names checked before any port is opened.
+    let f = validation_file("names", 140.0, 50.0);
+    let file = f.display().to_string();
+    for (models, says) in [
+        ("model3,model5", "\"model5\""),
+        ("model3,model3", "model3 is named twice"),
+    ] {
+        let rest = ["--port", "/dev/ttyNOSUCH9", "validate", "--scenario", &file];
+        let (out, _) = beltctl(&[&rest[..], &["--models", models]].concat(), LIMIT);
+        let err = assert_clean_failure(&out);
+        assert!(err.contains(says) && !err.contains("ttyNOSUCH9"), "{err}");
+    }
+    let _ = std::fs::remove_file(f);
+}

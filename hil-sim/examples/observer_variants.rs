@@ -36,6 +36,11 @@
 //!   fastest moves cross the gap, assume the belt holds.
 //! - `slip-threshold`: gross slip starts beyond its own fitted threshold, a multiple of `z_max`,
 //!   which stays the creep factor's pole and the pre-slide's cap.
+//! - `median-current`: the current through a median of its last three ticks before the 2 ms low
+//!   pass (a one-tick spike of the position loop's chatter moves the rotor, not the belt).
+//! - `slip-persist`: gross slip only once the load has been beyond the limit for three ticks
+//!   running (a chatter of one or two ticks does not throw the belt across the gap);
+//!   `OBS_PERSIST=N` in the environment asks for N ticks.
 //! - `unit-weight`: `g` enters the sum with weight -1 (the carriage lags the motor by what the
 //!   belt lags the pulley) instead of a fitted one, which ties the observer's scale to the
 //!   micrometre (with a fitted weight, scaling `h`, `z_max` and the loads by `s` and the weight by
@@ -81,10 +86,12 @@ enum Variant {
     StaticLimit,
     HighLimit,
     SlipThreshold,
+    MedianCurrent,
+    SlipPersist,
 }
 
 impl Variant {
-    const ALL: [(Variant, &'static str); 14] = [
+    const ALL: [(Variant, &'static str); 16] = [
         (Variant::AsIs, "as-is"),
         (Variant::Refit, "refit"),
         (Variant::BrakingSlip, "braking-slip"),
@@ -99,6 +106,8 @@ impl Variant {
         (Variant::StaticLimit, "static-limit"),
         (Variant::HighLimit, "high-limit"),
         (Variant::SlipThreshold, "slip-threshold"),
+        (Variant::MedianCurrent, "median-current"),
+        (Variant::SlipPersist, "slip-persist"),
     ];
 
     /// Start and initial step of the coordinates beyond the six of `SlipParams`.
@@ -151,6 +160,10 @@ struct Obs {
     damping: f64,
     speed_weight: f64,
     accel_weight: f64,
+    /// The current through a median of three before the low pass.
+    median: bool,
+    /// Ticks the load must stay beyond the limit before gross slip starts (1: at once).
+    persist: u32,
 }
 
 impl Obs {
@@ -177,6 +190,15 @@ impl Obs {
             damping: 0.5,
             speed_weight: 0.0,
             accel_weight: 0.0,
+            median: variant == Variant::MedianCurrent,
+            persist: if variant == Variant::SlipPersist {
+                std::env::var("OBS_PERSIST")
+                    .ok()
+                    .and_then(|v| v.parse().ok())
+                    .unwrap_or(3)
+            } else {
+                1
+            },
         };
         match variant {
             Variant::Carriage => {
@@ -205,6 +227,8 @@ impl Obs {
         let (mut z, mut lp) = (0.0, r.current_a[0]);
         let mut slow = lp;
         let mut slipping = false;
+        let mut beyond = 0u32;
+        let mut recent = [r.current_a[0]; 3];
         let mut x_prev = r.x_counts[0];
         // The model carriage: its lag behind the pulley and its speed, um and um per tick.
         let (mut lag, mut v_carriage) = (0.0, 0.0);
@@ -214,7 +238,14 @@ impl Obs {
         for i in 1..r.x_counts.len() {
             let ds = r.x_counts[i].wrapping_sub(x_prev) as f64;
             x_prev = r.x_counts[i];
-            lp += (r.current_a[i] - lp) / 4.0;
+            recent = [recent[1], recent[2], r.current_a[i]];
+            let current = if self.median {
+                let [a, b, c] = recent;
+                a.max(b).min(a.min(b).max(c))
+            } else {
+                r.current_a[i]
+            };
+            lp += (current - lp) / 4.0;
             slow += (lp - slow) / f64::from(1u32 << self.slow_shift);
             let v = ds * um_per_count;
             let lag_now = lag + v;
@@ -250,8 +281,14 @@ impl Obs {
                             limit * self.static_ratio
                         }
                 {
-                    1.0
+                    beyond += 1;
+                    if slipping || beyond >= self.persist {
+                        1.0
+                    } else {
+                        0.0
+                    }
                 } else {
+                    beyond = 0;
                     0.0
                 };
                 slipping = s >= 1.0 && drives;

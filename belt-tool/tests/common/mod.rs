@@ -87,6 +87,10 @@ pub struct FakeDrive {
     pub moving_polls: u32,
     /// The carriage arrives this far off its target, scale counts.
     pub arrival_offset_counts: i32,
+    /// The compensator selected.
+    pub model: belt_link::ModelKind,
+    /// More arrival offset with each compensator (by wire number), scale counts.
+    pub model_offset_counts: [i32; 7],
     pub recording_every: u16,
     pub records_seq: u32,
     rng: u64,
@@ -104,6 +108,8 @@ impl FakeDrive {
             target_um: 0,
             moving_polls: 0,
             arrival_offset_counts: 7,
+            model: belt_link::ModelKind::Table,
+            model_offset_counts: [0; 7],
             recording_every: 0,
             records_seq: 0,
             rng: 0x9e37_79b9_7f4a_7c15,
@@ -139,8 +145,10 @@ impl FakeDrive {
             tick: self.tick,
             motor_counts: MotorCounts((at as f64 * rig.counts_per_mm() / 1000.0).round() as i32),
             flags,
-            model: belt_link::ModelKind::Table,
-            scale_counts: ScaleCounts(at * 2 + self.arrival_offset_counts),
+            model: self.model,
+            scale_counts: ScaleCounts(
+                at * 2 + self.arrival_offset_counts + self.model_offset_counts[self.model as usize],
+            ),
             carriage_target_um: self.target_um,
             carriage_estimate_um: at,
             record_crc: 0x1234_abcd,
@@ -193,6 +201,10 @@ impl FakeDrive {
                 self.motor_um = (self.motor_um + target_um) / 2;
                 self.target_um = target_um;
                 self.moving_polls = 2;
+                ack
+            }
+            Request::Command(belt_link::Command::SelectModel(m)) => {
+                self.model = m;
                 ack
             }
             Request::Record { every_n_ticks } => {

@@ -1,0 +1,246 @@
+//! `beltctl validate`: the user's own moves placed once per compensator, each arrival read on the
+//! linear scale, so that the machine's own workload decides which compensator the drive runs.
+//!
+//! The calibration's fit says how well each model follows its own recordings; the drive's job
+//! is the carriage at rest on its target, on this machine's moves. Those can rank the models
+//! differently (README, "Choosing the compensator on the machine"), so commissioning measures
+//! the arrivals themselves while the scale is still fitted.
+
+use std::time::Duration;
+
+use belt_link::{Command, CommandError, ModelKind};
+use estimator_core::settings::Settings;
+use hil_sim::progress::Progress;
+use hil_sim::scenario::Scenario;
+
+use crate::error::ToolError;
+use crate::link::Link;
+use crate::ops::{self, Arrival, MoveLimits};
+
+/// Every compensator the drive has, in wire order: what `validate` compares unless told.
+pub const ALL: [ModelKind; 7] = ModelKind::ALL;
+
+/// Options of `beltctl validate`.
+#[derive(Clone, Debug)]
+pub struct Options {
+    /// The scenario file's path (for messages) and its moves, in the drive's coordinates.
+    pub scenario: (String, Scenario),
+    /// Compensators to compare, in order (no repeats).
+    pub models: Vec<ModelKind>,
+    /// Select the best compensator afterwards (otherwise the one active before is restored).
+    pub select: bool,
+    /// Least rest after arrival before the scale is read (a move's `dwell_ms` if longer).
+    pub settle: Duration,
+}
+
+/// One compensator's arrivals.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Placed {
+    /// The compensator.
+    pub model: ModelKind,
+    /// Scale minus target at rest, um, for each move that ends at rest.
+    pub errors_um: Vec<f64>,
+}
+
+impl Placed {
+    /// RMS of the arrival errors, um.
+    pub fn rms_um(&self) -> f64 {
+        let n = self.errors_um.len().max(1) as f64;
+        (self.errors_um.iter().map(|e| e * e).sum::<f64>() / n).sqrt()
+    }
+
+    /// Largest arrival error, um.
+    pub fn max_um(&self) -> f64 {
+        self.errors_um.iter().fold(0.0f64, |m, e| m.max(e.abs()))
+    }
+}
+
+/// What a validation measured.
+#[derive(Clone, Debug)]
+pub struct Outcome {
+    /// The scenario's name.
+    pub scenario: String,
+    /// Each compensator's arrivals, in the order run.
+    pub placed: Vec<Placed>,
+    /// The compensator with the lowest arrival RMS (the first of equals).
+    pub best: ModelKind,
+    /// The compensator active afterwards.
+    pub active: ModelKind,
+}
+
+/// The scenario against the drive, before anything moves: every move must end inside the
+/// travel, within the drive's speed and acceleration, and at least one must end at rest.
+/// Refused by file, move and field; nothing is clipped, because a slower move is another
+/// workload than the one being validated.
+pub fn check(settings: &Settings, path: &str, s: &Scenario) -> Result<(), ToolError> {
+    let (d0, d1) = (settings.travel_min_mm, settings.travel_max_mm);
+    let refuse = |reason: String| {
+        Err(ToolError::File {
+            path: path.to_string(),
+            reason,
+        })
+    };
+    let inside = |x: f64| (d0..=d1).contains(&x);
+    if !inside(s.start_mm) {
+        return refuse(format!(
+            "start_mm = {} is outside the drive's travel {d0}..{d1} mm",
+            s.start_mm
+        ));
+    }
+    for (i, m) in s.moves.iter().enumerate() {
+        let n = i + 1;
+        if !inside(m.to_mm) {
+            return refuse(format!(
+                "move {n}: to_mm = {} is outside the drive's travel {d0}..{d1} mm",
+                m.to_mm
+            ));
+        }
+        if m.velocity_mm_s > settings.max_velocity_mm_s {
+            return refuse(format!(
+                "move {n}: velocity_mm_s = {} is above the drive's limit {} mm/s \
+                 (limits.max_velocity_mm_s)",
+                m.velocity_mm_s, settings.max_velocity_mm_s
+            ));
+        }
+        if m.accel_mm_s2 > settings.max_accel_mm_s2 {
+            return refuse(format!(
+                "move {n}: accel_mm_s2 = {} is above the drive's limit {} mm/s^2 \
+                 (limits.max_accel_mm_s2)",
+                m.accel_mm_s2, settings.max_accel_mm_s2
+            ));
+        }
+    }
+    // The last move always ends at rest (nothing follows to retarget it).
+    if s.moves.is_empty() {
+        return refuse("no moves to validate on".into());
+    }
+    Ok(())
+}
+
+/// Places the carriage on the scenario's moves once per compensator. Each pass starts the same
+/// way: a raw motor stroke forward onto the scenario's start (as the calibration's recordings
+/// start), so that every compensator meets the belt in the same state.
+pub fn run(
+    link: &mut Link,
+    settings: &Settings,
+    opts: &Options,
+    progress: &mut Progress,
+) -> Result<Outcome, ToolError> {
+    let (path, s) = &opts.scenario;
+    check(settings, path, s)?;
+    let before = link.status()?;
+    ops::require_ready(&before, "validation")?;
+    let seat = MoveLimits {
+        velocity_mm_s: 50.0_f64.min(settings.max_velocity_mm_s),
+        accel_mm_s2: 1000.0_f64.min(settings.max_accel_mm_s2),
+    };
+    let mut placed = Vec::with_capacity(opts.models.len());
+    let result = (|| {
+        for &model in &opts.models {
+            let label = format!("validate {model}");
+            progress.stage(&label, 0.0);
+            link.command(Command::SelectModel(model))
+                .map_err(|e| refused_model(e, model))?;
+            seat_at(link, settings, s.start_mm, &seat)?;
+            let mut errors_um = Vec::with_capacity(s.moves.len());
+            let mut here = s.start_mm;
+            for (i, m) in s.moves.iter().enumerate() {
+                progress.stage(&label, i as f64 / s.moves.len() as f64);
+                let limits = MoveLimits {
+                    velocity_mm_s: m.velocity_mm_s,
+                    accel_mm_s2: m.accel_mm_s2,
+                };
+                let cmd = ops::move_command(ops::target_um(m.to_mm)?, &limits, false)?;
+                // A retargeted move is cut by the next one: it has no arrival.
+                let retarget = m.retarget_after_ms.filter(|_| i + 1 < s.moves.len());
+                if let Some(ms) = retarget {
+                    link.command(cmd)?;
+                    link.pump(Duration::from_millis(ms as u64))?;
+                } else {
+                    ops::move_and_wait(link, cmd, m.to_mm - here, &limits, |_| Ok(()))?;
+                    link.pump(opts.settle.max(Duration::from_millis(m.dwell_ms as u64)))?;
+                    let st = link.status()?;
+                    errors_um.push(Arrival::of(m.to_mm, &st, None).error_um());
+                }
+                here = m.to_mm;
+            }
+            progress.stage(&label, 1.0);
+            placed.push(Placed { model, errors_um });
+        }
+        Ok(())
+    })();
+    if let Err(e) = result {
+        // Whatever went wrong, the drive goes back to what it ran before.
+        let _ = link.command(Command::Stop);
+        let _ = link.command(Command::SelectModel(before.model));
+        return Err(e);
+    }
+    let best = placed
+        .iter()
+        .fold(None::<&Placed>, |b, p| match b {
+            Some(b) if b.rms_um() <= p.rms_um() => Some(b),
+            _ => Some(p),
+        })
+        .map_or(before.model, |p| p.model);
+    let active = if opts.select { best } else { before.model };
+    link.command(Command::SelectModel(active))
+        .map_err(|e| refused_model(e, active))?;
+    Ok(Outcome {
+        scenario: s.name.clone(),
+        placed,
+        best,
+        active,
+    })
+}
+
+/// The forward stroke onto `start_mm` every pass begins with, raw motor moves: from below by
+/// up to 100 mm (the calibration's seating stroke), then rest.
+fn seat_at(
+    link: &mut Link,
+    settings: &Settings,
+    start_mm: f64,
+    limits: &MoveLimits,
+) -> Result<(), ToolError> {
+    let seat_mm = 100.0_f64.min(start_mm - settings.travel_min_mm).max(0.0);
+    let mut here = link.status()?.carriage_estimate_um as f64 / 1000.0;
+    for to in [start_mm - seat_mm, start_mm] {
+        let cmd = ops::move_command(ops::target_um(to)?, limits, true)?;
+        ops::move_and_wait(link, cmd, to - here, limits, |_| Ok(()))?;
+        here = to;
+    }
+    link.pump(Duration::from_millis(300))?;
+    Ok(())
+}
+
+/// A selection refused for want of a calibration, said so with what to do.
+fn refused_model(e: ToolError, model: ModelKind) -> ToolError {
+    match e {
+        ToolError::Refused { detail, .. } if detail == CommandError::NotCalibrated.code() => {
+            ToolError::Drive(format!(
+                "the drive refused to select {model} ({e}): upload a calibration first \
+                 (`beltctl calibrate`)"
+            ))
+        }
+        other => other,
+    }
+}
+
+/// The compensators named in `list` (comma-separated), in order, each once.
+pub fn parse_models(list: &str) -> Result<Vec<ModelKind>, ToolError> {
+    let mut out = Vec::new();
+    for name in list.split(',').map(str::trim) {
+        let m: ModelKind = name.parse().map_err(|e| {
+            ToolError::Usage(format!(
+                "--models {list}: {name:?}: {e} (one of {})",
+                ALL.map(|m| m.as_str()).join(", ")
+            ))
+        })?;
+        if out.contains(&m) {
+            return Err(ToolError::Usage(format!(
+                "--models {list}: {m} is named twice"
+            )));
+        }
+        out.push(m);
+    }
+    Ok(out)
+}
