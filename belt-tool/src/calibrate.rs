@@ -343,13 +343,13 @@ fn run_scenario(
                 }
                 None => {
                     ops::move_and_wait(link, cmd, m.to_mm - x, &limits, |_| Ok(()))?;
-                    dwell(link, Duration::from_millis(m.dwell_ms as u64))?;
+                    ops::dwell(link, Duration::from_millis(m.dwell_ms as u64))?;
                 }
             }
             samples.extend(link.take_samples());
             x = m.to_mm;
         }
-        dwell(link, SETTLE)
+        ops::dwell(link, SETTLE)
     })();
     progress.stage(&label, 1.0);
     let stopped = link.stop_recording();
@@ -358,19 +358,6 @@ fn run_scenario(
     samples.extend(rest);
     stats.check()?;
     Ok((samples, move_ticks))
-}
-
-/// Rests for `d`, polling the status now and then (the drive's link watchdog).
-fn dwell(link: &mut Link, d: Duration) -> Result<(), ToolError> {
-    let end = std::time::Instant::now() + d;
-    loop {
-        let left = end.saturating_duration_since(std::time::Instant::now());
-        if left.is_zero() {
-            return Ok(());
-        }
-        link.pump(left.min(ops::POLL * 4))?;
-        link.status()?;
-    }
 }
 
 /// Uploads a calibration blob: begin, chunks, commit. A transfer broken by the link (a lost

@@ -53,6 +53,19 @@ pub fn wait_for(
     }
 }
 
+/// Rests for `d`, polling the status now and then (the drive's link watchdog).
+pub fn dwell(link: &mut Link, d: Duration) -> Result<(), ToolError> {
+    let end = Instant::now() + d;
+    loop {
+        let left = end.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return Ok(());
+        }
+        link.pump(left.min(POLL * 4))?;
+        link.status()?;
+    }
+}
+
 /// Limits of one move, SI.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct MoveLimits {

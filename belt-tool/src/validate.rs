@@ -3,12 +3,12 @@
 //!
 //! The calibration's fit says how well each model follows its own recordings; the drive's job
 //! is the carriage at rest on its target, on this machine's moves. Those can rank the models
-//! differently (README, "Choosing the compensator on the machine"), so commissioning measures
+//! differently (README, "Commissioning a machine", step 6), so commissioning measures
 //! the arrivals themselves while the scale is still fitted.
 
 use std::time::Duration;
 
-use belt_link::{Command, CommandError, ModelKind};
+use belt_link::{status_flags, Command, CommandError, LinkError, ModelKind};
 use estimator_core::settings::Settings;
 use hil_sim::progress::Progress;
 use hil_sim::scenario::Scenario;
@@ -16,9 +16,7 @@ use hil_sim::scenario::Scenario;
 use crate::error::ToolError;
 use crate::link::Link;
 use crate::ops::{self, Arrival, MoveLimits};
-
-/// Every compensator the drive has, in wire order: what `validate` compares unless told.
-pub const ALL: [ModelKind; 7] = ModelKind::ALL;
+use crate::status::fault_names;
 
 /// Options of `beltctl validate`.
 #[derive(Clone, Debug)]
@@ -119,7 +117,8 @@ pub fn check(settings: &Settings, path: &str, s: &Scenario) -> Result<(), ToolEr
 
 /// Places the carriage on the scenario's moves once per compensator. Each pass starts the same
 /// way: a raw motor stroke forward onto the scenario's start (as the calibration's recordings
-/// start), so that every compensator meets the belt in the same state.
+/// start), so that every compensator meets the belt in the same state. Any failure stops the
+/// drive and selects the compensator active before.
 pub fn run(
     link: &mut Link,
     settings: &Settings,
@@ -130,49 +129,27 @@ pub fn run(
     check(settings, path, s)?;
     let before = link.status()?;
     ops::require_ready(&before, "validation")?;
-    let seat = MoveLimits {
-        velocity_mm_s: 50.0_f64.min(settings.max_velocity_mm_s),
-        accel_mm_s2: 1000.0_f64.min(settings.max_accel_mm_s2),
-    };
+    if before.flags & status_flags::CALIBRATED == 0 {
+        if let Some(m) = opts.models.iter().find(|&&m| m != ModelKind::None) {
+            return Err(ToolError::Drive(format!(
+                "validating {m} needs a calibration on the drive: upload one first (`beltctl \
+                 calibrate`)"
+            )));
+        }
+    }
     let mut placed = Vec::with_capacity(opts.models.len());
     let result = (|| {
         for &model in &opts.models {
-            let label = format!("validate {model}");
-            progress.stage(&label, 0.0);
-            link.command(Command::SelectModel(model))
-                .map_err(|e| refused_model(e, model))?;
-            seat_at(link, settings, s.start_mm, &seat)?;
-            let mut errors_um = Vec::with_capacity(s.moves.len());
-            let mut here = s.start_mm;
-            for (i, m) in s.moves.iter().enumerate() {
-                progress.stage(&label, i as f64 / s.moves.len() as f64);
-                let limits = MoveLimits {
-                    velocity_mm_s: m.velocity_mm_s,
-                    accel_mm_s2: m.accel_mm_s2,
-                };
-                let cmd = ops::move_command(ops::target_um(m.to_mm)?, &limits, false)?;
-                // A retargeted move is cut by the next one: it has no arrival.
-                let retarget = m.retarget_after_ms.filter(|_| i + 1 < s.moves.len());
-                if let Some(ms) = retarget {
-                    link.command(cmd)?;
-                    link.pump(Duration::from_millis(ms as u64))?;
-                } else {
-                    ops::move_and_wait(link, cmd, m.to_mm - here, &limits, |_| Ok(()))?;
-                    link.pump(opts.settle.max(Duration::from_millis(m.dwell_ms as u64)))?;
-                    let st = link.status()?;
-                    errors_um.push(Arrival::of(m.to_mm, &st, None).error_um());
-                }
-                here = m.to_mm;
-            }
-            progress.stage(&label, 1.0);
-            placed.push(Placed { model, errors_um });
+            placed.push(pass(link, settings, opts, model, progress)?);
         }
         Ok(())
     })();
-    if let Err(e) = result {
-        // Whatever went wrong, the drive goes back to what it ran before.
+    let restore = |link: &mut Link| {
         let _ = link.command(Command::Stop);
         let _ = link.command(Command::SelectModel(before.model));
+    };
+    if let Err(e) = result {
+        restore(link);
         return Err(e);
     }
     let best = placed
@@ -183,8 +160,10 @@ pub fn run(
         })
         .map_or(before.model, |p| p.model);
     let active = if opts.select { best } else { before.model };
-    link.command(Command::SelectModel(active))
-        .map_err(|e| refused_model(e, active))?;
+    if let Err(e) = link.command(Command::SelectModel(active)) {
+        restore(link);
+        return Err(refused_model(e, active));
+    }
     Ok(Outcome {
         scenario: s.name.clone(),
         placed,
@@ -193,31 +172,114 @@ pub fn run(
     })
 }
 
-/// The forward stroke onto `start_mm` every pass begins with, raw motor moves: from below by
-/// up to 100 mm (the calibration's seating stroke), then rest.
-fn seat_at(
+/// One compensator's pass over the scenario.
+fn pass(
     link: &mut Link,
     settings: &Settings,
-    start_mm: f64,
-    limits: &MoveLimits,
-) -> Result<(), ToolError> {
-    let seat_mm = 100.0_f64.min(start_mm - settings.travel_min_mm).max(0.0);
-    let mut here = link.status()?.carriage_estimate_um as f64 / 1000.0;
-    for to in [start_mm - seat_mm, start_mm] {
-        let cmd = ops::move_command(ops::target_um(to)?, limits, true)?;
-        ops::move_and_wait(link, cmd, to - here, limits, |_| Ok(()))?;
-        here = to;
+    opts: &Options,
+    model: ModelKind,
+    progress: &mut Progress,
+) -> Result<Placed, ToolError> {
+    let s = &opts.scenario.1;
+    let label = format!("validate {model}");
+    progress.stage(&label, 0.0);
+    link.command(Command::SelectModel(model))
+        .map_err(|e| refused_model(e, model))?;
+    let mut rest = seat_at(link, settings, s.start_mm)?;
+    let mut errors_um = Vec::with_capacity(s.moves.len());
+    for (i, m) in s.moves.iter().enumerate() {
+        progress.stage(&label, i as f64 / s.moves.len() as f64);
+        let limits = MoveLimits {
+            velocity_mm_s: m.velocity_mm_s,
+            accel_mm_s2: m.accel_mm_s2,
+        };
+        let cmd = ops::move_command(ops::target_um(m.to_mm)?, &limits, false)?;
+        // A retargeted move is cut by the next one: it has no arrival.
+        let retarget = m.retarget_after_ms.filter(|_| i + 1 < s.moves.len());
+        if let Some(ms) = retarget {
+            link.command(cmd)?;
+            ops::dwell(link, Duration::from_millis(ms as u64))?;
+        } else {
+            // The time budget from where the carriage is (a cut move left it short).
+            let here_mm = link.status()?.carriage_estimate_um as f64 / 1000.0;
+            ops::move_and_wait(link, cmd, m.to_mm - here_mm, &limits, |_| Ok(()))?;
+            ops::dwell(
+                link,
+                opts.settle.max(Duration::from_millis(m.dwell_ms as u64)),
+            )?;
+            let now = at_rest(
+                link,
+                &format!("{label}: move {}", i + 1),
+                m.to_mm,
+                Some(rest),
+            )?;
+            errors_um.push(now.error_um());
+            rest = now;
+        }
     }
-    link.pump(Duration::from_millis(300))?;
-    Ok(())
+    progress.stage(&label, 1.0);
+    Ok(Placed { model, errors_um })
+}
+
+/// The forward stroke onto `start_mm` every pass begins with, raw motor moves: from up to
+/// 100 mm below (the calibration's seating stroke; none when the start is the travel's lower
+/// end), then rest. Returns the arrival at the start.
+fn seat_at(link: &mut Link, settings: &Settings, start_mm: f64) -> Result<Arrival, ToolError> {
+    let limits = MoveLimits {
+        velocity_mm_s: 50.0_f64.min(settings.max_velocity_mm_s),
+        accel_mm_s2: 1000.0_f64.min(settings.max_accel_mm_s2),
+    };
+    let below_mm = start_mm - 100.0_f64.min(start_mm - settings.travel_min_mm).max(0.0);
+    let mut rest = None;
+    for to in [below_mm, start_mm] {
+        let here_mm = link.status()?.carriage_estimate_um as f64 / 1000.0;
+        let cmd = ops::move_command(ops::target_um(to)?, &limits, true)?;
+        ops::move_and_wait(link, cmd, to - here_mm, &limits, |_| Ok(()))?;
+        ops::dwell(link, Duration::from_millis(300))?;
+        let what = format!("seating stroke to {to} mm");
+        rest = Some(at_rest(link, &what, to, rest)?);
+    }
+    rest.ok_or_else(|| ToolError::Drive("seating stroke: no status".into()))
+}
+
+/// The status at rest on `target_mm`, refused if the drive latched a fault or if the scale did
+/// not follow the move from `from` (the last rest): a missing, stuck or reversed scale would
+/// rank the compensators by noise.
+fn at_rest(
+    link: &mut Link,
+    what: &str,
+    target_mm: f64,
+    from: Option<Arrival>,
+) -> Result<Arrival, ToolError> {
+    let st = link.status()?;
+    if !st.faults.is_clear() {
+        return Err(ToolError::Drive(format!(
+            "{what}: the drive latched faults: {} (`beltctl clear-faults`, then `beltctl enable`)",
+            fault_names(st.faults).join(", ")
+        )));
+    }
+    let now = Arrival::of(target_mm, &st, None);
+    if let Some(from) = from {
+        let (moved, read) = (now.target_mm - from.target_mm, now.scale_mm - from.scale_mm);
+        // 1 mm or more commanded: the scale must show it within a fifth and 0.5 mm.
+        if moved.abs() >= 1.0 && (read - moved).abs() > 0.2 * moved.abs() + 0.5 {
+            return Err(ToolError::Drive(format!(
+                "{what}: the linear scale moved {read:.3} mm for {moved:.3} mm commanded: \
+                 validation needs the linear scale fitted and connected (polarity.scale_inverted)"
+            )));
+        }
+    }
+    Ok(now)
 }
 
 /// A selection refused for want of a calibration, said so with what to do.
 fn refused_model(e: ToolError, model: ModelKind) -> ToolError {
     match e {
-        ToolError::Refused { detail, .. } if detail == CommandError::NotCalibrated.code() => {
+        ToolError::Refused { reason, detail, .. }
+            if reason == LinkError::Refused && detail == CommandError::NotCalibrated.code() =>
+        {
             ToolError::Drive(format!(
-                "the drive refused to select {model} ({e}): upload a calibration first \
+                "the drive refused to select {model}: not calibrated; upload a calibration first \
                  (`beltctl calibrate`)"
             ))
         }
@@ -229,12 +291,9 @@ fn refused_model(e: ToolError, model: ModelKind) -> ToolError {
 pub fn parse_models(list: &str) -> Result<Vec<ModelKind>, ToolError> {
     let mut out = Vec::new();
     for name in list.split(',').map(str::trim) {
-        let m: ModelKind = name.parse().map_err(|e| {
-            ToolError::Usage(format!(
-                "--models {list}: {name:?}: {e} (one of {})",
-                ALL.map(|m| m.as_str()).join(", ")
-            ))
-        })?;
+        let m: ModelKind = name
+            .parse()
+            .map_err(|e| ToolError::Usage(format!("--models {list}: {name:?}: {e}")))?;
         if out.contains(&m) {
             return Err(ToolError::Usage(format!(
                 "--models {list}: {m} is named twice"

@@ -147,7 +147,13 @@ fn a_request_damaged_on_the_way_is_sent_again() {
     assert_eq!(j["record_crc"], "1234abcd");
     assert_eq!(
         j["flags"],
-        serde_json::json!(["enabled", "homed", "amplifier_enabled", "configured"])
+        serde_json::json!([
+            "enabled",
+            "calibrated",
+            "homed",
+            "amplifier_enabled",
+            "configured"
+        ])
     );
     assert!(j["motor_mm"].is_number(), "{j}");
     let reqs = fake.drive.lock().unwrap().requests.clone();
@@ -419,6 +425,55 @@ fn a_validation_the_drive_cannot_run_is_refused_by_file_move_and_field_before_mo
         let (out, _) = beltctl(&[&rest[..], &["--models", models]].concat(), LIMIT);
         let err = assert_clean_failure(&out);
         assert!(err.contains(says) && !err.contains("ttyNOSUCH9"), "{err}");
+    }
+    let _ = std::fs::remove_file(f);
+}
+
+#[test]
+fn a_validation_that_fails_stops_the_drive_and_restores_its_model() {
+    use belt_link::ModelKind;
+    let f = validation_file("fail", 140.0, 50.0);
+    let file = f.display().to_string();
+    // No calibration: refused before anything moves. A scale that does not follow: refused at
+    // the first pass's seating stroke, the drive stopped and its model selected again.
+    for (uncalibrated, says) in [
+        (true, "validating model3 needs a calibration on the drive"),
+        (
+            false,
+            "the linear scale moved 0.000 mm for 100.000 mm commanded",
+        ),
+    ] {
+        let p = pty();
+        let path = p.path.clone();
+        let mut drive = FakeDrive::new(Faults::default());
+        drive.calibrated = !uncalibrated;
+        drive.scale_stuck_counts = (!uncalibrated).then_some(1234);
+        let fake = serve(p.master, drive);
+        let rest = ["validate", "--scenario", &file, "--models", "model3,model4"];
+        let (out, _) = beltctl(&args(&path, &[&rest[..], &["--select"]].concat()), LIMIT);
+        // Progress lines may come first; the error is one line, last.
+        let err = text(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{err}");
+        assert!(!err.contains("panicked"), "{err}");
+        let last = err.lines().last().unwrap_or_default();
+        assert!(
+            last.starts_with("beltctl: ") && last.contains(says),
+            "{err}"
+        );
+        let reqs = fake.drive.lock().unwrap().requests.clone();
+        let commands: Vec<&Request> = reqs
+            .iter()
+            .filter(|r| matches!(r, Request::Command(_)))
+            .collect();
+        if uncalibrated {
+            assert!(commands.is_empty(), "{commands:?}");
+        } else {
+            assert_eq!(selections(&reqs), [ModelKind::Table, ModelKind::Table]);
+            assert!(reqs.contains(&Request::Command(belt_link::Command::Stop)));
+            assert!(!commands
+                .iter()
+                .any(|r| matches!(r, Request::Command(belt_link::Command::MoveTo { .. }))));
+        }
     }
     let _ = std::fs::remove_file(f);
 }

@@ -91,6 +91,10 @@ pub struct FakeDrive {
     pub model: belt_link::ModelKind,
     /// More arrival offset with each compensator (by wire number), scale counts.
     pub model_offset_counts: [i32; 7],
+    /// Holds a calibration (status flag; otherwise selecting a model is refused).
+    pub calibrated: bool,
+    /// The scale reads this whatever the carriage does (not fitted).
+    pub scale_stuck_counts: Option<i32>,
     pub recording_every: u16,
     pub records_seq: u32,
     rng: u64,
@@ -110,6 +114,8 @@ impl FakeDrive {
             arrival_offset_counts: 7,
             model: belt_link::ModelKind::Table,
             model_offset_counts: [0; 7],
+            calibrated: true,
+            scale_stuck_counts: None,
             recording_every: 0,
             records_seq: 0,
             rng: 0x9e37_79b9_7f4a_7c15,
@@ -133,6 +139,9 @@ impl FakeDrive {
         if self.homed {
             flags |= status_flags::HOMED;
         }
+        if self.calibrated {
+            flags |= status_flags::CALIBRATED;
+        }
         if self.moving_polls > 0 {
             flags |= status_flags::MOVING;
         }
@@ -146,9 +155,9 @@ impl FakeDrive {
             motor_counts: MotorCounts((at as f64 * rig.counts_per_mm() / 1000.0).round() as i32),
             flags,
             model: self.model,
-            scale_counts: ScaleCounts(
+            scale_counts: ScaleCounts(self.scale_stuck_counts.unwrap_or(
                 at * 2 + self.arrival_offset_counts + self.model_offset_counts[self.model as usize],
-            ),
+            )),
             carriage_target_um: self.target_um,
             carriage_estimate_um: at,
             record_crc: 0x1234_abcd,
@@ -204,8 +213,16 @@ impl FakeDrive {
                 ack
             }
             Request::Command(belt_link::Command::SelectModel(m)) => {
-                self.model = m;
-                ack
+                if self.calibrated || m == belt_link::ModelKind::None {
+                    self.model = m;
+                    ack
+                } else {
+                    Reply::Error {
+                        of: k,
+                        reason: LinkError::Refused,
+                        detail: belt_link::CommandError::NotCalibrated.code(),
+                    }
+                }
             }
             Request::Record { every_n_ticks } => {
                 self.recording_every = every_n_ticks;
