@@ -327,27 +327,29 @@ fn run_scenario(
             go(link, begin, s.start_mm)?;
             link.pump(Duration::from_millis(300))?;
         }
-        let mut x = s.start_mm;
         for (i, m) in s.moves.iter().enumerate() {
             progress.stage(&label, i as f64 / s.moves.len() as f64);
             let limits = MoveLimits {
                 velocity_mm_s: m.velocity_mm_s,
                 accel_mm_s2: m.accel_mm_s2,
             };
-            move_ticks.push(link.status()?.tick);
+            let now = link.status()?;
+            move_ticks.push(now.tick);
             let cmd = ops::move_command(ops::target_um(m.to_mm)?, &limits, true)?;
             match m.retarget_after_ms {
                 Some(ms) => {
                     link.command(cmd)?;
-                    link.pump(Duration::from_millis(ms as u64))?;
+                    // Polled: a wait of 0.5 s or more would trip the drive's link watchdog.
+                    ops::dwell(link, Duration::from_millis(ms as u64))?;
                 }
                 None => {
-                    ops::move_and_wait(link, cmd, m.to_mm - x, &limits, |_| Ok(()))?;
+                    // The time budget from where the drive is (a cut move left it short).
+                    let here_mm = now.carriage_estimate_um as f64 / 1000.0;
+                    ops::move_and_wait(link, cmd, m.to_mm - here_mm, &limits, |_| Ok(()))?;
                     ops::dwell(link, Duration::from_millis(m.dwell_ms as u64))?;
                 }
             }
             samples.extend(link.take_samples());
-            x = m.to_mm;
         }
         ops::dwell(link, SETTLE)
     })();
