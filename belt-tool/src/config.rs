@@ -208,10 +208,43 @@ pub fn set_and_apply(
     source: &str,
 ) -> Result<(), ToolError> {
     require_disabled(link, "changing the configuration")?;
+    // What these fields held staged before: a refusal puts it back, so that bad input changes
+    // nothing on the drive (not even its staged values).
+    let before = values
+        .iter()
+        .map(|(f, _)| get(link, f).map(|v| (*f, v.staged)))
+        .collect::<Result<Vec<_>, _>>()?;
+    let result = stage_and_apply(link, values, source);
+    let Err(e) = result else {
+        return Ok(());
+    };
+    let restored = before.iter().all(|(f, v)| {
+        link.acked(&Request::ConfigSet {
+            key: f.key(),
+            value_bits: v.to_bits(),
+        })
+        .is_ok()
+    });
+    Err(match e {
+        ToolError::Drive(why) if restored => ToolError::Drive(format!(
+            "{why}; nothing changed (the staged values put back)"
+        )),
+        ToolError::Drive(why) => ToolError::Drive(format!(
+            "{why}; the values may stay staged (`beltctl config get` shows them) until an \
+             apply succeeds"
+        )),
+        other => other,
+    })
+}
+
+fn stage_and_apply(
+    link: &mut Link,
+    values: &[(&'static Field, f64)],
+    source: &str,
+) -> Result<(), ToolError> {
     let with_source = |e: ToolError| match e {
         ToolError::Refused { why, .. } => ToolError::Drive(format!(
-            "{source}: the drive refused the configuration: {why}; nothing changed, the values \
-             stay staged (`beltctl config get` shows them) until an apply succeeds"
+            "{source}: the drive refused the configuration: {why}"
         )),
         e => e,
     };
@@ -234,10 +267,7 @@ pub fn set_and_apply(
             Some(f) => format!("{e} (unit {})", f.unit),
             None => e.to_string(),
         };
-        ToolError::Drive(format!(
-            "{source}: the configuration is refused: {what}; nothing changed, the values stay \
-             staged (`beltctl config get` shows them) until an apply succeeds"
-        ))
+        ToolError::Drive(format!("{source}: the configuration is refused: {what}"))
     })?;
     for req in config_parts_requests(&image) {
         link.acked(&req).map_err(with_source)?;
@@ -399,6 +429,60 @@ mod tests {
             assert_eq!(f.key(), want.field.key());
             assert_eq!(v.to_bits(), want.active.to_bits(), "{}", f.name());
         }
+    }
+
+    /// The drive's own endpoint and core, answering in line.
+    fn endpoint_drive() -> Link {
+        use belt_link::{Receiver, Reply};
+        use estimator_core::drive::{Drive, DriveConfig};
+        use estimator_core::endpoint::{Effect, Endpoint};
+        let mut ep = Box::new(Endpoint::new());
+        let mut drive = Drive::new(&DriveConfig::paper_rig()).unwrap();
+        crate::testing::Fake::link(move |seq, req| {
+            let reply = match ep.handle_inline(&req, &mut drive).0 {
+                Effect::Reply(r) => r,
+                Effect::Status => Reply::Status(ep.status(&drive, &Receiver::new(), 0, 0)),
+                // As the firmware applies it (without the board's current limit).
+                Effect::Configure => {
+                    let result = ep
+                        .staged_parts()
+                        .map_err(Ok)
+                        .and_then(|p| drive.reconfigure(p).map_err(Err));
+                    ep.configure_done(result).0
+                }
+                other => panic!("{req:?}: {other:?}"),
+            };
+            crate::testing::wire(seq, &reply)
+        })
+    }
+
+    #[test]
+    fn a_refused_configuration_leaves_the_staged_values_as_they_were() {
+        let mut link = endpoint_drive();
+        let name = |n: &str| lookup(n).unwrap();
+        let travel = name("drive.travel_max_mm");
+        let kp = name("pid.kp_a_per_mm");
+        let was = get(&mut link, travel).unwrap();
+        // A travel that ends before it starts: refused when the image is built.
+        let e = set_and_apply(&mut link, &[(kp, 12.0), (travel, -5.0)], "t.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("t.toml: the configuration is refused: "),
+            "{e}"
+        );
+        assert!(
+            e.ends_with("nothing changed (the staged values put back)"),
+            "{e}"
+        );
+        for f in [travel, kp] {
+            let v = get(&mut link, f).unwrap();
+            assert_eq!(v.staged_change(), None, "{}", f.name());
+        }
+        assert_eq!(get(&mut link, travel).unwrap().active, was.active);
+        // A good change still applies after it.
+        set_and_apply(&mut link, &[(kp, 12.0)], "t.toml").unwrap();
+        assert_eq!(get(&mut link, kp).unwrap().active, 12.0);
     }
 
     #[test]
