@@ -38,7 +38,8 @@ pub struct LinkArgs {
     #[arg(long, global = true, default_value_t = port::DEFAULT_BAUD)]
     pub baud: u32,
     /// Time allowed for each reply, ms.
-    #[arg(long, global = true, default_value_t = 300, value_name = "MS")]
+    #[arg(long, global = true, default_value_t = 300, value_name = "MS",
+          value_parser = clap::value_parser!(u64).range(1..=600_000))]
     pub timeout_ms: u64,
     /// Tries per request (a request is sent again after a timeout or when it reached the
     /// drive damaged).
@@ -87,7 +88,8 @@ pub enum Cmd {
         #[arg(long)]
         motor: bool,
         /// Rest after arrival before reading the position, ms.
-        #[arg(long, default_value_t = 200, value_name = "MS")]
+        #[arg(long, default_value_t = 200, value_name = "MS",
+              value_parser = clap::value_parser!(u64).range(0..=3_600_000))]
         settle_ms: u64,
     },
     /// Read, change, save, load and dump the drive's configuration.
@@ -153,7 +155,8 @@ pub enum Cmd {
         #[arg(long)]
         select: bool,
         /// Least rest after arrival before reading the scale, ms (a move's dwell_ms if longer).
-        #[arg(long, default_value_t = 200, value_name = "MS")]
+        #[arg(long, default_value_t = 200, value_name = "MS",
+              value_parser = clap::value_parser!(u64).range(0..=3_600_000))]
         settle_ms: u64,
     },
 }
@@ -554,7 +557,8 @@ fn moves(
     let mut errors = Vec::with_capacity(targets.len());
     for (mm, cmd) in cmds {
         ops::move_and_wait(link, cmd, mm - here, &limits, |_| Ok(()))?;
-        link.pump(Duration::from_millis(settle_ms))?;
+        // Polled: a rest of 0.5 s or more would trip the drive's link watchdog.
+        ops::dwell(link, Duration::from_millis(settle_ms))?;
         let s = link.status()?;
         let a = Arrival::of(mm, &s, counts_per_mm);
         errors.push(a.error_um());

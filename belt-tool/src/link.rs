@@ -603,7 +603,7 @@ impl Link {
 
     /// Listens for `duration`, collecting records (and dropping anything else).
     pub fn pump(&mut self, duration: Duration) -> Result<(), ToolError> {
-        let deadline = Instant::now() + duration;
+        let deadline = later(duration);
         // No request awaits its answer while listening.
         while let Next::Frame(f) = self.next_frame(deadline, None)? {
             self.other(f);
@@ -650,4 +650,9 @@ fn is_reply_unreadable(r: &Rejected) -> bool {
             r.error,
             LinkError::OutOfRange | LinkError::BadLength | LinkError::UnknownKind
         )
+}
+
+/// `now + d`, a year at most (no overflow panic on any duration).
+pub fn later(d: Duration) -> Instant {
+    Instant::now() + d.min(Duration::from_secs(365 * 86_400))
 }

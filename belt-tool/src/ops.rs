@@ -55,7 +55,7 @@ pub fn wait_for(
 
 /// Rests for `d`, polling the status now and then (the drive's link watchdog).
 pub fn dwell(link: &mut Link, d: Duration) -> Result<(), ToolError> {
-    let end = Instant::now() + d;
+    let end = crate::link::later(d);
     loop {
         let left = end.saturating_duration_since(Instant::now());
         if left.is_zero() {

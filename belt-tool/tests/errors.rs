@@ -477,3 +477,38 @@ fn a_validation_that_fails_stops_the_drive_and_restores_its_model() {
     }
     let _ = std::fs::remove_file(f);
 }
+
+#[test]
+fn long_rests_keep_the_drive_s_link_watchdog_fed() {
+    // The drive faults after 0.5 s without a request (faults.link_timeout_s): a rest after a
+    // move, or in a validation, polls it meanwhile.
+    let f = validation_file("rest", 140.0, 50.0);
+    let file = f.display().to_string();
+    for rest in [
+        vec!["move", "10", "--settle-ms", "1500"],
+        vec![
+            "validate",
+            "--scenario",
+            &file,
+            "--models",
+            "model3",
+            "--settle-ms",
+            "1500",
+        ],
+    ] {
+        let p = pty();
+        let path = p.path.clone();
+        let fake = serve(p.master, FakeDrive::new(Faults::default()));
+        let (out, _) = beltctl(&args(&path, &rest), LIMIT);
+        assert!(out.status.success(), "{rest:?}: {}", text(&out.stderr));
+        let times = fake.drive.lock().unwrap().arrivals.clone();
+        let gap = times
+            .windows(2)
+            .map(|w| w[1] - w[0])
+            .max()
+            .unwrap_or_default();
+        assert!(gap < Duration::from_millis(400), "{rest:?}: {gap:?}");
+        assert!(times[times.len() - 1] - times[0] > Duration::from_millis(1500));
+    }
+    let _ = std::fs::remove_file(f);
+}

@@ -78,6 +78,8 @@ pub struct Faults {
 pub struct FakeDrive {
     pub faults: Faults,
     pub requests: Vec<Request>,
+    /// When each request arrived.
+    pub arrivals: Vec<std::time::Instant>,
     pub tick: u32,
     pub enabled: bool,
     pub homed: bool,
@@ -105,6 +107,7 @@ impl FakeDrive {
         FakeDrive {
             faults,
             requests: Vec::new(),
+            arrivals: Vec::new(),
             tick: 1000,
             enabled: true,
             homed: true,
@@ -168,6 +171,7 @@ impl FakeDrive {
     /// The bytes answering one request.
     pub fn answer(&mut self, seq: u8, req: Request) -> Vec<u8> {
         self.requests.push(req);
+        self.arrivals.push(std::time::Instant::now());
         if self.faults.silent {
             return Vec::new();
         }
