@@ -82,7 +82,8 @@ ctl home
 ctl calibrate --out "$work/calibration" --json | tee "$work/calibrate.json" >&2
 # The upload left the drive disabled, still homed.
 ctl enable
-validation=$(ctl validate --scenario tools/commission-validate.toml --select --json)
+validation=$(ctl validate --scenario tools/commission-validate.toml --select --json \
+    --calibration "$work/calibration")
 echo "$validation" >&2
 model=$(json_field "$validation" best)
 ctl disable
@@ -104,7 +105,7 @@ echo "== 4. home and place the carriage" >&2
 ctl enable
 homed=false
 ctl home && homed=true
-ctl move 25 180 60 240 120 40 --json > "$work/moves.json"
+ctl move 25 180 60 240 120 40 --json --calibration "$work/calibration" > "$work/moves.json"
 cat "$work/moves.json" >&2
 summary=$(tail -n 1 "$work/moves.json")
 stop_drive

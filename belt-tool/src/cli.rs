@@ -1,6 +1,6 @@
 //! The command line: arguments (clap) and what each command does.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use belt_link::{Command, ModelKind};
@@ -91,6 +91,10 @@ pub enum Cmd {
         #[arg(long, default_value_t = 200, value_name = "MS",
               value_parser = clap::value_parser!(u64).range(0..=3_600_000))]
         settle_ms: u64,
+        /// The calibration directory (`beltctl calibrate --out`): warn about moves outside the
+        /// region its moves covered, where every model extrapolates.
+        #[arg(long, value_name = "DIR")]
+        calibration: Option<PathBuf>,
     },
     /// Read, change, save, load and dump the drive's configuration.
     #[command(subcommand)]
@@ -158,6 +162,10 @@ pub enum Cmd {
         #[arg(long, default_value_t = 200, value_name = "MS",
               value_parser = clap::value_parser!(u64).range(0..=3_600_000))]
         settle_ms: u64,
+        /// The calibration directory (`beltctl calibrate --out`): warn about moves outside the
+        /// region its moves covered, where every model extrapolates.
+        #[arg(long, value_name = "DIR")]
+        calibration: Option<PathBuf>,
     },
 }
 
@@ -239,6 +247,7 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
             models,
             select,
             settle_ms,
+            ..
         } => {
             let path = scenario.display().to_string();
             let s = hil_sim::scenario::Scenario::load(&path)
@@ -314,7 +323,30 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
             accel,
             motor,
             settle_ms,
-        } => moves(link, &targets, velocity, accel, motor, settle_ms, json)?,
+            calibration,
+        } => {
+            if let Some(dir) = &calibration {
+                let here_mm = link.status()?.carriage_estimate_um as f64 / 1000.0;
+                let moves = targets
+                    .iter()
+                    .map(|&to_mm| hil_sim::scenario::Move {
+                        to_mm,
+                        velocity_mm_s: velocity,
+                        accel_mm_s2: accel,
+                        dwell_ms: 0,
+                        retarget_after_ms: None,
+                    })
+                    .collect();
+                let s = hil_sim::scenario::Scenario {
+                    name: "beltctl move".into(),
+                    start_mm: here_mm,
+                    moves,
+                    source: String::new(),
+                };
+                warn_outside(link, dir, &s)?;
+            }
+            moves(link, &targets, velocity, accel, motor, settle_ms, json)?
+        }
         Cmd::Config(c) => match c {
             ConfigCmd::Get { .. } => {
                 let values = if get_fields.is_empty() {
@@ -458,16 +490,46 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
                 }));
             }
         }
-        Cmd::Validate { .. } => {
+        Cmd::Validate { calibration, .. } => {
             let Some(opts) = validation else {
                 return Err(ToolError::Usage("validate: no options".into()));
             };
+            if let Some(dir) = &calibration {
+                warn_outside(link, dir, &opts.scenario.1)?;
+            }
             let settings = config::settings(link)?;
             let mut progress = Progress::named("beltctl");
             let o = validate::run(link, &settings, &opts, &mut progress)?;
             progress.finish();
             print_validation(&o, json);
         }
+    }
+    Ok(())
+}
+
+/// Warns, on stderr, about the moves of `s` that leave the region the calibration in `dir`
+/// covered (every model extrapolates there). The files must be readable and made for the
+/// drive's geometry; a calibration without a region gets a note.
+fn warn_outside(
+    link: &mut Link,
+    dir: &Path,
+    s: &hil_sim::scenario::Scenario,
+) -> Result<(), ToolError> {
+    let rig = config::rig(link)?;
+    let cal = hil_sim::calfile::load(dir, &rig)
+        .map_err(|e| ToolError::Usage(format!("--calibration {}: {e}", dir.display())))?;
+    match &cal.coverage {
+        Some(c) => {
+            if let Some(w) = c.check(s).warning() {
+                hil_sim::errln!("beltctl: warning: {w}");
+            }
+        }
+        None => hil_sim::errln!(
+            "beltctl: note: {} records no coverage: whether {} stays within the calibrated \
+             motions is not checked",
+            dir.display(),
+            s.name
+        ),
     }
     Ok(())
 }

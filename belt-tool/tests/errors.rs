@@ -512,3 +512,102 @@ fn long_rests_keep_the_drive_s_link_watchdog_fed() {
     }
     let _ = std::fs::remove_file(f);
 }
+
+/// A calibration directory for the paper rig whose region is what `validation_file`'s moves
+/// cover (100-150 mm, 20-80 mm/s).
+fn calibration_dir(tag: &str, scenario: &std::path::Path) -> std::path::PathBuf {
+    use estimator_core::model::{ModelKind, ModelParams};
+    let dir = std::env::temp_dir().join(format!("beltctl-cal-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let s = hil_sim::scenario::Scenario::load(&scenario.display().to_string()).unwrap();
+    let cal = hil_sim::calibrate::Calibration {
+        params: ModelParams::PAPER,
+        fit_rms_um: [
+            (ModelKind::Linear, 20.0),
+            (ModelKind::Exponential, 19.0),
+            (ModelKind::Table, 18.0),
+            (ModelKind::Operator, 10.0),
+        ],
+        samples: 1,
+        coverage: Some(hil_sim::coverage::Coverage::of([&s])),
+    };
+    hil_sim::calfile::save(&dir, &cal, &estimator_core::rig::Rig::PAPER).unwrap();
+    dir
+}
+
+#[test]
+fn moves_outside_the_calibrated_region_are_warned_about() {
+    let f = validation_file("region", 140.0, 50.0);
+    let file = f.display().to_string();
+    let dir = calibration_dir("region", &f);
+    let d = dir.display().to_string();
+    // The fake stands at 0 mm unless told: the way from there leaves the region.
+    for (rest, warned) in [
+        (
+            vec!["move", "10", "--settle-ms", "5", "--calibration", &d],
+            true,
+        ),
+        (
+            vec![
+                "move",
+                "120",
+                "--settle-ms",
+                "5",
+                "--velocity",
+                "20",
+                "--accel",
+                "300",
+                "--calibration",
+                &d,
+            ],
+            false,
+        ),
+        (
+            vec![
+                "validate",
+                "--scenario",
+                &file,
+                "--models",
+                "model3",
+                "--settle-ms",
+                "5",
+                "--calibration",
+                &d,
+            ],
+            false,
+        ),
+    ] {
+        let p = pty();
+        let path = p.path.clone();
+        let mut drive = FakeDrive::new(Faults::default());
+        if !warned {
+            (drive.motor_um, drive.target_um) = (110_000, 110_000);
+        }
+        let _fake = serve(p.master, drive);
+        let (out, _) = beltctl(&args(&path, &rest), LIMIT);
+        let err = text(&out.stderr);
+        assert!(out.status.success(), "{rest:?}: {err}");
+        assert_eq!(
+            err.contains("beltctl: warning: "),
+            warned,
+            "{rest:?}: {err}"
+        );
+    }
+    // A directory that holds no calibration: refused by name before anything moves.
+    let p = pty();
+    let path = p.path.clone();
+    let fake = serve(p.master, FakeDrive::new(Faults::default()));
+    let (out, _) = beltctl(
+        &args(&path, &["move", "10", "--calibration", "/nonexistent-cal"]),
+        LIMIT,
+    );
+    let err = assert_clean_failure(&out);
+    assert!(err.contains("/nonexistent-cal/calibration.bin"), "{err}");
+    let reqs = fake.drive.lock().unwrap().requests.clone();
+    assert!(
+        !reqs.iter().any(|r| matches!(r, Request::Command(_))),
+        "{reqs:?}"
+    );
+    let _ = std::fs::remove_dir_all(dir);
+    let _ = std::fs::remove_file(f);
+}
