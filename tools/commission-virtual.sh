@@ -14,8 +14,10 @@
 #      carriage on other targets with it.
 #
 # Last line: one JSON object (saved_crc, loaded_crc_after_restart, homed, targets,
-# arrival_rms_um, arrival_max_um, model, validation_rms_um); arrival = the scale's reading at
-# rest minus the target; validation_rms_um: each compensator's arrival RMS in step 2.
+# arrival_rms_um, arrival_max_um, model, validation_rms_um, coverage_warnings); arrival = the
+# scale's reading at rest minus the target; validation_rms_um: each compensator's arrival RMS in
+# step 2; coverage_warnings: the validation's and the placement's warnings about moves outside
+# the region the calibration covered.
 # Environment: COMMISSION_PROFILE (cargo profile, default ci), COMMISSION_KEEP=1 keeps the work
 # directory (logs, calibration, plots).
 set -euo pipefail
@@ -83,7 +85,8 @@ ctl calibrate --out "$work/calibration" --json | tee "$work/calibrate.json" >&2
 # The upload left the drive disabled, still homed.
 ctl enable
 validation=$(ctl validate --scenario tools/commission-validate.toml --select --json \
-    --calibration "$work/calibration")
+    --calibration "$work/calibration" 2> "$work/validate.err") || { cat "$work/validate.err" >&2; exit 1; }
+cat "$work/validate.err" >&2
 echo "$validation" >&2
 model=$(json_field "$validation" best)
 ctl disable
@@ -105,15 +108,19 @@ echo "== 4. home and place the carriage" >&2
 ctl enable
 homed=false
 ctl home && homed=true
-ctl move 25 180 60 240 120 40 --json --calibration "$work/calibration" > "$work/moves.json"
+ctl move 25 180 60 240 120 40 --json --calibration "$work/calibration" > "$work/moves.json" \
+    2> "$work/moves.err" || { cat "$work/moves.err" >&2; exit 1; }
+cat "$work/moves.err" >&2
+# Moves outside the region the calibration covered (every model extrapolates there).
+warnings=$(cat "$work/validate.err" "$work/moves.err" | grep -c '^beltctl: warning:' || true)
 cat "$work/moves.json" >&2
 summary=$(tail -n 1 "$work/moves.json")
 stop_drive
 
-python3 - "$saved_crc" "$loaded_crc" "$homed" "$summary" "$model" "$validation" <<'EOF'
+python3 - "$saved_crc" "$loaded_crc" "$homed" "$summary" "$model" "$validation" "$warnings" <<'EOF'
 import json, sys
 saved, loaded, homed, summary = sys.argv[1], sys.argv[2], sys.argv[3] == "true", json.loads(sys.argv[4])
-model, validation = sys.argv[5], json.loads(sys.argv[6])
+model, validation, warnings = sys.argv[5], json.loads(sys.argv[6]), int(sys.argv[7])
 print(json.dumps({
     "saved_crc": saved,
     "loaded_crc_after_restart": loaded,
@@ -123,5 +130,6 @@ print(json.dumps({
     "arrival_max_um": round(summary["max_um"], 2),
     "model": model,
     "validation_rms_um": {k: round(v, 2) for k, v in validation["arrival_rms_um"].items()},
+    "coverage_warnings": warnings,
 }))
 EOF

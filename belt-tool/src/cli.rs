@@ -37,7 +37,8 @@ pub struct LinkArgs {
     /// Baud rate (8N1).
     #[arg(long, global = true, default_value_t = port::DEFAULT_BAUD)]
     pub baud: u32,
-    /// Time allowed for each reply, ms.
+    /// Time allowed for each reply, ms. The drive hears nothing while the tool waits: keep it
+    /// below the drive's link watchdog (faults.link_timeout_s, 0.5 s by default).
     #[arg(long, global = true, default_value_t = 300, value_name = "MS",
           value_parser = clap::value_parser!(u64).range(1..=600_000))]
     pub timeout_ms: u64,
@@ -325,7 +326,20 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
             settle_ms,
             calibration,
         } => {
-            if let Some(dir) = &calibration {
+            // The arguments first: a bad one is refused before anything else.
+            let limits = MoveLimits {
+                velocity_mm_s: velocity,
+                accel_mm_s2: accel,
+            };
+            for &mm in &targets {
+                ops::move_command(ops::target_um(mm)?, &limits, motor)?;
+            }
+            if calibration.is_some() && motor {
+                hil_sim::errln!(
+                    "beltctl: note: --calibration is not checked with --motor (raw motor moves: \
+                     no model places them)"
+                );
+            } else if let Some(dir) = &calibration {
                 let here_mm = link.status()?.carriage_estimate_um as f64 / 1000.0;
                 let moves = targets
                     .iter()

@@ -218,6 +218,11 @@ pub fn set_and_apply(
     let Err(e) = result else {
         return Ok(());
     };
+    // Only a refusal is known to have changed nothing: after a lost reply the drive may have
+    // applied the values, and staging the old ones would undo them at the next apply.
+    if !matches!(e, ToolError::Drive(_)) {
+        return Err(e);
+    }
     let restored = before.iter().all(|(f, v)| {
         link.acked(&Request::ConfigSet {
             key: f.key(),

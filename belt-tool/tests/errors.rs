@@ -541,6 +541,16 @@ fn moves_outside_the_calibrated_region_are_warned_about() {
     let file = f.display().to_string();
     let dir = calibration_dir("region", &f);
     let d = dir.display().to_string();
+    // A calibration whose moves stayed at 200-250 mm: the validation's 100-150 mm leave it.
+    let far = std::env::temp_dir().join(format!("beltctl-far-{}.toml", std::process::id()));
+    std::fs::write(
+        &far,
+        "name = \"far\"\nstart_mm = 200.0\n[[move]]\nto_mm = 250.0\nvelocity_mm_s = 50.0\n\
+         accel_mm_s2 = 500.0\n",
+    )
+    .unwrap();
+    let far_dir = calibration_dir("far", &far);
+    let d_far = far_dir.display().to_string();
     // The fake stands at 0 mm unless told: the way from there leaves the region.
     for (rest, warned) in [
         (
@@ -576,6 +586,20 @@ fn moves_outside_the_calibrated_region_are_warned_about() {
             ],
             false,
         ),
+        (
+            vec![
+                "validate",
+                "--scenario",
+                &file,
+                "--models",
+                "model3",
+                "--settle-ms",
+                "5",
+                "--calibration",
+                &d_far,
+            ],
+            true,
+        ),
     ] {
         let p = pty();
         let path = p.path.clone();
@@ -609,5 +633,7 @@ fn moves_outside_the_calibrated_region_are_warned_about() {
         "{reqs:?}"
     );
     let _ = std::fs::remove_dir_all(dir);
+    let _ = std::fs::remove_dir_all(far_dir);
+    let _ = std::fs::remove_file(far);
     let _ = std::fs::remove_file(f);
 }
