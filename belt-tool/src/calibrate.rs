@@ -36,11 +36,11 @@ const SETTLE: Duration = Duration::from_millis(200);
 /// Model 3's transitions close within about 100 mm). Without it the first 50-80 mm of each
 /// recording were up to 170 um off every model, and the on-drive fit was 28.4 / 27.0 / 27.5 /
 /// 21.4 um (Models 1-4) against 20.3 / 18.6 / 19.9 / 9.6 um in-process on the same plan.
-const SEAT_MM: f64 = 100.0;
+pub(crate) const SEAT_MM: f64 = 100.0;
 
 /// Limits of the seating stroke and of the way from it to a scenario's start: moderate, so that
 /// braking swings the belt back little (mm/s, mm/s²; lowered to the drive's limits and caps).
-const SEAT_LIMITS: MoveLimits = MoveLimits {
+pub(crate) const SEAT_LIMITS: MoveLimits = MoveLimits {
     velocity_mm_s: 50.0,
     accel_mm_s2: 1000.0,
 };
@@ -159,30 +159,8 @@ pub fn plan(
         hil_sim::eval::CALIBRATION_PLAN_S,
     ));
     for (path, s) in user {
-        let inside = |x: f64| (d0..=d1).contains(&x);
-        if !inside(s.start_mm) {
-            return Err(ToolError::File {
-                path: path.clone(),
-                reason: format!(
-                    "start_mm = {} is outside the drive's travel {d0}..{d1} mm",
-                    s.start_mm
-                ),
-            });
-        }
-        let mut moves = Vec::with_capacity(s.moves.len());
-        for (i, m) in s.moves.iter().enumerate() {
-            if !inside(m.to_mm) {
-                return Err(ToolError::File {
-                    path: path.clone(),
-                    reason: format!(
-                        "move {}: to_mm = {} is outside the drive's travel {d0}..{d1} mm",
-                        i + 1,
-                        m.to_mm
-                    ),
-                });
-            }
-            moves.push(held(m, m.to_mm));
-        }
+        ops::within_travel(path, s, (d0, d1))?;
+        let moves = s.moves.iter().map(|m| held(m, m.to_mm)).collect();
         scenarios.push(Scenario { moves, ..s.clone() });
     }
     Ok(Plan {
@@ -868,24 +846,6 @@ mod tests {
         assert!(e.contains("linear scale fitted"), "{e}");
     }
 
-    /// The fake drive of these tests: the drive's own endpoint and core, answering in line.
-    fn endpoint_drive(mut lose_reply: impl FnMut(&Request) -> bool + Send + 'static) -> Link {
-        use estimator_core::drive::{Drive, DriveConfig};
-        use estimator_core::endpoint::{Effect, Endpoint};
-        let mut ep = Box::new(Endpoint::new());
-        let mut drive = Drive::new(&DriveConfig::paper_rig()).unwrap();
-        crate::testing::Fake::link(move |seq, req| {
-            let reply = match ep.handle_inline(&req, &mut drive).0 {
-                Effect::Reply(r) => r,
-                other => panic!("{req:?}: {other:?}"),
-            };
-            if lose_reply(&req) {
-                return Vec::new();
-            }
-            crate::testing::wire(seq, &reply)
-        })
-    }
-
     fn paper_image() -> Vec<u8> {
         estimator_core::image::of_params(&ModelParams::PAPER, &Rig::PAPER).unwrap()
     }
@@ -893,7 +853,7 @@ mod tests {
     #[test]
     fn a_blob_uploads_to_the_drive_endpoint_and_reads_back() {
         let blob = paper_image();
-        let mut link = endpoint_drive(|_| false);
+        let mut link = crate::testing::endpoint_drive(|_| false);
         upload(&mut link, &blob).unwrap();
         assert_eq!(read_back(&mut link, blob.len()).unwrap(), blob);
         link.command(Command::SelectModel(ModelKind::Table))
@@ -905,7 +865,7 @@ mod tests {
         let blob = paper_image();
         let mut lost = false;
         // The drive takes chunk 2 but its ack is lost: the retry is refused as out of order.
-        let mut link = endpoint_drive(move |req| {
+        let mut link = crate::testing::endpoint_drive(move |req| {
             let hit =
                 matches!(req, Request::CalChunk { offset, .. } if *offset == 2 * CHUNK_MAX as u32);
             hit && !std::mem::replace(&mut lost, true)
@@ -919,7 +879,7 @@ mod tests {
     fn a_rejected_blob_is_not_retried() {
         let mut blob = paper_image();
         blob[0] ^= 0xff; // bad magic
-        let mut link = endpoint_drive(|_| false);
+        let mut link = crate::testing::endpoint_drive(|_| false);
         let e = upload(&mut link, &blob).unwrap_err().to_string();
         assert!(e.contains("bad magic"), "{e}");
     }
@@ -929,7 +889,7 @@ mod tests {
         let blob = paper_image();
         let begins = std::sync::Arc::new(std::sync::atomic::AtomicU32::new(0));
         let seen = std::sync::Arc::clone(&begins);
-        let mut link = endpoint_drive(move |req| {
+        let mut link = crate::testing::endpoint_drive(move |req| {
             if matches!(req, Request::CalBegin { .. }) {
                 seen.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
             }

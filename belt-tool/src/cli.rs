@@ -326,40 +326,12 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
             settle_ms,
             calibration,
         } => {
-            // The arguments first: a bad one is refused before anything else.
             let limits = MoveLimits {
                 velocity_mm_s: velocity,
                 accel_mm_s2: accel,
             };
-            for &mm in &targets {
-                ops::move_command(ops::target_um(mm)?, &limits, motor)?;
-            }
-            if calibration.is_some() && motor {
-                hil_sim::errln!(
-                    "beltctl: note: --calibration is not checked with --motor (raw motor moves: \
-                     no model places them)"
-                );
-            } else if let Some(dir) = &calibration {
-                let here_mm = link.status()?.carriage_estimate_um as f64 / 1000.0;
-                let moves = targets
-                    .iter()
-                    .map(|&to_mm| hil_sim::scenario::Move {
-                        to_mm,
-                        velocity_mm_s: velocity,
-                        accel_mm_s2: accel,
-                        dwell_ms: 0,
-                        retarget_after_ms: None,
-                    })
-                    .collect();
-                let s = hil_sim::scenario::Scenario {
-                    name: "beltctl move".into(),
-                    start_mm: here_mm,
-                    moves,
-                    source: String::new(),
-                };
-                warn_outside(link, dir, &s)?;
-            }
-            moves(link, &targets, velocity, accel, motor, settle_ms, json)?
+            let calibration = calibration.as_deref();
+            moves(link, &targets, &limits, motor, settle_ms, calibration, json)?
         }
         Cmd::Config(c) => match c {
             ConfigCmd::Get { .. } => {
@@ -532,18 +504,8 @@ fn warn_outside(
     let rig = config::rig(link)?;
     let cal = hil_sim::calfile::load(dir, &rig)
         .map_err(|e| ToolError::Usage(format!("--calibration {}: {e}", dir.display())))?;
-    match &cal.coverage {
-        Some(c) => {
-            if let Some(w) = c.check(s).warning() {
-                hil_sim::errln!("beltctl: warning: {w}");
-            }
-        }
-        None => hil_sim::errln!(
-            "beltctl: note: {} records no coverage: whether {} stays within the calibrated \
-             motions is not checked",
-            dir.display(),
-            s.name
-        ),
+    if let Some(line) = hil_sim::coverage::advice(cal.coverage.as_ref(), s) {
+        hil_sim::errln!("beltctl: {line}");
     }
     Ok(())
 }
@@ -611,28 +573,51 @@ fn simple(link: &mut Link, cmd: Command, done: &str) -> Result<(), ToolError> {
 fn moves(
     link: &mut Link,
     targets: &[f64],
-    velocity: f64,
-    accel: f64,
+    limits: &MoveLimits,
     motor: bool,
     settle_ms: u64,
+    calibration: Option<&Path>,
     json: bool,
 ) -> Result<(), ToolError> {
-    let limits = MoveLimits {
-        velocity_mm_s: velocity,
-        accel_mm_s2: accel,
-    };
     // Arguments checked before anything moves.
     let cmds = targets
         .iter()
-        .map(|&mm| ops::move_command(ops::target_um(mm)?, &limits, motor).map(|c| (mm, c)))
+        .map(|&mm| ops::move_command(ops::target_um(mm)?, limits, motor).map(|c| (mm, c)))
         .collect::<Result<Vec<_>, _>>()?;
     let start = link.status()?;
     ops::require_ready(&start, "moving")?;
+    match calibration {
+        Some(_) if motor => hil_sim::errln!(
+            "beltctl: note: --calibration is not checked with --motor (raw motor moves: no model \
+             places them)"
+        ),
+        Some(dir) => {
+            // The moves as a scenario from where the carriage stands, for the region's check.
+            let moves = targets
+                .iter()
+                .map(|&to_mm| hil_sim::scenario::Move {
+                    to_mm,
+                    velocity_mm_s: limits.velocity_mm_s,
+                    accel_mm_s2: limits.accel_mm_s2,
+                    dwell_ms: 0,
+                    retarget_after_ms: None,
+                })
+                .collect();
+            let s = hil_sim::scenario::Scenario {
+                name: "beltctl move".into(),
+                start_mm: start.carriage_estimate_um as f64 / 1000.0,
+                moves,
+                source: String::new(),
+            };
+            warn_outside(link, dir, &s)?;
+        }
+        None => {}
+    }
     let counts_per_mm = config::rig(link).ok().map(|r| r.counts_per_mm());
     let mut here = start.carriage_estimate_um as f64 / 1000.0;
     let mut errors = Vec::with_capacity(targets.len());
     for (mm, cmd) in cmds {
-        ops::move_and_wait(link, cmd, mm - here, &limits, |_| Ok(()))?;
+        ops::move_and_wait(link, cmd, mm - here, limits, |_| Ok(()))?;
         // Polled: a rest of 0.5 s or more would trip the drive's link watchdog.
         ops::dwell(link, Duration::from_millis(settle_ms))?;
         let s = link.status()?;
@@ -658,9 +643,7 @@ fn moves(
             );
         }
     }
-    let n = errors.len().max(1) as f64;
-    let rms = (errors.iter().map(|e| e * e).sum::<f64>() / n).sqrt();
-    let max = errors.iter().fold(0.0f64, |m, e| m.max(e.abs()));
+    let (rms, max) = ops::rms_and_max_um(&errors);
     if json {
         print_json(&json!({"count": errors.len(), "rms_um": rms, "max_um": max}));
     } else if errors.len() > 1 {

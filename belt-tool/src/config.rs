@@ -436,34 +436,9 @@ mod tests {
         }
     }
 
-    /// The drive's own endpoint and core, answering in line.
-    fn endpoint_drive() -> Link {
-        use belt_link::{Receiver, Reply};
-        use estimator_core::drive::{Drive, DriveConfig};
-        use estimator_core::endpoint::{Effect, Endpoint};
-        let mut ep = Box::new(Endpoint::new());
-        let mut drive = Drive::new(&DriveConfig::paper_rig()).unwrap();
-        crate::testing::Fake::link(move |seq, req| {
-            let reply = match ep.handle_inline(&req, &mut drive).0 {
-                Effect::Reply(r) => r,
-                Effect::Status => Reply::Status(ep.status(&drive, &Receiver::new(), 0, 0)),
-                // As the firmware applies it (without the board's current limit).
-                Effect::Configure => {
-                    let result = ep
-                        .staged_parts()
-                        .map_err(Ok)
-                        .and_then(|p| drive.reconfigure(p).map_err(Err));
-                    ep.configure_done(result).0
-                }
-                other => panic!("{req:?}: {other:?}"),
-            };
-            crate::testing::wire(seq, &reply)
-        })
-    }
-
     #[test]
     fn a_refused_configuration_leaves_the_staged_values_as_they_were() {
-        let mut link = endpoint_drive();
+        let mut link = crate::testing::endpoint_drive(|_| false);
         let name = |n: &str| lookup(n).unwrap();
         let travel = name("drive.travel_max_mm");
         let kp = name("pid.kp_a_per_mm");

@@ -3,6 +3,8 @@
 use std::time::{Duration, Instant};
 
 use belt_link::{status_flags, Command, WireStatus};
+use hil_sim::scenario::Scenario;
+use hil_sim::stats::ErrorStats;
 
 use crate::error::ToolError;
 use crate::link::Link;
@@ -33,13 +35,7 @@ pub fn wait_for(
                 "{what}: the drive restarted (it sent its boot status)"
             )));
         }
-        if !s.faults.is_clear() {
-            return Err(ToolError::Drive(format!(
-                "{what}: the drive latched faults: {} (`beltctl clear-faults`, then `beltctl \
-                 enable`)",
-                fault_names(s.faults).join(", ")
-            )));
-        }
+        no_faults(&s, what)?;
         if done(&s) {
             return Ok(s);
         }
@@ -50,6 +46,50 @@ pub fn wait_for(
                 timeout.as_secs_f64()
             )));
         }
+    }
+}
+
+/// RMS and largest magnitude of arrival errors, um (0 for none).
+pub fn rms_and_max_um(errors_um: &[f64]) -> (f64, f64) {
+    ErrorStats::of(errors_um.iter().copied()).map_or((0.0, 0.0), |s| {
+        (s.rms_um, s.max_um.abs().max(s.min_um.abs()))
+    })
+}
+
+/// Fails, naming them, if the drive has latched faults.
+pub fn no_faults(s: &WireStatus, what: &str) -> Result<(), ToolError> {
+    if s.faults.is_clear() {
+        return Ok(());
+    }
+    Err(ToolError::Drive(format!(
+        "{what}: the drive latched faults: {} (`beltctl clear-faults`, then `beltctl enable`)",
+        fault_names(s.faults).join(", ")
+    )))
+}
+
+/// A user's scenario (file `path`) must start and end every move inside the drive's travel
+/// `d0..=d1` mm; refused by file, move and field.
+pub fn within_travel(path: &str, s: &Scenario, (d0, d1): (f64, f64)) -> Result<(), ToolError> {
+    let refuse = |reason: String| {
+        Err(ToolError::File {
+            path: path.to_string(),
+            reason,
+        })
+    };
+    let inside = |x: f64| (d0..=d1).contains(&x);
+    if !inside(s.start_mm) {
+        return refuse(format!(
+            "start_mm = {} is outside the drive's travel {d0}..{d1} mm",
+            s.start_mm
+        ));
+    }
+    match s.moves.iter().position(|m| !inside(m.to_mm)) {
+        Some(i) => refuse(format!(
+            "move {}: to_mm = {} is outside the drive's travel {d0}..{d1} mm",
+            i + 1,
+            s.moves[i].to_mm
+        )),
+        None => Ok(()),
     }
 }
 

@@ -68,3 +68,32 @@ impl Read for Fake {
         Ok(n)
     }
 }
+
+/// The drive's own endpoint and core (the paper rig's configuration), answering in line as the
+/// firmware does; `lose_reply` drops the replies it picks (a reply lost on the way).
+pub fn endpoint_drive(mut lose_reply: impl FnMut(&Request) -> bool + Send + 'static) -> Link {
+    use belt_link::Receiver;
+    use estimator_core::drive::{Drive, DriveConfig};
+    use estimator_core::endpoint::{Effect, Endpoint};
+    let mut ep = Box::new(Endpoint::new());
+    let mut drive = Drive::new(&DriveConfig::paper_rig()).unwrap();
+    Fake::link(move |seq, req| {
+        let reply = match ep.handle_inline(&req, &mut drive).0 {
+            Effect::Reply(r) => r,
+            Effect::Status => Reply::Status(ep.status(&drive, &Receiver::new(), 0, 0)),
+            // As the firmware applies it (without the board's current limit).
+            Effect::Configure => {
+                let result = ep
+                    .staged_parts()
+                    .map_err(Ok)
+                    .and_then(|p| drive.reconfigure(p).map_err(Err));
+                ep.configure_done(result).0
+            }
+            other => panic!("{req:?}: {other:?}"),
+        };
+        if lose_reply(&req) {
+            return Vec::new();
+        }
+        wire(seq, &reply)
+    })
+}

@@ -13,10 +13,10 @@ use estimator_core::settings::Settings;
 use hil_sim::progress::Progress;
 use hil_sim::scenario::Scenario;
 
+use crate::calibrate::{SEAT_LIMITS, SEAT_MM};
 use crate::error::ToolError;
 use crate::link::Link;
 use crate::ops::{self, Arrival, MoveLimits};
-use crate::status::fault_names;
 
 /// Options of `beltctl validate`.
 #[derive(Clone, Debug)]
@@ -43,13 +43,12 @@ pub struct Placed {
 impl Placed {
     /// RMS of the arrival errors, um.
     pub fn rms_um(&self) -> f64 {
-        let n = self.errors_um.len().max(1) as f64;
-        (self.errors_um.iter().map(|e| e * e).sum::<f64>() / n).sqrt()
+        ops::rms_and_max_um(&self.errors_um).0
     }
 
     /// Largest arrival error, um.
     pub fn max_um(&self) -> f64 {
-        self.errors_um.iter().fold(0.0f64, |m, e| m.max(e.abs()))
+        ops::rms_and_max_um(&self.errors_um).1
     }
 }
 
@@ -71,28 +70,19 @@ pub struct Outcome {
 /// Refused by file, move and field; nothing is clipped, because a slower move is another
 /// workload than the one being validated.
 pub fn check(settings: &Settings, path: &str, s: &Scenario) -> Result<(), ToolError> {
-    let (d0, d1) = (settings.travel_min_mm, settings.travel_max_mm);
     let refuse = |reason: String| {
         Err(ToolError::File {
             path: path.to_string(),
             reason,
         })
     };
-    let inside = |x: f64| (d0..=d1).contains(&x);
-    if !inside(s.start_mm) {
-        return refuse(format!(
-            "start_mm = {} is outside the drive's travel {d0}..{d1} mm",
-            s.start_mm
-        ));
+    // The last move always ends at rest (nothing follows to retarget it).
+    if s.moves.is_empty() {
+        return refuse("no moves to validate on".into());
     }
+    ops::within_travel(path, s, (settings.travel_min_mm, settings.travel_max_mm))?;
     for (i, m) in s.moves.iter().enumerate() {
         let n = i + 1;
-        if !inside(m.to_mm) {
-            return refuse(format!(
-                "move {n}: to_mm = {} is outside the drive's travel {d0}..{d1} mm",
-                m.to_mm
-            ));
-        }
         if m.velocity_mm_s > settings.max_velocity_mm_s {
             return refuse(format!(
                 "move {n}: velocity_mm_s = {} is above the drive's limit {} mm/s \
@@ -107,10 +97,6 @@ pub fn check(settings: &Settings, path: &str, s: &Scenario) -> Result<(), ToolEr
                 m.accel_mm_s2, settings.max_accel_mm_s2
             ));
         }
-    }
-    // The last move always ends at rest (nothing follows to retarget it).
-    if s.moves.is_empty() {
-        return refuse("no moves to validate on".into());
     }
     Ok(())
 }
@@ -152,12 +138,10 @@ pub fn run(
         restore(link);
         return Err(e);
     }
+    // `min_by` keeps the first of equals.
     let best = placed
         .iter()
-        .fold(None::<&Placed>, |b, p| match b {
-            Some(b) if b.rms_um() <= p.rms_um() => Some(b),
-            _ => Some(p),
-        })
+        .min_by(|a, b| a.rms_um().total_cmp(&b.rms_um()))
         .map_or(before.model, |p| p.model);
     let active = if opts.select { best } else { before.model };
     if let Err(e) = link.command(Command::SelectModel(active)) {
@@ -221,15 +205,15 @@ fn pass(
     Ok(Placed { model, errors_um })
 }
 
-/// The forward stroke onto `start_mm` every pass begins with, raw motor moves: from up to
-/// 100 mm below (the calibration's seating stroke; none when the start is the travel's lower
-/// end), then rest. Returns the arrival at the start.
+/// The forward stroke onto `start_mm` every pass begins with, raw motor moves: the
+/// calibration's seating stroke from up to [`SEAT_MM`] below (none when the start is the
+/// travel's lower end), then rest. Returns the arrival at the start.
 fn seat_at(link: &mut Link, settings: &Settings, start_mm: f64) -> Result<Arrival, ToolError> {
     let limits = MoveLimits {
-        velocity_mm_s: 50.0_f64.min(settings.max_velocity_mm_s),
-        accel_mm_s2: 1000.0_f64.min(settings.max_accel_mm_s2),
+        velocity_mm_s: SEAT_LIMITS.velocity_mm_s.min(settings.max_velocity_mm_s),
+        accel_mm_s2: SEAT_LIMITS.accel_mm_s2.min(settings.max_accel_mm_s2),
     };
-    let below_mm = start_mm - 100.0_f64.min(start_mm - settings.travel_min_mm).max(0.0);
+    let below_mm = start_mm - SEAT_MM.min(start_mm - settings.travel_min_mm).max(0.0);
     let mut rest = None;
     for to in [below_mm, start_mm] {
         let here_mm = link.status()?.carriage_estimate_um as f64 / 1000.0;
@@ -252,12 +236,7 @@ fn at_rest(
     from: Option<Arrival>,
 ) -> Result<Arrival, ToolError> {
     let st = link.status()?;
-    if !st.faults.is_clear() {
-        return Err(ToolError::Drive(format!(
-            "{what}: the drive latched faults: {} (`beltctl clear-faults`, then `beltctl enable`)",
-            fault_names(st.faults).join(", ")
-        )));
-    }
+    ops::no_faults(&st, what)?;
     let now = Arrival::of(target_mm, &st, None);
     if let Some(from) = from {
         let (moved, read) = (now.target_mm - from.target_mm, now.scale_mm - from.scale_mm);

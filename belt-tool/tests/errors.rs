@@ -551,6 +551,18 @@ fn moves_outside_the_calibrated_region_are_warned_about() {
     .unwrap();
     let far_dir = calibration_dir("far", &far);
     let d_far = far_dir.display().to_string();
+    let validate = |dir| {
+        let rest = [
+            "validate",
+            "--scenario",
+            &file,
+            "--models",
+            "model3",
+            "--settle-ms",
+            "5",
+        ];
+        [&rest[..], &["--calibration", dir]].concat()
+    };
     // The fake stands at 0 mm unless told: the way from there leaves the region.
     for (rest, warned) in [
         (
@@ -572,34 +584,8 @@ fn moves_outside_the_calibrated_region_are_warned_about() {
             ],
             false,
         ),
-        (
-            vec![
-                "validate",
-                "--scenario",
-                &file,
-                "--models",
-                "model3",
-                "--settle-ms",
-                "5",
-                "--calibration",
-                &d,
-            ],
-            false,
-        ),
-        (
-            vec![
-                "validate",
-                "--scenario",
-                &file,
-                "--models",
-                "model3",
-                "--settle-ms",
-                "5",
-                "--calibration",
-                &d_far,
-            ],
-            true,
-        ),
+        (validate(&d), false),
+        (validate(&d_far), true),
     ] {
         let p = pty();
         let path = p.path.clone();

@@ -515,6 +515,20 @@ fn fmt_edge(k: i32) -> String {
     fmt_value(band_floor(k))
 }
 
+/// What a tool says about `scenario` against a calibration's region: a warning naming the moves
+/// that leave it (every model extrapolates there), a note when the calibration records no
+/// region (an older file), nothing when every move stays inside.
+pub fn advice(coverage: Option<&Coverage>, scenario: &Scenario) -> Option<String> {
+    match coverage {
+        Some(c) => c.check(scenario).warning().map(|w| format!("warning: {w}")),
+        None => Some(format!(
+            "note: the calibration records no coverage (an older file): whether {} stays \
+             within the calibrated motions is not checked",
+            scenario.name
+        )),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

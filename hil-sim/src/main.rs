@@ -375,17 +375,8 @@ fn scenario_and_plant(
 /// Says which moves of `scenario` leave the region the calibration covers (every model
 /// extrapolates there), or that the calibration file does not record it.
 fn warn_outside(scenario: &Scenario, cal: &Calibration) {
-    match &cal.coverage {
-        Some(c) => {
-            if let Some(w) = c.check(scenario).warning() {
-                hil_sim::errln!("warning: {w}");
-            }
-        }
-        None => hil_sim::errln!(
-            "note: the calibration records no coverage (an older file): whether {} stays \
-             within the calibrated motions is not checked",
-            scenario.name
-        ),
+    if let Some(line) = hil_sim::coverage::advice(cal.coverage.as_ref(), scenario) {
+        hil_sim::errln!("{line}");
     }
 }
 
