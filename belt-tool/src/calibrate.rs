@@ -775,6 +775,56 @@ mod tests {
         }
     }
 
+    /// A retarget's wait polls the drive: a wait of 0.5 s or more without a request would trip
+    /// its link watchdog (faults.link_timeout_s) in the middle of a recording.
+    #[test]
+    fn a_retarget_s_wait_keeps_the_drive_s_link_watchdog_fed() {
+        use belt_link::{status_flags, Message, WireStatus};
+        use std::sync::{Arc, Mutex};
+        use std::time::Instant;
+        let times = Arc::new(Mutex::new(Vec::<Instant>::new()));
+        let seen = times.clone();
+        let mut at_um = 20_000;
+        let mut link = crate::testing::Fake::link(move |seq, req| {
+            seen.lock().unwrap().push(Instant::now());
+            let reply = match req {
+                Request::Status => Reply::Status(WireStatus {
+                    flags: status_flags::ENABLED | status_flags::HOMED,
+                    carriage_estimate_um: at_um,
+                    ..WireStatus::default()
+                }),
+                Request::Command(Command::MoveMotorTo { target_um, .. })
+                | Request::Command(Command::MoveTo { target_um, .. }) => {
+                    at_um = target_um;
+                    Reply::Ack { of: req.kind() }
+                }
+                _ => Reply::Ack { of: req.kind() },
+            };
+            crate::testing::wire(seq, &reply)
+        });
+        let s = Scenario::from_toml_str(
+            "name = \"cut\"\nstart_mm = 20.0\n[[move]]\nto_mm = 120.0\nvelocity_mm_s = 20.0\n\
+             accel_mm_s2 = 500.0\nretarget_after_ms = 1200\n[[move]]\nto_mm = 30.0\n\
+             velocity_mm_s = 20.0\naccel_mm_s2 = 500.0\n",
+        )
+        .unwrap();
+        let approach = Approach {
+            travel_mm: (0.0, 250.0),
+            limits: SEAT_LIMITS,
+        };
+        let mut progress = Progress::named("test");
+        let begin = Instant::now();
+        run_scenario(&mut link, &s, &approach, &mut progress).unwrap();
+        let times = times.lock().unwrap();
+        let gap = times
+            .windows(2)
+            .map(|w| w[1] - w[0])
+            .max()
+            .unwrap_or_default();
+        assert!(gap < Duration::from_millis(400), "{gap:?}");
+        assert!(begin.elapsed() > Duration::from_millis(1200));
+    }
+
     #[test]
     fn recordings_become_traces() {
         let rig = Rig::PAPER;
