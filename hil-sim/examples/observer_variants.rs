@@ -47,6 +47,9 @@
 //!   does best on those blocks kept (several minima fit the recordings about equally and
 //!   extrapolate differently; the held-out blocks choose among them). The weights are then
 //!   fitted on everything.
+//! - `carriage-swing`: `carriage` with `rest-preslide` and `braking-slip`: the model carriage's
+//!   swing after a stop loads the belt while the pulley stands (it moves the belt on its
+//!   bristles), and a braking carriage may drag the belt across the gap against the motion.
 //! - `unit-weight`: `g` enters the sum with weight -1 (the carriage lags the motor by what the
 //!   belt lags the pulley) instead of a fitted one, which ties the observer's scale to the
 //!   micrometre (with a fitted weight, scaling `h`, `z_max` and the loads by `s` and the weight by
@@ -95,10 +98,11 @@ enum Variant {
     MedianCurrent,
     SlipPersist,
     CvStarts,
+    CarriageSwing,
 }
 
 impl Variant {
-    const ALL: [(Variant, &'static str); 17] = [
+    const ALL: [(Variant, &'static str); 18] = [
         (Variant::AsIs, "as-is"),
         (Variant::Refit, "refit"),
         (Variant::BrakingSlip, "braking-slip"),
@@ -116,13 +120,16 @@ impl Variant {
         (Variant::MedianCurrent, "median-current"),
         (Variant::SlipPersist, "slip-persist"),
         (Variant::CvStarts, "cv-starts"),
+        (Variant::CarriageSwing, "carriage-swing"),
     ];
 
     /// Start and initial step of the coordinates beyond the six of `SlipParams`.
     fn extra(self) -> (&'static [f64], &'static [f64]) {
         match self {
             // Load per um of carriage lag, natural frequency Hz, damping ratio, load per um/tick.
-            Variant::Carriage => (&[0.0, 15.0, 0.5, 0.0], &[0.1, 5.0, 0.3, 0.2]),
+            Variant::Carriage | Variant::CarriageSwing => {
+                (&[0.0, 15.0, 0.5, 0.0], &[0.1, 5.0, 0.3, 0.2])
+            }
             // Load per um/tick² of pulley acceleration (scaled by 1000).
             Variant::EncoderAccel => (&[0.0], &[0.03]),
             // Half-width of the slip ramp around the limit, as a fraction of it.
@@ -185,9 +192,12 @@ impl Obs {
             creep_per_mm: v[3].abs().min(1.0),
             limit_um: v[4].abs().clamp(1.0, 2000.0),
             half_gap_um: v[5].abs().clamp(1.0, 2000.0),
-            braking_slip: variant == Variant::BrakingSlip,
+            braking_slip: matches!(variant, Variant::BrakingSlip | Variant::CarriageSwing),
             free_preslide: variant == Variant::FreePreslide,
-            rest_preslide: matches!(variant, Variant::FreePreslide | Variant::RestPreslide),
+            rest_preslide: matches!(
+                variant,
+                Variant::FreePreslide | Variant::RestPreslide | Variant::CarriageSwing
+            ),
             ramp: 0.0,
             capstan: variant == Variant::CapstanSlip,
             slow_shift: if variant == Variant::SlowSlip { 4 } else { 0 },
@@ -209,7 +219,7 @@ impl Obs {
             },
         };
         match variant {
-            Variant::Carriage => {
+            Variant::Carriage | Variant::CarriageSwing => {
                 o.lag_weight = v[6].abs();
                 o.natural_hz = v[7].abs().clamp(5.0, 60.0);
                 o.damping = v[8].abs().clamp(0.3, 3.0);
