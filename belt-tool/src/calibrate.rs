@@ -456,6 +456,13 @@ pub struct Outcome {
 
 /// The whole calibration on the drive behind `link`.
 pub fn run(link: &mut Link, opts: &Options, progress: &mut Progress) -> Result<Outcome, ToolError> {
+    // Before any move: a calibration takes minutes of them.
+    hil_sim::calfile::check_writable(&opts.out).map_err(|e| {
+        ToolError::Usage(format!(
+            "--out {}: cannot be written ({e})",
+            opts.out.display()
+        ))
+    })?;
     let status = link.status()?;
     ops::require_ready(&status, "calibration")?;
     let settings = crate::config::settings(link)?;

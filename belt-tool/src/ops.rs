@@ -3,6 +3,7 @@
 use std::time::{Duration, Instant};
 
 use belt_link::{status_flags, Command, WireStatus};
+use hil_sim::input::show;
 use hil_sim::scenario::Scenario;
 use hil_sim::stats::ErrorStats;
 
@@ -122,7 +123,8 @@ impl MoveLimits {
             let x = (v * 1000.0).round();
             if !(x.is_finite() && x >= 1.0 && x <= u32::MAX as f64) {
                 return Err(ToolError::Usage(format!(
-                    "{name} {v}: must be from 0.001 to {} {unit}",
+                    "{name} {}: must be from 0.001 to {} {unit}",
+                    show(v),
                     u32::MAX as f64 / 1000.0
                 )));
             }
@@ -146,7 +148,10 @@ impl MoveLimits {
 pub fn target_um(mm: f64) -> Result<i32, ToolError> {
     let um = (mm * 1000.0).round();
     if !(um.is_finite() && um.abs() <= i32::MAX as f64) {
-        return Err(ToolError::Usage(format!("target {mm} mm is out of range")));
+        return Err(ToolError::Usage(format!(
+            "target {} mm is out of range",
+            show(mm)
+        )));
     }
     Ok(um as i32)
 }

@@ -4,6 +4,7 @@ use std::io::{IsTerminal, Write};
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+use hil_sim::input::show;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::error::ToolError;
@@ -38,14 +39,58 @@ pub fn record(
 ) -> Result<(u64, RecordingStats), ToolError> {
     if !(seconds.is_finite() && seconds > 0.0 && seconds <= 86_400.0) {
         return Err(ToolError::Usage(format!(
-            "--seconds {seconds}: give a duration of up to a day"
+            "--seconds {}: give a duration of up to a day",
+            show(seconds)
         )));
     }
     let io_err = |e: std::io::Error| ToolError::file(out.display(), e);
-    let file = std::fs::File::create(out).map_err(io_err)?;
+    // Written beside `out` and renamed over it once samples arrived: a refused or empty
+    // recording leaves an existing file as it was.
+    let partial = partial_path(out);
+    let file = std::fs::File::create(&partial).map_err(io_err)?;
     let mut w = std::io::BufWriter::new(file);
-    writeln!(w, "{CSV_HEADER}").map_err(io_err)?;
+    let mut written = 0u64;
+    let result = stream(link, seconds, every, &mut w, &mut written, out).and_then(|stats| {
+        w.flush().map_err(io_err)?;
+        if written == 0 {
+            return Err(ToolError::Drive(format!(
+                "the drive sent no samples in {} s (one every {every} ticks asked); {} not \
+                 written",
+                show(seconds),
+                out.display()
+            )));
+        }
+        Ok(stats)
+    });
+    drop(w);
+    // What arrived before a failure is kept, as the caller reports.
+    if written > 0 {
+        std::fs::rename(&partial, out).map_err(io_err)?;
+    } else {
+        let _ = std::fs::remove_file(&partial);
+    }
+    result.map(|stats| (written, stats))
+}
 
+/// `dir/.name.partial`, beside `out` (so the rename stays on one file system).
+fn partial_path(out: &Path) -> std::path::PathBuf {
+    let name = out
+        .file_name()
+        .map_or_else(|| "recording".into(), |n| n.to_string_lossy().into_owned());
+    out.with_file_name(format!(".{name}.partial-{}", std::process::id()))
+}
+
+/// The recording itself: header and rows into `w`, `written` counting the rows.
+fn stream(
+    link: &mut Link,
+    seconds: f64,
+    every: u16,
+    w: &mut impl Write,
+    written: &mut u64,
+    out: &Path,
+) -> Result<RecordingStats, ToolError> {
+    let io_err = |e: std::io::Error| ToolError::file(out.display(), e);
+    writeln!(w, "{CSV_HEADER}").map_err(io_err)?;
     let bar = std::io::stderr().is_terminal().then(|| {
         let b = ProgressBar::new((seconds * 10.0).ceil() as u64);
         b.set_style(
@@ -57,15 +102,14 @@ pub fn record(
     });
     link.start_recording(every)?;
     let start = Instant::now();
-    let mut written = 0u64;
     let result: Result<(), ToolError> = (|| {
         while start.elapsed().as_secs_f64() < seconds {
             let left = Duration::from_secs_f64(seconds).saturating_sub(start.elapsed());
             link.pump(KEEPALIVE.min(left))?;
             link.status()?;
             let batch = link.take_samples();
-            written += batch.len() as u64;
-            write_rows(&mut w, &batch).map_err(io_err)?;
+            *written += batch.len() as u64;
+            write_rows(w, &batch).map_err(io_err)?;
             if let (Some(b), Some(st)) = (&bar, link.recording_stats()) {
                 b.set_position((start.elapsed().as_secs_f64() * 10.0) as u64);
                 b.set_message(format!(
@@ -88,8 +132,7 @@ pub fn record(
     let stopped = link.stop_recording();
     result?;
     let (rest, stats) = stopped?;
-    written += rest.len() as u64;
-    write_rows(&mut w, &rest).map_err(io_err)?;
-    w.flush().map_err(io_err)?;
-    Ok((written, stats))
+    *written += rest.len() as u64;
+    write_rows(w, &rest).map_err(io_err)?;
+    Ok(stats)
 }

@@ -623,3 +623,78 @@ fn moves_outside_the_calibrated_region_are_warned_about() {
     let _ = std::fs::remove_file(far);
     let _ = std::fs::remove_file(f);
 }
+
+#[test]
+fn a_calibration_whose_output_cannot_be_written_is_refused_before_any_move() {
+    let file = std::env::temp_dir().join(format!("beltctl-out-{}.txt", std::process::id()));
+    std::fs::write(&file, "not a directory").unwrap();
+    for out_dir in [file.clone(), file.join("below")] {
+        let p = pty();
+        let path = p.path.clone();
+        let fake = serve(p.master, FakeDrive::new(Faults::default()));
+        let d = out_dir.display().to_string();
+        let (out, _) = beltctl(&args(&path, &["calibrate", "--out", &d]), LIMIT);
+        let err = assert_clean_failure(&out);
+        assert!(
+            err.contains(&format!("--out {d}: cannot be written")),
+            "{err}"
+        );
+        let moved = fake.drive.lock().unwrap().requests.iter().any(|r| {
+            matches!(
+                r,
+                belt_link::Request::Command(belt_link::Command::MoveTo { .. })
+                    | belt_link::Request::Command(belt_link::Command::MoveMotorTo { .. })
+                    | belt_link::Request::Record { .. }
+            )
+        });
+        assert!(!moved, "{d}: the drive was moved or recorded");
+    }
+    assert_eq!(std::fs::read_to_string(&file).unwrap(), "not a directory");
+    let _ = std::fs::remove_file(file);
+}
+
+#[test]
+fn a_refused_or_empty_recording_leaves_an_existing_file_as_it_was() {
+    for (faults, expect) in [
+        (
+            Faults {
+                refuse_record: true,
+                ..Faults::default()
+            },
+            "refused",
+        ),
+        (
+            Faults {
+                mute_records: true,
+                ..Faults::default()
+            },
+            "the drive sent no samples in 0.3 s",
+        ),
+    ] {
+        let p = pty();
+        let path = p.path.clone();
+        let _fake = serve(p.master, FakeDrive::new(faults));
+        let csv = std::env::temp_dir().join(format!("beltctl-keep-{}.csv", std::process::id()));
+        std::fs::write(&csv, "precious\n").unwrap();
+        let csv_s = csv.display().to_string();
+        let (out, _) = beltctl(
+            &args(&path, &["record", "--seconds", "0.3", "--out", &csv_s]),
+            LIMIT,
+        );
+        let err = assert_clean_failure(&out);
+        assert!(err.contains(expect), "{err}");
+        assert_eq!(std::fs::read_to_string(&csv).unwrap(), "precious\n");
+        let dir = csv.parent().unwrap();
+        let left: Vec<_> = std::fs::read_dir(dir)
+            .unwrap()
+            .filter_map(|e| e.ok())
+            .filter(|e| {
+                e.file_name()
+                    .to_string_lossy()
+                    .starts_with(".beltctl-keep-")
+            })
+            .collect();
+        assert!(left.is_empty(), "partial file left behind");
+        let _ = std::fs::remove_file(csv);
+    }
+}

@@ -142,6 +142,29 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CalFileError + '_ {
     }
 }
 
+/// Checks that `dir` can be made and written, and leaves nothing behind: what a calibration
+/// checks before it records anything, so that a bad `--out` is refused before minutes of moves,
+/// not after them.
+pub fn check_writable(dir: &Path) -> Result<(), CalFileError> {
+    // The outermost directory this makes, removed again afterwards.
+    let mut made = None;
+    let mut p = dir;
+    while !p.as_os_str().is_empty() && std::fs::symlink_metadata(p).is_err() {
+        made = Some(p);
+        p = p.parent().unwrap_or(Path::new(""));
+    }
+    let result = (|| {
+        std::fs::create_dir_all(dir).map_err(io(dir))?;
+        let probe = dir.join(format!(".write-test-{}", std::process::id()));
+        std::fs::write(&probe, b"").map_err(io(dir))?;
+        std::fs::remove_file(&probe).map_err(io(&probe))
+    })();
+    if let Some(top) = made {
+        let _ = std::fs::remove_dir_all(top);
+    }
+    result
+}
+
 /// Writes both files into `dir`; the parameters are those of the blob (quantised).
 pub fn save(dir: &Path, cal: &Calibration, rig: &Rig) -> Result<(), CalFileError> {
     std::fs::create_dir_all(dir).map_err(io(dir))?;

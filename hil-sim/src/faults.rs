@@ -366,7 +366,7 @@ pub fn false_trips(
             &mut |f| progress(&label, f),
         ) {
             Ok(_) => {}
-            Err(RunError::Fault { faults, t_s }) => {
+            Err(RunError::Fault { faults, t_s, .. }) => {
                 trips.push(format!("{name}: {faults} at t = {t_s:.4} s"))
             }
             Err(e) => return Err(Error::Run(e).context(*name)),

@@ -50,6 +50,19 @@ pub fn show(v: f64) -> String {
     }
 }
 
+/// A computed figure for a message: four significant digits, in exponent form outside
+/// 1e-3..1e6 (an input is echoed exactly by [`show`]).
+pub fn approx(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() {
+        format!("{v}")
+    } else if (1e-3..1e6).contains(&v.abs()) {
+        let digits = (3 - v.abs().log10().floor() as i32).clamp(0, 6) as usize;
+        format!("{v:.digits$}")
+    } else {
+        format!("{v:.3e}")
+    }
+}
+
 /// A TOML input that does not parse (a syntax error, a missing, unknown or mistyped key).
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 #[error("{}{message}", place(*at))]

@@ -310,7 +310,12 @@ fn output_dir(flag: &'static str, path: &Path) -> Result<(), Error> {
             rule: "is not a directory".into(),
         });
     }
-    Ok(())
+    // Made and tried now: a directory that cannot be written fails before the run, not after.
+    calfile::check_writable(path).map_err(|e| Error::Argument {
+        flag,
+        value: path.display().to_string(),
+        rule: format!("cannot be written ({e})"),
+    })
 }
 
 /// The plant file (or the built-in paper rig), for a virtual drive: its host configures the

@@ -8,7 +8,7 @@
 use estimator_core::rig::Rig;
 use serde::{Deserialize, Serialize};
 
-use crate::input::show;
+use crate::input::{approx, show};
 
 /// The embedded default preset (the paper's rig, Table 1, tuned to section 4's observations).
 pub const PAPER_RIG_TOML: &str = include_str!("../presets/paper-rig.toml");
@@ -379,7 +379,8 @@ impl PlantParams {
         c.nonneg("motor.viscous_nm_s_per_rad", m.viscous_nm_s_per_rad);
         c.nonneg("motor.coulomb_nm", m.coulomb_nm);
         let a = &self.amplifier;
-        c.pos("amplifier.current_lag_s", a.current_lag_s);
+        // A current loop slower than 0.1 s is not a servo amplifier.
+        c.range("amplifier.current_lag_s", a.current_lag_s, 1e-9, 0.1);
         c.pos("amplifier.current_limit_a", a.current_limit_a);
         let g = &self.gearbox;
         c.range("gearbox.ratio", g.ratio, 1e-3, 1e4);
@@ -492,9 +493,18 @@ impl PlantParams {
         for (name, waves) in [("abbe.eps_y", &ab.eps_y), ("abbe.eps_z", &ab.eps_z)] {
             for w in waves.iter() {
                 c.range(name, w.amplitude_rad, 0.0, 1e-2);
-                c.pos(name, w.wavelength_m);
+                // Guide waviness: shorter waves than a millimetre are the scale's noise, and
+                // x / wavelength must stay a number the sine can take.
+                c.range(name, w.wavelength_m, 1e-3, 1e3);
                 c.finite(name, w.phase_rad);
             }
+            // The pitch or yaw all waves add up to, not only each.
+            let sum: f64 = waves.iter().map(|w| w.amplitude_rad).sum();
+            c.test(
+                name,
+                sum <= 1e-2,
+                &format!("the amplitudes add up to {} rad: at most 0.01", approx(sum)),
+            );
         }
         let v = &self.variation;
         c.range(
@@ -525,18 +535,53 @@ impl PlantParams {
         let h = self.integration.max_substep_s;
         c.range("integration.max_substep_s", h, 1e-7, 1e-3);
         if c.err.is_none() {
+            // The drive must be able to move the carriage at all: at the amplifier's limit the
+            // motor pushes the belt with more than the friction of guide and motor.
+            let r = self.nominal_radius_m();
+            let n = self.gearbox.ratio;
+            let push_n = m.torque_constant_nm_per_a * a.current_limit_a * n / r;
+            let friction_n = k.coulomb_n * (1.0 + k.coulomb_ripple) + m.coulomb_nm * n / r;
+            c.test(
+                "motor.torque_constant_nm_per_a",
+                push_n > friction_n,
+                &format!(
+                    "with amplifier.current_limit_a the motor pushes the carriage with at most {} \
+                     N, not more than the friction of guide and motor ({} N): the drive cannot \
+                     move it",
+                    approx(push_n),
+                    approx(friction_n)
+                ),
+            );
+            // The gearbox must carry that friction without winding up by a large angle.
+            let windup_rad = friction_n * r / g.stiffness_nm_per_rad;
+            c.test(
+                "gearbox.stiffness_nm_per_rad",
+                windup_rad < 0.1,
+                &format!(
+                    "winds up {} rad under the carriage's friction: at most 0.1",
+                    approx(windup_rad)
+                ),
+            );
+        }
+        if c.err.is_none() {
             // Explicit (symplectic) update of the stiffest contact: keep omega * h well below 2.
             let w = self.stiffest_mode_rad_s();
             c.test(
                 "integration.max_substep_s",
                 w * h < 0.5,
-                &format!("too long for the stiffest mode ({w:.0} rad/s): need omega * h < 0.5"),
+                &format!(
+                    "too long for the stiffest mode ({} rad/s): need omega * h < 0.5",
+                    approx(w)
+                ),
             );
             let d = self.fastest_damping_rate_per_s();
             c.test(
                 "integration.max_substep_s",
                 d * h < 1.0,
-                &format!("too long for the contact damping ({d:.0} /s): need c h / m < 1"),
+                &format!(
+                    "too long for the fastest damping ({} /s): need c h / m < 1",
+                    approx(d)
+                ),
             );
         }
         c.err.map_or(Ok(()), Err)
@@ -581,12 +626,24 @@ impl PlantParams {
             .span_stiffness_n_per_m(self.carriage.travel_min_m)
             .max(self.span_stiffness_n_per_m(self.carriage.travel_max_m));
         let belt = (self.belt.tooth_stiffness_n_per_m + k_span) / m_belt;
-        let gear = self.gearbox.stiffness_nm_per_rad / self.gearbox.output_inertia_kg_m2
+        let rotor_at_output =
+            self.motor.rotor_inertia_kg_m2 * self.gearbox.ratio * self.gearbox.ratio;
+        let gear = self.gearbox.stiffness_nm_per_rad
+            * (1.0 / self.gearbox.output_inertia_kg_m2 + 1.0 / rotor_at_output)
             + self.belt.tooth_stiffness_n_per_m / m_pulley;
         // The spans between the belt and the carriage (only a light carriage makes it the
         // stiffest).
         let carriage = k_span * (1.0 / m_belt + 1.0 / self.carriage.mass_kg);
-        tooth.max(belt).max(gear).max(carriage).sqrt()
+        // The bristles between pulley and belt: their force is explicit although their state
+        // is advanced exactly; stiffness F-bar alpha sigma_0 near mu = 0 (eq. 10). The paper
+        // rig's is 3,400 rad/s; at about 2 / h the run goes wrong (sigma_0 1e6 /m at 20 us).
+        let bristle = self.belt.preload_n * self.pulley.wrap_angle_rad * self.friction.sigma0_per_m;
+        let bristles = if self.friction.enabled {
+            bristle * (1.0 / m_pulley + 1.0 / m_belt)
+        } else {
+            0.0
+        };
+        tooth.max(belt).max(gear).max(carriage).max(bristles).sqrt()
     }
 
     /// Largest `c / m` of the explicit dampers on the lumped belt and the pulley; the friction's
@@ -605,7 +662,11 @@ impl PlantParams {
         let pulley = c_contact / m_pulley
             + self.gearbox.damping_nm_s_per_rad / self.gearbox.output_inertia_kg_m2;
         let carriage = self.belt.span_damping_n_s_per_m / self.carriage.mass_kg;
-        belt.max(pulley).max(carriage)
+        // The motor's own viscous friction and the gearbox's damping on the rotor side.
+        let n2 = self.gearbox.ratio * self.gearbox.ratio;
+        let motor = (self.motor.viscous_nm_s_per_rad + self.gearbox.damping_nm_s_per_rad / n2)
+            / self.motor.rotor_inertia_kg_m2;
+        belt.max(pulley).max(carriage).max(motor)
     }
 }
 
@@ -717,6 +778,69 @@ mod tests {
             .unwrap_err()
             .to_string()
             .starts_with("friction.mu_static:"));
+        // Plants the simulator cannot run, or the drive cannot move, are refused by the field
+        // at fault (each of these once exited 0 with a frozen carriage or ended in a drive
+        // fault blamed on the scenario).
+        let refused = |edit: &dyn Fn(&mut PlantParams), field: &str, why: &str| {
+            let mut p = PlantParams::paper_rig();
+            edit(&mut p);
+            let e = p.validate().unwrap_err().to_string();
+            assert!(
+                e.starts_with(&format!("{field}:")) && e.contains(why),
+                "{e}"
+            );
+        };
+        // Stiff bristles: sigma_0 1e6 /m went 0.28 mm wrong at 20 us and is right at 5 us.
+        refused(
+            &|p| p.friction.sigma0_per_m = 1e6,
+            "integration.max_substep_s",
+            "stiffest mode",
+        );
+        let mut p = PlantParams::paper_rig();
+        p.friction.sigma0_per_m = 1e6;
+        p.integration.max_substep_s = 5e-6;
+        p.validate().unwrap();
+        refused(
+            &|p| p.motor.viscous_nm_s_per_rad = 4.0,
+            "integration.max_substep_s",
+            "fastest damping",
+        );
+        refused(
+            &|p| p.motor.torque_constant_nm_per_a = 1e-6,
+            "motor.torque_constant_nm_per_a",
+            "the drive cannot move it",
+        );
+        refused(
+            &|p| p.amplifier.current_limit_a = 1e-3,
+            "motor.torque_constant_nm_per_a",
+            "the drive cannot move it",
+        );
+        refused(
+            &|p| p.gearbox.stiffness_nm_per_rad = 1e-3,
+            "gearbox.stiffness_nm_per_rad",
+            "winds up",
+        );
+        refused(
+            &|p| p.abbe.eps_y[0].wavelength_m = 5e-324,
+            "abbe.eps_y",
+            "must be in [0.001, 1000]",
+        );
+        refused(
+            &|p| {
+                let w = p.abbe.eps_y[0].clone();
+                p.abbe.eps_y = vec![w; 4];
+                for w in &mut p.abbe.eps_y {
+                    w.amplitude_rad = 4e-3;
+                }
+            },
+            "abbe.eps_y",
+            "add up to 0.016",
+        );
+        refused(
+            &|p| p.amplifier.current_lag_s = 1.0,
+            "amplifier.current_lag_s",
+            "must be in",
+        );
         // A file's errors name it.
         let e = PlantParams::load(std::path::Path::new("/nonexistent/plant.toml")).unwrap_err();
         assert!(matches!(e, ParamsError::Io { .. }), "{e:?}");

@@ -87,6 +87,10 @@ pub enum RunError {
         faults: Faults,
         /// Simulated time of the fault, seconds.
         t_s: f64,
+        /// The move under way (counted from 1; 0 before the first) and the number of moves.
+        move_n: usize,
+        /// See `move_n`.
+        moves: usize,
     },
     /// The scenario did not finish within its time budget.
     Timeout {
@@ -109,8 +113,18 @@ impl std::fmt::Display for RunError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             RunError::Control(e) => write!(f, "{e}"),
-            RunError::Fault { faults, t_s } => {
-                write!(f, "drive fault {faults} at t = {t_s:.4} s")
+            RunError::Fault {
+                faults,
+                t_s,
+                move_n,
+                moves,
+            } => {
+                write!(f, "drive fault {faults} at t = {t_s:.4} s")?;
+                if *move_n == 0 {
+                    write!(f, ", before the first move")
+                } else {
+                    write!(f, ", in move {move_n} of {moves}")
+                }
             }
             RunError::Timeout { t_s, move_n, moves } => write!(
                 f,
@@ -244,6 +258,8 @@ pub fn run(
             return Err(RunError::Fault {
                 faults: tel.faults,
                 t_s: t,
+                move_n: next,
+                moves: scenario.moves.len(),
             });
         }
         if last_sp != i32::MIN && tel.setpoint_counts.0 != last_sp {

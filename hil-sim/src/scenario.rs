@@ -349,6 +349,16 @@ impl Scenario {
             value: show(v),
             rule: rule.to_string(),
         };
+        // The name goes into messages, tables and file names: printable, one line.
+        if self.name.is_empty() || self.name.len() > 200 || self.name.chars().any(char::is_control)
+        {
+            return Err(ScenarioError::Field {
+                move_n: None,
+                field: "name",
+                value: format!("{:?}", self.name.chars().take(40).collect::<String>()),
+                rule: "must be 1 to 200 bytes without control characters".into(),
+            });
+        }
         if !travel(self.start_mm) {
             return Err(field(
                 None,
@@ -470,6 +480,17 @@ mod tests {
         let e = Scenario::load("no-such-file.toml").unwrap_err();
         assert!(matches!(e, ScenarioError::Io { .. }), "{e:?}");
         assert!(e.to_string().contains("fig18"), "{e}");
+        for name in ["''", "\"a\\u001b[31mred\"", "\"two\\nlines\""] {
+            let bad = format!(
+                "name={name}\nstart_mm=10\n[[move]]\nto_mm=20\nvelocity_mm_s=1\naccel_mm_s2=100\n"
+            );
+            let e = Scenario::from_toml_str(&bad).unwrap_err().to_string();
+            assert!(
+                e.starts_with("name = ") && e.contains("control characters"),
+                "{e}"
+            );
+            assert!(!e.contains('\u{1b}') && !e.contains('\n'), "{e}");
+        }
         let empty = "name='x'\nstart_mm=10\nmove=[]\n";
         assert!(matches!(
             Scenario::from_toml_str(empty).unwrap_err(),

@@ -72,6 +72,10 @@ pub struct Faults {
     pub first_crc_error: bool,
     /// Skip this records frame (a loss on the way).
     pub drop_records_seq: Option<u32>,
+    /// Refuse to record.
+    pub refuse_record: bool,
+    /// Acknowledge a recording and stream nothing.
+    pub mute_records: bool,
 }
 
 /// A small drive: enough state for status, config, moves and recording.
@@ -228,6 +232,11 @@ impl FakeDrive {
                     }
                 }
             }
+            Request::Record { every_n_ticks } if self.faults.refuse_record => Reply::Error {
+                of: k,
+                reason: LinkError::Refused,
+                detail: every_n_ticks as u8,
+            },
             Request::Record { every_n_ticks } => {
                 self.recording_every = every_n_ticks;
                 self.records_seq = 0;
@@ -240,7 +249,7 @@ impl FakeDrive {
 
     /// What the drive sends on its own every few milliseconds: a records frame while recording.
     pub fn stream(&mut self) -> Vec<u8> {
-        if self.recording_every == 0 {
+        if self.recording_every == 0 || self.faults.mute_records {
             return Vec::new();
         }
         let every = self.recording_every;
