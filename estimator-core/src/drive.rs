@@ -181,6 +181,8 @@ pub struct Drive {
     counter_flips: CounterFlips,
     /// The previous tick's command in the drive's frame.
     prev_current_a: I16F16,
+    /// Its acceleration feed-forward, which the stall detector does not count as effort.
+    prev_accel_ff_a: I16F16,
     /// Ticks without a valid frame left before `LINK_TIMEOUT` (link watchdog): the timeout at
     /// every frame and every stop, counted down while enabled; 0 when off or tripped.
     link_ticks_left: u32,
@@ -545,6 +547,7 @@ impl Drive {
             homed: false,
             faults: Faults::NONE,
             prev_current_a: I16F16::ZERO,
+            prev_accel_ff_a: I16F16::ZERO,
             prev_saturated: false,
             link_ticks_left: p.monitor.link_timeout_ticks(),
             missed_ticks: 0,
@@ -1077,6 +1080,7 @@ impl Drive {
         self.pid_state.reset();
         self.monitor_state.restart_at(x);
         self.prev_current_a = I16F16::ZERO;
+        self.prev_accel_ff_a = I16F16::ZERO;
         self.prev_saturated = false;
         self.link_ticks_left = self.monitor.link_timeout_ticks();
     }
@@ -1117,6 +1121,7 @@ impl Drive {
         }
 
         let mut current_a = I16F16::ZERO;
+        let mut accel_ff_a = I16F16::ZERO;
         let mut saturated = false;
         let mut following_error_counts = 0;
         let mut setpoint_counts = x;
@@ -1139,6 +1144,7 @@ impl Drive {
                     self.faults.0 |= Faults::FOLLOWING_ERROR;
                 } else {
                     current_a = out.current_a;
+                    accel_ff_a = out.accel_feedforward_a;
                     saturated = out.saturated;
                 }
                 self.faults.0 |= fault::check(
@@ -1147,6 +1153,7 @@ impl Drive {
                     fault::Inputs {
                         position_counts: x,
                         prev_current_a: self.prev_current_a,
+                        prev_accel_ff_a: self.prev_accel_ff_a,
                         prev_saturated: self.prev_saturated,
                     },
                 );
@@ -1158,10 +1165,12 @@ impl Drive {
             self.enabled = false;
             self.homing = false;
             current_a = I16F16::ZERO;
+            accel_ff_a = I16F16::ZERO;
             saturated = false;
             self.hold_here();
         }
         self.prev_current_a = current_a;
+        self.prev_accel_ff_a = accel_ff_a;
         self.prev_saturated = saturated;
 
         let est_error_um = model::estimate_with_current(

@@ -268,6 +268,9 @@ pub struct Output {
     pub following_error_counts: I24F8,
     /// The unclamped command exceeded ±max_current.
     pub saturated: bool,
+    /// The acceleration feed-forward's share of the command (unclamped): the current the
+    /// setpoint's acceleration asks for, which the stall detector does not count as effort.
+    pub accel_feedforward_a: I16F16,
 }
 
 /// Saturates to `±limit` (`limit >= 0`); `max`/`min` rather than `clamp`, which has a panic
@@ -450,6 +453,7 @@ impl Coeffs {
             following_error_counts: I24F8::from_bits(error_f8),
             // Outside `±limit` exactly when the clamp changed it.
             saturated: current_f16 != total,
+            accel_feedforward_a: I16F16::from_bits(a_ff),
         }
     }
 }

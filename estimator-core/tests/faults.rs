@@ -55,6 +55,7 @@ fn first_trip(
             Inputs {
                 position_counts: x,
                 prev_current_a: current,
+                prev_accel_ff_a: I16F16::ZERO,
                 prev_saturated: saturated,
             },
         );
@@ -108,6 +109,37 @@ fn stall_trips_at_the_configured_time_and_not_below_its_current() {
 }
 
 #[test]
+fn the_acceleration_feed_forward_is_not_stall_effort() {
+    // A dither of a few um at 5000 mm/s²: 4.6 A of feed-forward each tick, alternating, and
+    // the motor within the dead band. Only the current beyond the feed-forward counts.
+    let c = coeffs(fault::Config {
+        stall_time_s: 0.015,
+        stall_current_a: 2.0,
+        ..quiet()
+    });
+    let run = |beyond_a: f64| {
+        let mut s = State::new();
+        (0..400).find(|&k| {
+            let sign = if k % 2 == 0 { 1.0 } else { -1.0 };
+            fault::check(
+                &c,
+                &mut s,
+                Inputs {
+                    position_counts: 1234 + (k % 2) as i32,
+                    prev_current_a: amps(sign * (4.6 + beyond_a)),
+                    prev_accel_ff_a: amps(sign * 4.6),
+                    prev_saturated: false,
+                },
+            ) != 0
+        })
+    };
+    assert_eq!(run(0.0), None);
+    assert_eq!(run(1.9), None);
+    // Effort beyond it still trips, at the configured time.
+    within_a_tick(run(2.0).map(|k| k + 1), 30);
+}
+
+#[test]
 fn saturation_trips_after_its_time_net_of_unsaturated_ticks() {
     let c = coeffs(fault::Config {
         saturation_time_s: 0.03,
@@ -126,6 +158,7 @@ fn saturation_trips_after_its_time_net_of_unsaturated_ticks() {
             Inputs {
                 position_counts: x,
                 prev_current_a: amps(8.0),
+                prev_accel_ff_a: I16F16::ZERO,
                 prev_saturated: k % 2 == 0,
             },
         );
@@ -436,6 +469,7 @@ fn a_hold_primes_the_window_as_the_first_tick_would() {
         let input = Inputs {
             position_counts: x,
             prev_current_a: amps(0.5),
+            prev_accel_ff_a: I16F16::ZERO,
             prev_saturated: false,
         };
         let (mut fresh, mut held) = (State::new(), State::new());
