@@ -349,14 +349,22 @@ impl Scenario {
             value: show(v),
             rule: rule.to_string(),
         };
-        // The name goes into messages, tables and file names: printable, one line.
-        if self.name.is_empty() || self.name.len() > 200 || self.name.chars().any(char::is_control)
+        // The name goes into messages, tables and file names (`report` writes `NAME.csv`):
+        // printable, one line, no path separator.
+        if self.name.is_empty()
+            || self.name.len() > 200
+            || self
+                .name
+                .chars()
+                .any(|c| c.is_control() || c == '/' || c == '\\')
         {
             return Err(ScenarioError::Field {
                 move_n: None,
                 field: "name",
                 value: format!("{:?}", self.name.chars().take(40).collect::<String>()),
-                rule: "must be 1 to 200 bytes without control characters".into(),
+                rule: "must be 1 to 200 bytes without control characters or path separators \
+                       (it names files)"
+                    .into(),
             });
         }
         if !travel(self.start_mm) {
@@ -480,7 +488,13 @@ mod tests {
         let e = Scenario::load("no-such-file.toml").unwrap_err();
         assert!(matches!(e, ScenarioError::Io { .. }), "{e:?}");
         assert!(e.to_string().contains("fig18"), "{e}");
-        for name in ["''", "\"a\\u001b[31mred\"", "\"two\\nlines\""] {
+        for name in [
+            "''",
+            "\"a\\u001b[31mred\"",
+            "\"two\\nlines\"",
+            "'../../outside'",
+            "'a\\b'",
+        ] {
             let bad = format!(
                 "name={name}\nstart_mm=10\n[[move]]\nto_mm=20\nvelocity_mm_s=1\naccel_mm_s2=100\n"
             );
