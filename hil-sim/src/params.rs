@@ -540,7 +540,8 @@ impl PlantParams {
             let r = self.nominal_radius_m();
             let n = self.gearbox.ratio;
             let push_n = m.torque_constant_nm_per_a * a.current_limit_a * n / r;
-            let friction_n = k.coulomb_n * (1.0 + k.coulomb_ripple) + m.coulomb_nm * n / r;
+            let guide_n = k.coulomb_n * (1.0 + k.coulomb_ripple);
+            let friction_n = guide_n + m.coulomb_nm * n / r;
             c.test(
                 "motor.torque_constant_nm_per_a",
                 push_n > friction_n,
@@ -552,8 +553,8 @@ impl PlantParams {
                     approx(friction_n)
                 ),
             );
-            // The gearbox must carry that friction without winding up by a large angle.
-            let windup_rad = friction_n * r / g.stiffness_nm_per_rad;
+            // The gearbox must carry the guide's friction without winding up by a large angle.
+            let windup_rad = guide_n * r / g.stiffness_nm_per_rad;
             c.test(
                 "gearbox.stiffness_nm_per_rad",
                 windup_rad < 0.1,
@@ -637,9 +638,11 @@ impl PlantParams {
         // The bristles between pulley and belt: their force is explicit although their state
         // is advanced exactly; stiffness F-bar alpha sigma_0 near mu = 0 (eq. 10). The paper
         // rig's is 3,400 rad/s; at about 2 / h the run goes wrong (sigma_0 1e6 /m at 20 us).
-        let bristle = self.belt.preload_n * self.pulley.wrap_angle_rad * self.friction.sigma0_per_m;
         let bristles = if self.friction.enabled {
-            bristle * (1.0 / m_pulley + 1.0 / m_belt)
+            self.belt.preload_n
+                * self.pulley.wrap_angle_rad
+                * self.friction.sigma0_per_m
+                * (1.0 / m_pulley + 1.0 / m_belt)
         } else {
             0.0
         };
