@@ -55,6 +55,15 @@
 //!   micrometre (with a fitted weight, scaling `h`, `z_max` and the loads by `s` and the weight by
 //!   `1 / s` changes only the travel limits).
 //!
+//! - `span-carriage`: the carriage on the spans as its own body. It follows the belt (the pulley
+//!   less the observer's `g`, one tick late), not the motor, through a fitted natural frequency
+//!   and damping, sticks under the guide's Coulomb friction (fitted as the span stretch that
+//!   balances it), and loads the belt by the span's stretch, weighted (fitted, from 0). With
+//!   `OBS_REST` in the environment it adds `rest-preslide`, with `OBS_BRAKE` `braking-slip`.
+//!
+//! `OBS_EXTRA=1,2,3` in the environment adds those paper models' estimates (um) to Model 4's
+//! least-squares terms (an ensemble of Model 4 and the paper's models), for every variant.
+//!
 //! `cargo run --profile ci -p hil-sim --example observer_variants -- [plant-name-part or N]
 //! [variant,...] [plan-seed]` (about 10 s to record and calibrate a plant, then about 20 s per
 //! refitted variant). The plan seed draws another default calibration plan (as `hil-sim
@@ -62,6 +71,7 @@
 #![allow(clippy::print_stdout)]
 
 use estimator_core::model::slip::SlipParams;
+use estimator_core::model::ModelKind;
 use estimator_core::reference::Reference;
 use hil_sim::calibrate::model4_row;
 use hil_sim::eval;
@@ -99,10 +109,11 @@ enum Variant {
     SlipPersist,
     CvStarts,
     CarriageSwing,
+    SpanCarriage,
 }
 
 impl Variant {
-    const ALL: [(Variant, &'static str); 18] = [
+    const ALL: [(Variant, &'static str); 19] = [
         (Variant::AsIs, "as-is"),
         (Variant::Refit, "refit"),
         (Variant::BrakingSlip, "braking-slip"),
@@ -121,6 +132,7 @@ impl Variant {
         (Variant::SlipPersist, "slip-persist"),
         (Variant::CvStarts, "cv-starts"),
         (Variant::CarriageSwing, "carriage-swing"),
+        (Variant::SpanCarriage, "span-carriage"),
     ];
 
     /// Start and initial step of the coordinates beyond the six of `SlipParams`.
@@ -130,6 +142,9 @@ impl Variant {
             Variant::Carriage | Variant::CarriageSwing => {
                 (&[0.0, 15.0, 0.5, 0.0], &[0.1, 5.0, 0.3, 0.2])
             }
+            // Load per um of span stretch, natural frequency Hz, damping ratio, the guide's
+            // friction as the span stretch that balances it (um).
+            Variant::SpanCarriage => (&[0.0, 20.0, 0.3, 20.0], &[0.3, 5.0, 0.15, 10.0]),
             // Load per um/tick² of pulley acceleration (scaled by 1000).
             Variant::EncoderAccel => (&[0.0], &[0.03]),
             // Half-width of the slip ramp around the limit, as a fraction of it.
@@ -175,6 +190,11 @@ struct Obs {
     damping: f64,
     speed_weight: f64,
     accel_weight: f64,
+    /// The carriage on the spans follows the belt (not the motor), sticks under the guide's
+    /// Coulomb friction, and loads the belt by the span's stretch.
+    span: bool,
+    /// The guide's friction as a span stretch, um.
+    friction_um: f64,
     /// The current through a median of three before the low pass.
     median: bool,
     /// Ticks the load must stay beyond the limit before gross slip starts (1: at once).
@@ -209,6 +229,8 @@ impl Obs {
             speed_weight: 0.0,
             accel_weight: 0.0,
             median: variant == Variant::MedianCurrent,
+            span: variant == Variant::SpanCarriage,
+            friction_um: 0.0,
             persist: if variant == Variant::SlipPersist {
                 std::env::var("OBS_PERSIST")
                     .ok()
@@ -224,6 +246,14 @@ impl Obs {
                 o.natural_hz = v[7].abs().clamp(5.0, 60.0);
                 o.damping = v[8].abs().clamp(0.3, 3.0);
                 o.speed_weight = v[9];
+            }
+            Variant::SpanCarriage => {
+                o.lag_weight = v[6].abs();
+                o.natural_hz = v[7].abs().clamp(3.0, 80.0);
+                o.damping = v[8].abs().clamp(0.02, 3.0);
+                o.friction_um = v[9].abs().min(500.0);
+                o.rest_preslide = std::env::var("OBS_REST").is_ok();
+                o.braking_slip = std::env::var("OBS_BRAKE").is_ok();
             }
             Variant::EncoderAccel => o.accel_weight = v[6],
             Variant::SoftSlip => o.ramp = v[6].abs().clamp(0.01, 0.5),
@@ -266,9 +296,35 @@ impl Obs {
             lp += (current - lp) / 4.0;
             slow += (lp - slow) / f64::from(1u32 << self.slow_shift);
             let v = ds * um_per_count;
-            let lag_now = lag + v;
-            v_carriage += w2 * lag_now + c * (v - v_carriage);
-            lag = lag_now - v_carriage;
+            if self.span {
+                // The belt moves with the pulley less the change of the offset (b = P - g),
+                // one tick late; `lag` is the span's stretch b - x_c.
+                let g_prev = out[i - 1];
+                let g_prev2 = if i >= 2 { out[i - 2] } else { g_prev };
+                let v_belt = v - (g_prev - g_prev2);
+                let trial = v_carriage + w2 * lag + c * (v_belt - v_carriage);
+                let friction = w2 * self.friction_um;
+                v_carriage = if v_carriage == 0.0 && trial.abs() <= friction {
+                    0.0
+                } else {
+                    let dir = if v_carriage != 0.0 {
+                        v_carriage.signum()
+                    } else {
+                        trial.signum()
+                    };
+                    let next = trial - friction * dir;
+                    if next * trial < 0.0 && v_carriage != 0.0 {
+                        0.0
+                    } else {
+                        next
+                    }
+                };
+                lag += v_belt - v_carriage;
+            } else {
+                let lag_now = lag + v;
+                v_carriage += w2 * lag_now + c * (v - v_carriage);
+                lag = lag_now - v_carriage;
+            }
             accel += (v - v_prev - accel) / 4.0;
             v_prev = v;
             let k = r.forward[i] as usize;
@@ -474,8 +530,24 @@ fn main() {
     let traces =
         eval::record_calibration(&plant, plan_seed, &[], &mut |_, _| {}).expect("recordings");
     let cal = hil_sim::calibrate::calibrate(&traces, &rig, &mut |_, _| {}).expect("calibration");
+    // `OBS_EXTRA=1,3` adds those paper models' estimates (um) to Model 4's terms.
+    let extra: Vec<ModelKind> = std::env::var("OBS_EXTRA")
+        .unwrap_or_default()
+        .split(',')
+        .filter_map(|k| match k {
+            "1" => Some(ModelKind::Linear),
+            "2" => Some(ModelKind::Exponential),
+            "3" => Some(ModelKind::Table),
+            _ => None,
+        })
+        .collect();
     let prepare = |t: &Trace| -> Run {
-        let mut m = Reference::new(&cal.params, &rig, t.records[0].motor_counts.0).expect("ref");
+        let x0 = t.records[0].motor_counts.0;
+        let mut m = Reference::new(&cal.params, &rig, x0).expect("ref");
+        let mut paper: Vec<Reference> = extra
+            .iter()
+            .map(|_| Reference::new(&cal.params, &rig, x0).expect("ref"))
+            .collect();
         let mut r = Run {
             name: t.scenario.clone(),
             x_counts: Vec::new(),
@@ -490,7 +562,11 @@ fn main() {
             r.x_counts.push(rec.motor_counts.0);
             r.current_a.push(current);
             r.forward.push(f.forward);
-            r.rows.push(model4_row(&f, cpm).to_vec());
+            let mut row = model4_row(&f, cpm).to_vec();
+            for (p, &kind) in paper.iter_mut().zip(&extra) {
+                row.push(p.estimate_um(kind, rec.motor_counts.0));
+            }
+            r.rows.push(row);
             r.dx_um.push(t.dx_um(k));
         }
         r

@@ -5,10 +5,18 @@
 /// enough that a wrong path (a device, a disk image) is refused instead of filling memory.
 pub const MAX_INPUT_BYTES: u64 = 256 << 20;
 
+/// Largest text input (TOML, JSON), bytes. Parsing takes about 35 times a scenario's size in
+/// memory, so this bounds a parse to about 0.6 GB; 16 MiB holds some 200,000 moves.
+pub const MAX_TEXT_BYTES: u64 = 16 << 20;
+
 /// The bytes of the file at `path`, at most [`MAX_INPUT_BYTES`]: a larger one, or a device
 /// that never ends (`/dev/zero` was read until memory ran out), is an error. A pipe or
 /// `/dev/stdin` is read like a file; a directory is an error.
 pub fn read_file(path: impl AsRef<std::path::Path>) -> std::io::Result<Vec<u8>> {
+    read_at_most(path, MAX_INPUT_BYTES)
+}
+
+fn read_at_most(path: impl AsRef<std::path::Path>, max_bytes: u64) -> std::io::Result<Vec<u8>> {
     use std::io::{Error, ErrorKind, Read};
     // Asked before opening: what it is decides nothing else, and a directory needs no open.
     if std::fs::metadata(&path)?.is_dir() {
@@ -17,22 +25,19 @@ pub fn read_file(path: impl AsRef<std::path::Path>) -> std::io::Result<Vec<u8>> 
     let file = std::fs::File::open(path)?;
     let mut bytes = Vec::new();
     // The limit holds whatever the file claims to be and if it grows while it is read.
-    file.take(MAX_INPUT_BYTES + 1).read_to_end(&mut bytes)?;
-    if bytes.len() as u64 > MAX_INPUT_BYTES {
+    file.take(max_bytes + 1).read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > max_bytes {
         return Err(Error::new(
             ErrorKind::InvalidData,
-            format!(
-                "larger than {} MiB: not an input file",
-                MAX_INPUT_BYTES >> 20
-            ),
+            format!("larger than {} MiB: not an input file", max_bytes >> 20),
         ));
     }
     Ok(bytes)
 }
 
-/// [`read_file`] as UTF-8 text.
+/// [`read_file`] as UTF-8 text, at most [`MAX_TEXT_BYTES`].
 pub fn read_text(path: impl AsRef<std::path::Path>) -> std::io::Result<String> {
-    String::from_utf8(read_file(path)?).map_err(|_| {
+    String::from_utf8(read_at_most(path, MAX_TEXT_BYTES)?).map_err(|_| {
         std::io::Error::new(
             std::io::ErrorKind::InvalidData,
             "stream did not contain valid UTF-8",
@@ -114,6 +119,8 @@ mod tests {
     fn endless_devices_and_directories_are_not_read() {
         let e = super::read_file("/dev/zero").unwrap_err();
         assert!(e.to_string().contains("larger than 256 MiB"), "{e}");
+        let e = super::read_text("/dev/zero").unwrap_err();
+        assert!(e.to_string().contains("larger than 16 MiB"), "{e}");
         assert_eq!(super::read_file("/dev/null").unwrap(), b"");
         let e = super::read_file(std::env::temp_dir()).unwrap_err();
         assert!(e.to_string().contains("directory"), "{e}");

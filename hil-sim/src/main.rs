@@ -385,8 +385,14 @@ fn warn_outside(scenario: &Scenario, cal: &Calibration) {
     }
 }
 
-fn session(scenario: &str, common: &Common) -> Result<Session, Error> {
+/// `check` sees the scenario before anything runs (a report checks the files it will write).
+fn session(
+    scenario: &str,
+    common: &Common,
+    check: &dyn Fn(&Scenario) -> Result<(), Error>,
+) -> Result<Session, Error> {
     let (scenario, plant) = scenario_and_plant(scenario, &common.plant)?;
+    check(&scenario)?;
     let mut progress = Progress::new();
     let cal = calibration(common, &plant, &mut progress)?;
     warn_outside(&scenario, &cal);
@@ -413,7 +419,7 @@ fn evaluate(scenario: &str, common: &Common, json: bool) -> Result<(), Error> {
         cal,
         trace,
         mut progress,
-    } = session(scenario, common)?;
+    } = session(scenario, common, &|_| Ok(()))?;
     let coeffs = cal.params.build(&plant.rig())?;
     let est = eval::estimates(&trace, &coeffs);
     let table = eval::table3(&trace, &est);
@@ -783,13 +789,21 @@ fn main() -> ExitCode {
             out,
         } => (|| {
             output_dir("--out", &out)?;
+            // The files the report writes whatever happens: an existing directory of that name
+            // fails now, not after the run.
+            let targets = |s: &Scenario| {
+                for file in report::required_files(&s.name) {
+                    output_file("--out", &out.join(file), false)?;
+                }
+                Ok(())
+            };
             let Session {
                 scenario,
                 plant,
                 cal,
                 trace,
                 mut progress,
-            } = session(&scenario, &common)?;
+            } = session(&scenario, &common, &targets)?;
             let how = if common.pil {
                 "firmware under QEMU (PIL)"
             } else {

@@ -130,6 +130,12 @@ pub struct Setting<'a> {
     pub how: &'a str,
 }
 
+/// The files [`write`] must write (a figure that cannot be drawn is named in the report
+/// instead): the report and the trace of `scenario`.
+pub fn required_files(scenario: &str) -> [String; 2] {
+    ["report.md".to_string(), format!("{scenario}.csv")]
+}
+
 /// Runs the scenario, writes report.md, the figures and the CSV into `dir`.
 /// `placed`: the scenario in carriage space per compensator ([`crate::placement::compare`]).
 pub fn write(
@@ -356,11 +362,12 @@ pub fn write(
             crate::errln!("hil-sim: figure not drawn: generalisation.png: {e}");
         }
     }
-    let csv = dir.join(format!("{}.csv", trace.scenario));
+    let [md_name, csv_name] = required_files(&trace.scenario);
+    let csv = dir.join(csv_name);
     let mut w =
         std::io::BufWriter::new(std::fs::File::create(&csv).map_err(|e| Error::io(&csv, e))?);
     write_csv(&mut w, trace).map_err(|e| Error::io(&csv, e))?;
-    let md_path = dir.join("report.md");
+    let md_path = dir.join(md_name);
     std::fs::write(&md_path, md).map_err(|e| Error::io(&md_path, e))?;
     for f in &failures {
         crate::errln!("hil-sim: figure not drawn: {f}");

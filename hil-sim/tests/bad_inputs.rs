@@ -218,8 +218,9 @@ fn the_reported_inputs_are_refused_by_file_move_and_field() {
             "name = \"x\"\nstart_mm = 20.0\n[[move]]\nto_mm = {to}\nvelocity_mm_s = {v}\naccel_mm_s2 = {a}\n{extra}"
         )
     };
+    // 250,000 moves (14.5 MB, under the 16 MiB a text input may have) take longer than a run may.
     let mut many = String::from("name = \"many\"\nstart_mm = 10.0\n");
-    for i in 0..1_000_000 {
+    for i in 0..250_000 {
         many += &format!(
             "[[move]]\nto_mm = {}\nvelocity_mm_s = 250\naccel_mm_s2 = 5000\n",
             10 + i % 2
@@ -267,6 +268,7 @@ fn the_reported_inputs_are_refused_by_file_move_and_field() {
             one("200", "100", "1000", "retarget_after_ms = 50\n"),
             &["move 1", "retarget_after_ms"],
         ),
+        ("huge.toml", many.repeat(2), &["larger than 16 MiB"]),
         ("many.toml", many, &["move", "accel_mm_s2"]),
     ];
     let mut failures = Vec::new();
@@ -587,6 +589,39 @@ fn a_picture_that_cannot_be_written_is_refused_before_measuring() {
         assert!(last.contains("--plot") && last.contains(target), "{last}");
         assert_eq!(std::fs::read(&tables).unwrap().len(), 0, "measured first");
     }
+}
+
+/// `report --out DIR` where the report or its trace would land on a directory is refused by
+/// the option and the file before the run: nothing else is written into `DIR`.
+#[test]
+fn a_report_whose_files_cannot_be_written_is_refused_before_the_run() {
+    let dir = scratch("report_out");
+    let cal = good_calibration().to_str().unwrap().to_string();
+    for file in ["report.md", "repeatability.csv"] {
+        let out_dir = dir.join(file.replace('.', "_"));
+        std::fs::create_dir_all(out_dir.join(file)).unwrap();
+        let out = run(&[
+            "report",
+            "--scenario",
+            "repeatability",
+            "--calibration",
+            &cal,
+            "--out",
+            out_dir.to_str().unwrap(),
+        ]);
+        assert_eq!(out.code, Some(1), "{file}: {}", out.stderr);
+        let last = out.stderr.lines().last().unwrap_or("");
+        assert!(
+            last.contains("--out") && last.contains(file) && last.contains("is a directory"),
+            "{last}"
+        );
+        let written: Vec<_> = std::fs::read_dir(&out_dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(written, [std::ffi::OsString::from(file)], "{file}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// Inputs that passed the checks and then hung, ran into nonsense or blamed another file: each
