@@ -37,9 +37,10 @@ pub struct LinkArgs {
     /// Baud rate (8N1).
     #[arg(long, global = true, default_value_t = port::DEFAULT_BAUD)]
     pub baud: u32,
-    /// Time allowed for each reply, ms. The drive hears nothing while the tool waits: keep it
-    /// below the drive's link watchdog (faults.link_timeout_s, 0.5 s by default).
-    #[arg(long, global = true, default_value_t = 300, value_name = "MS",
+    /// Time allowed for each reply, ms. The drive hears nothing while the tool waits: above
+    /// the default, a wait longer than 0.8 of the drive's link watchdog
+    /// (faults.link_timeout_s, 0.5 s by default) is refused.
+    #[arg(long, global = true, default_value_t = DEFAULT_TIMEOUT_MS, value_name = "MS",
           value_parser = clap::value_parser!(u64).range(1..=600_000))]
     pub timeout_ms: u64,
     /// Tries per request (a request is sent again after a timeout or when it reached the
@@ -204,14 +205,49 @@ fn connect(a: &LinkArgs) -> Result<Link, ToolError> {
     let path = a.port.as_deref().ok_or_else(|| {
         ToolError::Usage("no port given: use --port PATH (e.g. --port /dev/ttyUSB0)".into())
     })?;
-    port::connect(
+    let mut link = port::connect(
         path,
         a.baud,
         LinkOptions {
             timeout: Duration::from_millis(a.timeout_ms),
             tries: a.retries,
         },
-    )
+    )?;
+    if a.timeout_ms > DEFAULT_TIMEOUT_MS {
+        check_timeout(&mut link, a.timeout_ms)?;
+    }
+    Ok(link)
+}
+
+/// The default `--timeout-ms`: within [`WATCHDOG_SHARE`] of the drive's default link watchdog
+/// (0.5 s), so only a longer one is checked against the drive's own (one request more).
+const DEFAULT_TIMEOUT_MS: u64 = 300;
+
+/// The share of the drive's link watchdog a reply may take: the drive hears nothing while the
+/// tool waits, and the request that follows a lost reply must reach it with time to spare.
+const WATCHDOG_SHARE: f64 = 0.8;
+
+/// Refuses a `--timeout-ms` that would let one lost reply trip an enabled drive's link
+/// watchdog (`faults.link_timeout_s`): the motor would stop with `link_timeout` mid-move.
+fn check_timeout(link: &mut Link, timeout_ms: u64) -> Result<(), ToolError> {
+    let field = config::lookup(estimator_core::ConfigField::FaultsLinkTimeoutS.name())
+        .map_err(|e| ToolError::Usage(e.to_string()))?;
+    let watchdog_s = match config::get(link, field) {
+        Ok(v) => v.active,
+        // A drive that does not answer with its configuration: nothing to check against.
+        Err(ToolError::Refused { .. } | ToolError::Drive(_)) => return Ok(()),
+        Err(e) => return Err(e),
+    };
+    let most_ms = (watchdog_s * 1000.0 * WATCHDOG_SHARE).floor();
+    if watchdog_s > 0.0 && timeout_ms as f64 > most_ms {
+        return Err(ToolError::Usage(format!(
+            "--timeout-ms {timeout_ms}: the drive's link watchdog (faults.link_timeout_s) is \
+             {watchdog_s} s, and the drive hears nothing while the tool waits for a reply: one \
+             lost reply would stop an enabled drive; use at most {most_ms} ms or raise \
+             faults.link_timeout_s"
+        )));
+    }
+    Ok(())
 }
 
 fn print_json(v: &serde_json::Value) {

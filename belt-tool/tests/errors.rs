@@ -698,3 +698,31 @@ fn a_refused_or_empty_recording_leaves_an_existing_file_as_it_was() {
         let _ = std::fs::remove_file(csv);
     }
 }
+
+/// A `--timeout-ms` above the default is held against the drive's link watchdog (0.5 s on the
+/// fake): the drive hears nothing while the tool waits, so a lost reply would stop an enabled
+/// drive. Refused by the option with the field and the longest wait it allows, before any
+/// other request; a wait within it works.
+#[test]
+fn a_reply_wait_the_drive_s_link_watchdog_would_not_survive_is_refused() {
+    let p = pty();
+    let path = p.path.clone();
+    let fake = serve(p.master, FakeDrive::new(Faults::default()));
+    let (out, _) = beltctl(&["--port", &path, "--timeout-ms", "450", "status"], LIMIT);
+    let err = assert_clean_failure(&out);
+    for says in [
+        "--timeout-ms 450",
+        "faults.link_timeout_s",
+        "0.5 s",
+        "at most 400 ms",
+    ] {
+        assert!(err.contains(says), "lacks `{says}`: {err}");
+    }
+    let key = estimator_core::ConfigField::FaultsLinkTimeoutS as u8;
+    assert_eq!(
+        fake.drive.lock().unwrap().requests,
+        vec![Request::ConfigGet { key }]
+    );
+    let (out, _) = beltctl(&["--port", &path, "--timeout-ms", "400", "status"], LIMIT);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+}
