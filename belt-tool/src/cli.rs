@@ -11,6 +11,7 @@ use crate::error::ToolError;
 use crate::link::{Link, LinkOptions};
 use crate::ops::{self, Arrival, MoveLimits};
 use crate::{calibrate, config, port, record, status, validate};
+use estimator_core::settings;
 use hil_sim::progress::Progress;
 
 /// beltctl: set up, move, record and calibrate a belt-drive controller over its serial link.
@@ -227,6 +228,26 @@ const DEFAULT_TIMEOUT_MS: u64 = 300;
 /// tool waits, and the request that follows a lost reply must reach it with time to spare.
 const WATCHDOG_SHARE: f64 = 0.8;
 
+/// After a link watchdog was applied that this run's `--timeout-ms` would not survive (a lost
+/// reply would stop an enabled drive): the longest wait to use with this drive from now on.
+fn short_watchdog_warning(
+    applied: &[(&'static settings::Field, f64)],
+    timeout_ms: u64,
+) -> Option<String> {
+    let key = estimator_core::ConfigField::FaultsLinkTimeoutS;
+    applied.iter().find_map(|&(field, watchdog_s)| {
+        let most_ms = (watchdog_s * 1000.0 * WATCHDOG_SHARE).floor();
+        (field.field == key && watchdog_s > 0.0 && timeout_ms as f64 > most_ms).then(|| {
+            format!(
+                "beltctl: {} = {watchdog_s} s: the drive's link watchdog stops an enabled drive \
+                 when one reply is lost within a --timeout-ms of {timeout_ms}; use --timeout-ms \
+                 {most_ms} or less with this drive",
+                key.name()
+            )
+        })
+    })
+}
+
 /// Refuses a `--timeout-ms` that would let one lost reply trip an enabled drive's link
 /// watchdog (`faults.link_timeout_s`): the motor would stop with `link_timeout` mid-move.
 fn check_timeout(link: &mut Link, timeout_ms: u64) -> Result<(), ToolError> {
@@ -310,6 +331,7 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
     let mut link = connect(&cli.link)?;
     let link = &mut link;
     let json = cli.json;
+    let timeout_ms = cli.link.timeout_ms;
     match cli.cmd {
         Cmd::Status => {
             let s = link.status()?;
@@ -408,10 +430,16 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
             ConfigCmd::Set { .. } => {
                 config::set_and_apply(link, &set_values, "config set")?;
                 hil_sim::outln!("applied {}", values(set_values.len()));
+                if let Some(w) = short_watchdog_warning(&set_values, timeout_ms) {
+                    hil_sim::errln!("{w}");
+                }
             }
             ConfigCmd::Load { file } => {
                 config::set_and_apply(link, &load, &file.display().to_string())?;
                 hil_sim::outln!("applied {} from {}", values(load.len()), file.display());
+                if let Some(w) = short_watchdog_warning(&load, timeout_ms) {
+                    hil_sim::errln!("{w}");
+                }
             }
             ConfigCmd::Save => {
                 config::require_disabled(link, "saving")?;
@@ -711,5 +739,26 @@ mod tests {
         for bad in ["nan", "NaN", "inf", "-inf", "0", "-1", "0.0009", "", "ten"] {
             assert!(super::cap_value(bad).is_err(), "{bad}");
         }
+    }
+
+    /// A link watchdog applied below what this run's wait survives is warned about, with the
+    /// longest wait to use; one that leaves room, one switched off (0) and other fields are not.
+    #[test]
+    fn a_link_watchdog_shorter_than_the_reply_wait_is_warned_about() {
+        let f = |name| crate::config::lookup(name).unwrap();
+        let watchdog = f("faults.link_timeout_s");
+        let w = super::short_watchdog_warning(&[(f("pid.kp_a_per_mm"), 0.1), (watchdog, 0.2)], 300)
+            .expect("a warning");
+        for says in [
+            "faults.link_timeout_s = 0.2 s",
+            "--timeout-ms of 300",
+            "160 or less",
+        ] {
+            assert!(w.contains(says), "lacks `{says}`: {w}");
+        }
+        assert!(super::short_watchdog_warning(&[(watchdog, 0.2)], 160).is_none());
+        assert!(super::short_watchdog_warning(&[(watchdog, 0.5)], 300).is_none());
+        assert!(super::short_watchdog_warning(&[(watchdog, 0.0)], 300).is_none());
+        assert!(super::short_watchdog_warning(&[(f("pid.kp_a_per_mm"), 0.2)], 300).is_none());
     }
 }
