@@ -228,6 +228,13 @@ const DEFAULT_TIMEOUT_MS: u64 = 300;
 /// tool waits, and the request that follows a lost reply must reach it with time to spare.
 const WATCHDOG_SHARE: f64 = 0.8;
 
+/// The longest reply wait a link watchdog of `watchdog_s` survives, when `timeout_ms` is
+/// longer; `None` when it is within it or the watchdog is off (0).
+fn longest_wait_ms(watchdog_s: f64, timeout_ms: u64) -> Option<f64> {
+    let most_ms = (watchdog_s * 1000.0 * WATCHDOG_SHARE).floor();
+    (watchdog_s > 0.0 && timeout_ms as f64 > most_ms).then_some(most_ms)
+}
+
 /// After a link watchdog was applied that this run's `--timeout-ms` would not survive (a lost
 /// reply would stop an enabled drive): the longest wait to use with this drive from now on.
 fn short_watchdog_warning(
@@ -236,8 +243,8 @@ fn short_watchdog_warning(
 ) -> Option<String> {
     let key = estimator_core::ConfigField::FaultsLinkTimeoutS;
     applied.iter().find_map(|&(field, watchdog_s)| {
-        let most_ms = (watchdog_s * 1000.0 * WATCHDOG_SHARE).floor();
-        (field.field == key && watchdog_s > 0.0 && timeout_ms as f64 > most_ms).then(|| {
+        let most_ms = longest_wait_ms(watchdog_s, timeout_ms)?;
+        (field.field == key).then(|| {
             format!(
                 "beltctl: {} = {watchdog_s} s: the drive's link watchdog stops an enabled drive \
                  when one reply is lost within a --timeout-ms of {timeout_ms}; use --timeout-ms \
@@ -259,8 +266,7 @@ fn check_timeout(link: &mut Link, timeout_ms: u64) -> Result<(), ToolError> {
         Err(ToolError::Refused { .. } | ToolError::Drive(_)) => return Ok(()),
         Err(e) => return Err(e),
     };
-    let most_ms = (watchdog_s * 1000.0 * WATCHDOG_SHARE).floor();
-    if watchdog_s > 0.0 && timeout_ms as f64 > most_ms {
+    if let Some(most_ms) = longest_wait_ms(watchdog_s, timeout_ms) {
         return Err(ToolError::Usage(format!(
             "--timeout-ms {timeout_ms}: the drive's link watchdog (faults.link_timeout_s) is \
              {watchdog_s} s, and the drive hears nothing while the tool waits for a reply: one \

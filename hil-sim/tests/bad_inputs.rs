@@ -592,7 +592,8 @@ fn a_picture_that_cannot_be_written_is_refused_before_measuring() {
 }
 
 /// `report --out DIR` where the report or its trace would land on a directory is refused by
-/// the option and the file before the run: nothing else is written into `DIR`.
+/// the option and the file before the run: nothing else is written into `DIR`. A `DIR` that
+/// does not exist yet is no error (the main job writes into a fresh `out/report`).
 #[test]
 fn a_report_whose_files_cannot_be_written_is_refused_before_the_run() {
     let dir = scratch("report_out");
@@ -621,6 +622,26 @@ fn a_report_whose_files_cannot_be_written_is_refused_before_the_run() {
             .collect();
         assert_eq!(written, [std::ffi::OsString::from(file)], "{file}");
     }
+    // A directory that does not exist yet passes (the report makes it): the run goes on to the
+    // next input, here a calibration that does not exist, and leaves no `--out` behind.
+    let fresh = dir.join("fresh").join("report");
+    let missing = dir.join("no_calibration");
+    let out = run(&[
+        "report",
+        "--scenario",
+        "repeatability",
+        "--calibration",
+        missing.to_str().unwrap(),
+        "--out",
+        fresh.to_str().unwrap(),
+    ]);
+    let last = out.stderr.lines().last().unwrap_or("");
+    assert_eq!(out.code, Some(1), "{}", out.stderr);
+    assert!(
+        last.contains("no_calibration") && !last.contains("--out"),
+        "{last}"
+    );
+    assert!(!dir.join("fresh").exists(), "--out left behind");
     let _ = std::fs::remove_dir_all(&dir);
 }
 
