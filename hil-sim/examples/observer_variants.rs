@@ -61,6 +61,10 @@
 //!   balances it), and loads the belt by the span's stretch, weighted (fitted, from 0). With
 //!   `OBS_REST` in the environment it adds `rest-preslide`, with `OBS_BRAKE` `braking-slip`.
 //!
+//! `OBS_FROM_REFIT` in the environment fits a variant with more coordinates in two stages: the
+//! six first with the new ones at their start, then all from there (never a worse fit than
+//! `refit`).
+//!
 //! `OBS_EXTRA=1,2,3` in the environment adds those paper models' estimates (um) to Model 4's
 //! least-squares terms (an ensemble of Model 4 and the paper's models), for every variant.
 //!
@@ -644,6 +648,16 @@ fn main() {
             }
             best.expect("a start that fits").1
         } else {
+            // `OBS_FROM_REFIT`: the six first, the new coordinates held at their start (no
+            // effect from a weight of 0), then all from that minimum: never a worse fit than
+            // `refit`'s, so a held-out difference is the variant's, not the search's.
+            let x0 = if std::env::var("OBS_FROM_REFIT").is_ok() && !more.is_empty() {
+                let six = |v: &[f64]| sse(&[v, more].concat());
+                let v = hil_sim::fit::nelder_mead(&six, &x0[..6], &steps, 1e-9, 600).x;
+                [v.as_slice(), more].concat()
+            } else {
+                x0
+            };
             hil_sim::fit::nelder_mead(&sse, &x0, &step, 1e-9, 600).x
         };
         if variant == Variant::HighLimit {
