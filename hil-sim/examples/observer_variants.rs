@@ -307,22 +307,9 @@ impl Obs {
                 let g_prev2 = if i >= 2 { out[i - 2] } else { g_prev };
                 let v_belt = v - (g_prev - g_prev2);
                 let trial = v_carriage + w2 * lag + c * (v_belt - v_carriage);
-                let friction = w2 * self.friction_um;
-                v_carriage = if v_carriage == 0.0 && trial.abs() <= friction {
-                    0.0
-                } else {
-                    let dir = if v_carriage != 0.0 {
-                        v_carriage.signum()
-                    } else {
-                        trial.signum()
-                    };
-                    let next = trial - friction * dir;
-                    if next * trial < 0.0 && v_carriage != 0.0 {
-                        0.0
-                    } else {
-                        next
-                    }
-                };
+                // The plant's own set-valued Coulomb step: a velocity that would cross zero
+                // under the friction sticks there.
+                v_carriage = hil_sim::plant::coulomb(trial, w2 * self.friction_um);
                 lag += v_belt - v_carriage;
             } else {
                 let lag_now = lag + v;
@@ -538,11 +525,12 @@ fn main() {
     let extra: Vec<ModelKind> = std::env::var("OBS_EXTRA")
         .unwrap_or_default()
         .split(',')
-        .filter_map(|k| match k {
-            "1" => Some(ModelKind::Linear),
-            "2" => Some(ModelKind::Exponential),
-            "3" => Some(ModelKind::Table),
-            _ => None,
+        .filter(|k| !k.is_empty())
+        .map(|k| match k {
+            "1" => ModelKind::Linear,
+            "2" => ModelKind::Exponential,
+            "3" => ModelKind::Table,
+            _ => panic!("OBS_EXTRA: {k:?} is not a paper model (1, 2 or 3)"),
         })
         .collect();
     let prepare = |t: &Trace| -> Run {

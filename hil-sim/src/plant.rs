@@ -187,7 +187,7 @@ fn contact(d: f64, d_rate: f64, half_gap: f64, k: f64, c: f64) -> f64 {
 /// Backward-Euler Coulomb friction: `v_trial` is the velocity without friction, `dv` the change
 /// friction can make in one substep. A velocity that would cross zero sticks there.
 #[inline(always)]
-fn coulomb(v_trial: f64, dv: f64) -> f64 {
+pub fn coulomb(v_trial: f64, dv: f64) -> f64 {
     if v_trial > dv {
         v_trial - dv
     } else if v_trial < -dv {
