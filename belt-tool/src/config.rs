@@ -153,10 +153,28 @@ pub fn get_all(link: &mut Link) -> Result<Vec<FieldValue>, ToolError> {
     FIELDS.iter().map(|f| get(link, f)).collect()
 }
 
-/// The drive's active configuration as [`Settings`]; a value the drive holds that its own
-/// table would refuse is reported by name.
+/// The drive's active configuration as [`Settings`], for a command that moves or plans by it:
+/// a value the drive holds that its own table would refuse, or a configuration that would not
+/// build as a whole (a drive that `beltctl` configured cannot hold one, a crafted record can),
+/// is reported by name.
 pub fn settings(link: &mut Link) -> Result<Settings, ToolError> {
-    read_settings(link, false)
+    let s = read_settings(link, false)?;
+    s.parts_image().map_err(|e| {
+        ToolError::Drive(format!(
+            "{}: the drive's configuration is refused as a whole: {}",
+            link.name(),
+            with_unit(&e)
+        ))
+    })?;
+    Ok(s)
+}
+
+/// A configuration refusal with the field's unit.
+fn with_unit(e: &estimator_core::ConfigError) -> String {
+    match settings::field(settings::key_of(e)) {
+        Some(f) => format!("{e} (unit {})", f.unit),
+        None => e.to_string(),
+    }
 }
 
 /// The active (or, with `staged`, the staged) values as [`Settings`], each checked by its field:
@@ -186,6 +204,15 @@ pub fn rig(link: &mut Link) -> Result<Rig, ToolError> {
             ToolError::Drive(format!("{}: the drive's {}: {e}", link.name(), f.name()))
         })?;
     }
+    // Each field in its type, the geometry as a whole checked too (a zero pitch would make
+    // every count infinite millimetres).
+    s.rig.validate().map_err(|e| {
+        ToolError::Drive(format!(
+            "{}: the drive's geometry is refused: {}",
+            link.name(),
+            with_unit(&e)
+        ))
+    })?;
     Ok(s.rig)
 }
 
@@ -268,11 +295,10 @@ fn stage_and_apply(
     }
     // The drive converts no units: the image of the staged values is built here.
     let image = read_settings(link, true)?.parts_image().map_err(|e| {
-        let what = match settings::field(settings::key_of(&e)) {
-            Some(f) => format!("{e} (unit {})", f.unit),
-            None => e.to_string(),
-        };
-        ToolError::Drive(format!("{source}: the configuration is refused: {what}"))
+        ToolError::Drive(format!(
+            "{source}: the configuration is refused: {}",
+            with_unit(&e)
+        ))
     })?;
     for req in config_parts_requests(&image) {
         link.acked(&req).map_err(with_source)?;

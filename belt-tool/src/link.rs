@@ -197,7 +197,8 @@ const START_SEQ_MAX: u32 = 64;
 #[derive(Debug)]
 struct Collector {
     every: u16,
-    next_seq: Option<u32>,
+    /// In `u64`: after the last `u32` a drive can send, the next is beyond every frame.
+    next_seq: Option<u64>,
     next_tick: Option<u32>,
     samples: Vec<TickSample>,
     stats: RecordingStats,
@@ -227,15 +228,17 @@ impl Collector {
             }
             Some(s) => s,
         };
-        if seq < expected {
+        let seq64 = u64::from(seq);
+        if seq64 < expected {
             self.stats.out_of_order += 1;
             return;
         }
-        if seq > expected {
-            let n = seq - expected;
-            self.stats.lost_frames += n as u64;
+        if seq64 > expected {
+            let n = seq64 - expected;
+            self.stats.lost_frames += n;
             if self.stats.gaps.len() < GAPS_KEPT {
-                self.stats.gaps.push((expected, n));
+                // Both fit: expected < seq, a u32.
+                self.stats.gaps.push((expected as u32, n as u32));
             }
         } else if let Some(t) = self.next_tick {
             // A whole sequence whose ticks jump: the drive skipped samples.
@@ -244,7 +247,7 @@ impl Collector {
                 self.stats.missing_samples += (skipped as u64).div_ceil(every as u64);
             }
         }
-        self.next_seq = Some(seq + 1);
+        self.next_seq = Some(seq64 + 1);
         let every32 = every as u32;
         self.next_tick = Some(first_tick.wrapping_add(every32 * samples.len() as u32));
         self.stats.frames += 1;

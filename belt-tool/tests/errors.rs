@@ -430,6 +430,34 @@ fn a_validation_the_drive_cannot_run_is_refused_by_file_move_and_field_before_mo
 }
 
 #[test]
+fn a_drive_configuration_that_does_not_build_is_refused_by_field_before_moving() {
+    // Every value within its field's type, the whole refused: a crafted record, not beltctl's.
+    let f = validation_file("whole", 140.0, 50.0);
+    let file = f.display().to_string();
+    type Edit = fn(&mut estimator_core::settings::Settings);
+    let cases: [(Edit, &str); 2] = [
+        (|s| s.max_velocity_mm_s = -1.0, "drive.max_velocity_mm_s"),
+        (|s| s.rig.belt_pitch_mm = 0.0, "rig.belt_pitch_mm"),
+    ];
+    for (edit, field) in cases {
+        let p = pty();
+        let path = p.path.clone();
+        let mut drive = FakeDrive::new(Faults::default());
+        edit(&mut drive.settings);
+        let fake = serve(p.master, drive);
+        let (out, _) = beltctl(&args(&path, &["validate", "--scenario", &file]), LIMIT);
+        let err = assert_clean_failure(&out);
+        assert!(err.contains("refused") && err.contains(field), "{err}");
+        let reqs = fake.drive.lock().unwrap().requests.clone();
+        assert!(
+            !reqs.iter().any(|r| matches!(r, Request::Command(_))),
+            "{reqs:?}"
+        );
+    }
+    let _ = std::fs::remove_file(f);
+}
+
+#[test]
 fn a_validation_that_fails_stops_the_drive_and_restores_its_model() {
     use belt_link::ModelKind;
     let f = validation_file("fail", 140.0, 50.0);

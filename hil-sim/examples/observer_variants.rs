@@ -61,6 +61,9 @@
 //!   balances it), and loads the belt by the span's stretch, weighted (fitted, from 0). With
 //!   `OBS_REST` in the environment it adds `rest-preslide`, with `OBS_BRAKE` `braking-slip`.
 //!
+//! - `bagged`: four fits of the six, each without one quarter of the 2 s blocks of every
+//!   recording, and the median of each parameter: the minimum the data's subsets agree on.
+//!
 //! `OBS_FROM_REFIT` in the environment fits a variant with more coordinates in two stages: the
 //! six first with the new ones at their start, then all from there (never a worse fit than
 //! `refit`).
@@ -114,10 +117,11 @@ enum Variant {
     CvStarts,
     CarriageSwing,
     SpanCarriage,
+    Bagged,
 }
 
 impl Variant {
-    const ALL: [(Variant, &'static str); 19] = [
+    const ALL: [(Variant, &'static str); 20] = [
         (Variant::AsIs, "as-is"),
         (Variant::Refit, "refit"),
         (Variant::BrakingSlip, "braking-slip"),
@@ -137,6 +141,7 @@ impl Variant {
         (Variant::CvStarts, "cv-starts"),
         (Variant::CarriageSwing, "carriage-swing"),
         (Variant::SpanCarriage, "span-carriage"),
+        (Variant::Bagged, "bagged"),
     ];
 
     /// Start and initial step of the coordinates beyond the six of `SlipParams`.
@@ -606,6 +611,32 @@ fn main() {
         };
         let mut x = if variant == Variant::AsIs {
             x0
+        } else if variant == Variant::Bagged {
+            // Four fits, each without one quarter of the 2 s blocks of every recording, and
+            // the median of each parameter (several minima fit about equally: the median is
+            // the one the data's subsets agree on).
+            let mut fits: Vec<Vec<f64>> = Vec::new();
+            for b in 0..4 {
+                let train = |v: &[f64]| {
+                    let o = Obs::of(v, variant);
+                    let g: Vec<Vec<f64>> = cal_runs.iter().map(|r| o.offsets(r, cpm)).collect();
+                    fit_where(&cal_runs, &g, false, &|_, k| (k / 4000) % 4 != b)
+                        .map_or(f64::INFINITY, |f| f.1)
+                };
+                let mut v = hil_sim::fit::nelder_mead(&train, &x0, &step, 1e-9, 600).x;
+                for i in [0, 3, 4, 5] {
+                    v[i] = v[i].abs();
+                }
+                println!("  bag {b}: {v:.3?}");
+                fits.push(v);
+            }
+            (0..x0.len())
+                .map(|i| {
+                    let mut c: Vec<f64> = fits.iter().map(|f| f[i]).collect();
+                    c.sort_by(f64::total_cmp);
+                    (c[1] + c[2]) / 2.0
+                })
+                .collect()
         } else if variant == Variant::CvStarts {
             let train = |v: &[f64]| {
                 let o = Obs::of(v, variant);

@@ -367,9 +367,10 @@ impl Coverage {
     /// A table for people: moves per octave of acceleration (rows) and of peak speed (columns).
     pub fn markdown(&self) -> String {
         let oct = |k: i32| k.div_euclid(2);
-        let mut grid: BTreeMap<(i32, i32), u32> = BTreeMap::new();
+        // u64: four half-octave cells of a stored file's u32 counts add without overflow.
+        let mut grid: BTreeMap<(i32, i32), u64> = BTreeMap::new();
         for (&(s, a), &n) in &self.cells {
-            *grid.entry((oct(a), oct(s))).or_insert(0) += n;
+            *grid.entry((oct(a), oct(s))).or_insert(0) += u64::from(n);
         }
         let (Some(s_lo), Some(s_hi)) = (
             grid.keys().map(|k| k.1).min(),
@@ -718,6 +719,23 @@ mod tests {
             let e = Coverage::from_toml(&t).unwrap_err();
             assert!(e.contains(field), "{e}");
         }
+        // The largest counts a file can hold, in two cells of one octave: the table adds them.
+        let mut t = c.to_toml();
+        let full = |s: i64| {
+            toml::Value::Array(
+                [s, 0, i64::from(u32::MAX)]
+                    .map(toml::Value::Integer)
+                    .to_vec(),
+            )
+        };
+        t.insert(
+            "half_octave_cells".into(),
+            toml::Value::Array(vec![full(0), full(1)]),
+        );
+        let md = Coverage::from_toml(&t)
+            .expect("counts within u32")
+            .markdown();
+        assert!(md.contains(" 8589934590 |"), "{md}");
         let mut t = c.to_toml();
         t.insert("extra".into(), toml::Value::Integer(1));
         assert_eq!(

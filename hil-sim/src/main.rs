@@ -253,7 +253,7 @@ enum Cmd {
         /// Plant noise seed.
         #[arg(long, default_value_t = 1)]
         seed: u64,
-        /// Plant time per wall time (1 = real time, 0 = as fast as QEMU runs).
+        /// Plant time per wall time (1 = real time, 0 = as fast as QEMU runs; else 0.01 to 1000).
         #[arg(long, default_value_t = 1.0)]
         speed: f64,
         /// Firmware ELF (default: target/thumbv7em-none-eabihf/release/belt-drive).
@@ -675,11 +675,12 @@ fn main() -> ExitCode {
             if !elf.exists() {
                 return Err(Error::NoFirmware(elf));
             }
-            if !(speed.is_finite() && speed >= 0.0) {
+            // Below 1 % of real time the drive's timeouts would take hours of wall time.
+            if !(speed == 0.0 || (0.01..=1000.0).contains(&speed)) {
                 return Err(Error::Argument {
                     flag: "--speed",
                     value: speed.to_string(),
-                    rule: "must be 0 or more".into(),
+                    rule: "must be 0 (as fast as QEMU runs) or 0.01 to 1000".into(),
                 });
             }
             output_file("--storage", &storage, true)?;

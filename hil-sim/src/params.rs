@@ -568,6 +568,12 @@ impl PlantParams {
             // Explicit (symplectic) update of the stiffest contact: keep omega * h well below 2.
             let w = self.stiffest_mode_rad_s();
             c.test(
+                "belt",
+                w.is_finite(),
+                "its lengths, rigidity and masses give no finite stiffest mode (values too \
+                 large to compute with)",
+            );
+            c.test(
                 "integration.max_substep_s",
                 w * h < 0.5,
                 &format!(
@@ -623,9 +629,10 @@ impl PlantParams {
         let m_pulley = self.gearbox.output_inertia_kg_m2 / (r * r);
         let m_belt = self.belt.lumped_mass_kg;
         let tooth = self.belt.tooth_stiffness_n_per_m * (1.0 / m_pulley + 1.0 / m_belt);
-        let k_span = self
-            .span_stiffness_n_per_m(self.carriage.travel_min_m)
-            .max(self.span_stiffness_n_per_m(self.carriage.travel_max_m));
+        let k_span = max_or_nan(&[
+            self.span_stiffness_n_per_m(self.carriage.travel_min_m),
+            self.span_stiffness_n_per_m(self.carriage.travel_max_m),
+        ]);
         let belt = (self.belt.tooth_stiffness_n_per_m + k_span) / m_belt;
         let rotor_at_output =
             self.motor.rotor_inertia_kg_m2 * self.gearbox.ratio * self.gearbox.ratio;
@@ -646,7 +653,7 @@ impl PlantParams {
         } else {
             0.0
         };
-        tooth.max(belt).max(gear).max(carriage).max(bristles).sqrt()
+        max_or_nan(&[tooth, belt, gear, carriage, bristles]).sqrt()
     }
 
     /// Largest `c / m` of the explicit dampers on the lumped belt and the pulley; the friction's
@@ -671,6 +678,18 @@ impl PlantParams {
             / self.motor.rotor_inertia_kg_m2;
         belt.max(pulley).max(carriage).max(motor)
     }
+}
+
+/// The largest of `xs`, or NaN if any is: `f64::max` drops a NaN, so a figure that overflowed
+/// would pass a stability check on the others.
+fn max_or_nan(xs: &[f64]) -> f64 {
+    xs.iter().fold(f64::NEG_INFINITY, |m, &x| {
+        if m.is_nan() || x.is_nan() {
+            f64::NAN
+        } else {
+            m.max(x)
+        }
+    })
 }
 
 /// Collects the first validation failure.
@@ -759,6 +778,14 @@ mod tests {
         let bad = PAPER_RIG_TOML.replace("max_substep_s = 2.0e-5", "max_substep_s = 5.0e-4");
         let e = PlantParams::from_toml_str(&bad).unwrap_err().to_string();
         assert!(e.starts_with("integration.max_substep_s:"), "{e}");
+
+        // Each value in range, but the span stiffness overflows to NaN: refused, not integrated.
+        let bad = PAPER_RIG_TOML
+            .replace("free_length_m = 0.94", "free_length_m = 3e160")
+            .replace("span_offset_m = 0.12", "span_offset_m = 1e160")
+            .replace("axial_rigidity_n = 2.0e5", "axial_rigidity_n = 1e171");
+        let e = PlantParams::from_toml_str(&bad).unwrap_err().to_string();
+        assert!(e.starts_with("belt:") && e.contains("finite"), "{e}");
 
         let bad = PAPER_RIG_TOML.replace("sigma1_s_per_m = 5.0", "sigma1_s_per_m = 50.0");
         let e = PlantParams::from_toml_str(&bad).unwrap_err().to_string();

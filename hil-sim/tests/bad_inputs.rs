@@ -591,6 +591,43 @@ fn a_picture_that_cannot_be_written_is_refused_before_measuring() {
     }
 }
 
+/// Numbers on the command line that would overflow a wall-clock `Duration` are refused by the
+/// option: the virtual drive's pace and `qemu-run`'s time-out.
+#[test]
+fn durations_beyond_reach_are_refused_by_option() {
+    let dir = scratch("durations");
+    let storage = dir.join("flash.bin");
+    for speed in ["1e-300", "0.001", "-1", "NaN", "inf"] {
+        let out = run(&[
+            "virtual-drive",
+            "--storage",
+            storage.to_str().unwrap(),
+            "--elf",
+            "/dev/null",
+            &format!("--speed={speed}"),
+        ]);
+        assert_eq!(out.code, Some(1), "--speed {speed}: {}", out.stderr);
+        let last = out.stderr.lines().last().unwrap_or("");
+        assert!(
+            last.contains("--speed") && last.contains("0.01 to 1000"),
+            "{last}"
+        );
+        assert!(!storage.exists(), "--speed {speed}: storage made");
+    }
+    for timeout in ["1e20", "0", "NaN"] {
+        let out = Command::new(env!("CARGO_BIN_EXE_qemu-run"))
+            .args([&format!("--timeout={timeout}"), "/dev/null"])
+            .output()
+            .expect("spawn qemu-run");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "--timeout {timeout}: {err}");
+        assert!(
+            err.contains("--timeout") && !err.contains("panicked"),
+            "{err}"
+        );
+    }
+}
+
 /// `report --out DIR` where the report or its trace would land on a directory is refused by
 /// the option and the file before the run: nothing else is written into `DIR`. A `DIR` that
 /// does not exist yet is no error (the main job writes into a fresh `out/report`).

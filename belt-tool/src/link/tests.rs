@@ -262,6 +262,16 @@ fn sequence_gaps_and_tick_jumps_are_losses() {
     let mut c = Collector::new(1);
     c.push(3, 0, 1, &s);
     assert_eq!(c.stats.lost_frames, 3);
+
+    // The last sequence number a drive can send is counted once; its repeat is out of order.
+    let mut c = Collector::new(1);
+    c.push(0, 0, 1, &s);
+    c.push(u32::MAX, 4, 1, &s);
+    c.push(u32::MAX, 8, 1, &s);
+    assert_eq!(
+        (c.stats.frames, c.stats.lost_frames, c.stats.out_of_order),
+        (2, u64::from(u32::MAX) - 1, 1)
+    );
 }
 
 #[test]

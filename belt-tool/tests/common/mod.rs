@@ -103,6 +103,8 @@ pub struct FakeDrive {
     pub scale_stuck_counts: Option<i32>,
     pub recording_every: u16,
     pub records_seq: u32,
+    /// What `ConfigGet` answers (active and staged alike).
+    pub settings: Settings,
     rng: u64,
 }
 
@@ -125,6 +127,7 @@ impl FakeDrive {
             scale_stuck_counts: None,
             recording_every: 0,
             records_seq: 0,
+            settings: Settings::PAPER,
             rng: 0x9e37_79b9_7f4a_7c15,
         }
     }
@@ -201,7 +204,7 @@ impl FakeDrive {
                 self.moving_polls = self.moving_polls.saturating_sub(1);
                 Reply::Status(s)
             }
-            Request::ConfigGet { key } => match Settings::PAPER.get(key) {
+            Request::ConfigGet { key } => match self.settings.get(key) {
                 Some(v) => Reply::ConfigValue {
                     key,
                     active_bits: v.to_bits(),

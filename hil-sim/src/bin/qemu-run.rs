@@ -84,9 +84,10 @@ fn run() -> ExitCode {
             return ExitCode::from(if e.use_stderr() { 2 } else { 0 });
         }
     };
-    if !(args.timeout.is_finite() && args.timeout > 0.0) {
+    // A year is far beyond any run and far inside `Duration`.
+    if !(args.timeout > 0.0 && args.timeout <= 3.2e7) {
         hil_sim::errln!(
-            "qemu-run: --timeout {}: must be a positive number of seconds",
+            "qemu-run: --timeout {}: must be more than 0 and at most 3.2e7 seconds (a year)",
             args.timeout
         );
         return ExitCode::from(2);

@@ -102,7 +102,19 @@ pub struct VirtualDriveEnd {
 fn control_rate(pil: &mut PilController) -> Result<f64, PilError> {
     let key = settings::field_named("drive.rate_hz").map_or(4, |f| f.key());
     match pil.call(&Request::ConfigGet { key })? {
-        Reply::ConfigValue { active_bits, .. } => Ok(f64::from_bits(active_bits)),
+        Reply::ConfigValue { active_bits, .. } => {
+            // The range a drive image takes (`PartsImage`): the plant steps by its inverse.
+            let rate_hz = f64::from_bits(active_bits);
+            if (100.0..=100_000.0).contains(&rate_hz) {
+                Ok(rate_hz)
+            } else {
+                Err(PilError::BadValue {
+                    field: "drive.rate_hz",
+                    value: rate_hz,
+                    rule: "outside 100..=100000 Hz",
+                })
+            }
+        }
         other => Err(PilError::UnexpectedReply {
             kind: belt_link::kind::CONFIG_GET,
             reply: Box::new(other),
@@ -210,6 +222,7 @@ pub fn run(
         }
         // Pace plant time to the wall clock.
         if opts.speed > 0.0 && ticks.is_multiple_of(20) {
+            // `speed` is at least 0.01 (main.rs), so this stays far inside `Duration`.
             let due = Duration::from_secs_f64(plant_s / opts.speed);
             let now = started.elapsed();
             if due > now {
