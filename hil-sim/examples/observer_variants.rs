@@ -64,6 +64,12 @@
 //! - `bagged`: four fits of the six, each without one quarter of the 2 s blocks of every
 //!   recording, and the median of each parameter: the minimum the data's subsets agree on.
 //!
+//! - `held-out-floor`: a diagnostic, not a candidate. The six parameters and every weight
+//!   fitted on the held-out runs themselves: the best this structure can do on them with any
+//!   parameters, so what is left is the structure's, not the calibration's.
+//!   `held-out-weights`: the calibrated observer, only the weights fitted on the held-out runs.
+//!   `OBS_ON_HELD_OUT` in the environment fits any variant so (its structure's floor).
+//!
 //! `OBS_FROM_REFIT` in the environment fits a variant with more coordinates in two stages: the
 //! six first with the new ones at their start, then all from there (never a worse fit than
 //! `refit`).
@@ -118,10 +124,12 @@ enum Variant {
     CarriageSwing,
     SpanCarriage,
     Bagged,
+    HeldOutFloor,
+    HeldOutWeights,
 }
 
 impl Variant {
-    const ALL: [(Variant, &'static str); 20] = [
+    const ALL: [(Variant, &'static str); 22] = [
         (Variant::AsIs, "as-is"),
         (Variant::Refit, "refit"),
         (Variant::BrakingSlip, "braking-slip"),
@@ -142,6 +150,8 @@ impl Variant {
         (Variant::CarriageSwing, "carriage-swing"),
         (Variant::SpanCarriage, "span-carriage"),
         (Variant::Bagged, "bagged"),
+        (Variant::HeldOutFloor, "held-out-floor"),
+        (Variant::HeldOutWeights, "held-out-weights"),
     ];
 
     /// Start and initial step of the coordinates beyond the six of `SlipParams`.
@@ -580,7 +590,6 @@ fn main() {
     let per_a = (s.um_per_a[0] + s.um_per_a[1]) / 2.0;
     let start = [load, asym, per_a, s.creep_per_mm, s.limit_um, s.half_gap_um];
     let steps = [20.0, 0.05, 10.0, 0.01, 40.0, 30.0];
-    let n_cal: usize = cal_runs.iter().map(|r| r.dx_um.len()).sum();
     println!(
         "{}",
         if plant.source.is_empty() {
@@ -604,12 +613,20 @@ fn main() {
         ];
         let x0: Vec<f64> = scaled.iter().chain(more).copied().collect();
         let step: Vec<f64> = steps.iter().chain(more_steps).copied().collect();
+        // The diagnostic fits on the held-out runs; every candidate on the recordings.
+        let on_held_out = std::env::var("OBS_ON_HELD_OUT").is_ok();
+        let fit_runs =
+            if on_held_out || matches!(variant, Variant::HeldOutFloor | Variant::HeldOutWeights) {
+                &runs
+            } else {
+                &cal_runs
+            };
         let sse = |v: &[f64]| {
             let o = Obs::of(v, variant);
-            let g: Vec<Vec<f64>> = cal_runs.iter().map(|r| o.offsets(r, cpm)).collect();
-            fit(&cal_runs, &g, unit).map_or(f64::INFINITY, |f| f.1)
+            let g: Vec<Vec<f64>> = fit_runs.iter().map(|r| o.offsets(r, cpm)).collect();
+            fit(fit_runs, &g, unit).map_or(f64::INFINITY, |f| f.1)
         };
-        let mut x = if variant == Variant::AsIs {
+        let mut x = if matches!(variant, Variant::AsIs | Variant::HeldOutWeights) {
             x0
         } else if variant == Variant::Bagged {
             // Four fits, each without one quarter of the 2 s blocks of every recording, and
@@ -692,8 +709,9 @@ fn main() {
             }
         }
         let o = Obs::of(&x, variant);
-        let g: Vec<Vec<f64>> = cal_runs.iter().map(|r| o.offsets(r, cpm)).collect();
-        let (w, sse) = fit(&cal_runs, &g, unit).expect("fit");
+        let g: Vec<Vec<f64>> = fit_runs.iter().map(|r| o.offsets(r, cpm)).collect();
+        let (w, sse) = fit(fit_runs, &g, unit).expect("fit");
+        let n_cal = fit_runs.iter().map(|r| r.dx_um.len()).sum::<usize>();
         let name = Variant::ALL
             .iter()
             .find(|v| v.0 == variant)
