@@ -70,6 +70,10 @@
 //!   `held-out-weights`: the calibrated observer, only the weights fitted on the held-out runs.
 //!   `OBS_ON_HELD_OUT` in the environment fits any variant so (its structure's floor).
 //!
+//! - `span-only`: `span-carriage` with no load from the current, the span's stretch its only
+//!   varying load (the current also accelerates the rotor; the belt on the pulley feels the
+//!   spans), searched from a weight of 1.
+//!
 //! `OBS_FROM_REFIT` in the environment fits a variant with more coordinates in two stages: the
 //! six first with the new ones at their start, then all from there (never a worse fit than
 //! `refit`).
@@ -126,10 +130,11 @@ enum Variant {
     Bagged,
     HeldOutFloor,
     HeldOutWeights,
+    SpanOnly,
 }
 
 impl Variant {
-    const ALL: [(Variant, &'static str); 22] = [
+    const ALL: [(Variant, &'static str); 23] = [
         (Variant::AsIs, "as-is"),
         (Variant::Refit, "refit"),
         (Variant::BrakingSlip, "braking-slip"),
@@ -152,6 +157,7 @@ impl Variant {
         (Variant::Bagged, "bagged"),
         (Variant::HeldOutFloor, "held-out-floor"),
         (Variant::HeldOutWeights, "held-out-weights"),
+        (Variant::SpanOnly, "span-only"),
     ];
 
     /// Start and initial step of the coordinates beyond the six of `SlipParams`.
@@ -164,6 +170,8 @@ impl Variant {
             // Load per um of span stretch, natural frequency Hz, damping ratio, the guide's
             // friction as the span stretch that balances it (um).
             Variant::SpanCarriage => (&[0.0, 20.0, 0.3, 20.0], &[0.3, 5.0, 0.15, 10.0]),
+            // The same from a weight of 1: the span is the belt's only load.
+            Variant::SpanOnly => (&[1.0, 20.0, 0.3, 20.0], &[0.3, 5.0, 0.15, 10.0]),
             // Load per um/tick² of pulley acceleration (scaled by 1000).
             Variant::EncoderAccel => (&[0.0], &[0.03]),
             // Half-width of the slip ramp around the limit, as a fraction of it.
@@ -248,7 +256,7 @@ impl Obs {
             speed_weight: 0.0,
             accel_weight: 0.0,
             median: variant == Variant::MedianCurrent,
-            span: variant == Variant::SpanCarriage,
+            span: matches!(variant, Variant::SpanCarriage | Variant::SpanOnly),
             friction_um: 0.0,
             persist: if variant == Variant::SlipPersist {
                 std::env::var("OBS_PERSIST")
@@ -266,7 +274,10 @@ impl Obs {
                 o.damping = v[8].abs().clamp(0.3, 3.0);
                 o.speed_weight = v[9];
             }
-            Variant::SpanCarriage => {
+            Variant::SpanCarriage | Variant::SpanOnly => {
+                if variant == Variant::SpanOnly {
+                    o.um_per_a = [0.0; 2];
+                }
                 o.lag_weight = v[6].abs();
                 o.natural_hz = v[7].abs().clamp(3.0, 80.0);
                 o.damping = v[8].abs().clamp(0.02, 3.0);
