@@ -8,6 +8,14 @@
 //! terms alone, with the true offset and with the span tension too: the fit on the calibration
 //! data and the RMS of e on fig18, zigzag, accelerations and one generated workload of every
 //! class (seed 11), all held out of the calibration.
+//!
+//! As a model rather than the truth: `ORACLE_REPLAY_SEED=N` replays with the seed moved by N
+//! (the plant's run-to-run draws of friction, bristles and pitch differ), `ORACLE_REPLAY_PLANT=
+//! NAME` with another built-in plant's parameters. Either replay is driven open loop by the
+//! recorded currents, so it also prints how far its motor drifts from the recorded encoder.
+//! `ORACLE_REPLAY_SCALE=field*factor,...` scales the replay's parameters (`mass`, `preload`,
+//! `rigidity`, `tooth`, `mu`, `sigma0`, `guide`, `gap`): how much a model's parameters may be
+//! off.
 #![allow(clippy::print_stdout)]
 
 use estimator_core::model::ModelParams;
@@ -28,11 +36,47 @@ struct Run {
     dx_um: Vec<f64>,
     offset_um: Vec<f64>,
     span_n: Vec<f64>,
+    /// The replay's motor less the recorded encoder, um (0 when replayed as recorded).
+    drift_um: Vec<f64>,
 }
 
 fn replay(t: &Trace, s: &Scenario, plant: &PlantParams, params: &ModelParams, rig: &Rig) -> Run {
-    let mut p = Plant::new(plant, s.start_mm, t.seed).expect("plant");
+    let shift: u64 = std::env::var("ORACLE_REPLAY_SEED")
+        .ok()
+        .map_or(0, |v| v.parse().expect("ORACLE_REPLAY_SEED: an integer"));
+    let model = std::env::var("ORACLE_REPLAY_PLANT").ok().map(|n| {
+        hil_sim::generalise::plant_named(Some(&n))
+            .expect("built-in plants")
+            .expect("ORACLE_REPLAY_PLANT: a built-in plant's name")
+    });
+    let mut model = model.unwrap_or_else(|| plant.clone());
+    for item in std::env::var("ORACLE_REPLAY_SCALE")
+        .unwrap_or_default()
+        .split(',')
+    {
+        let Some((field, factor)) = item.split_once('*') else {
+            continue;
+        };
+        let f: f64 = factor.parse().expect("ORACLE_REPLAY_SCALE: field*factor");
+        match field {
+            "mass" => model.carriage.mass_kg *= f,
+            "preload" => model.belt.preload_n *= f,
+            "rigidity" => model.belt.axial_rigidity_n *= f,
+            "tooth" => model.belt.tooth_stiffness_n_per_m *= f,
+            "mu" => {
+                model.friction.mu_kinetic *= f;
+                model.friction.mu_static *= f;
+            }
+            "sigma0" => model.friction.sigma0_per_m *= f,
+            "guide" => model.carriage.coulomb_n *= f,
+            "gap" => model.belt.tooth_half_gap_m *= f,
+            _ => panic!("ORACLE_REPLAY_SCALE: no field {field:?}"),
+        }
+    }
+    let mut p = Plant::new(&model, s.start_mm, t.seed.wrapping_add(shift)).expect("plant");
     let cpm = rig.counts_per_mm();
+    let x0 = t.records[0].motor_counts.0;
+    let p0 = p.motor_counts();
     let mut m = Reference::new(params, rig, t.records[0].motor_counts.0).expect("reference");
     let mut run = Run {
         name: t.scenario.clone(),
@@ -40,11 +84,15 @@ fn replay(t: &Trace, s: &Scenario, plant: &PlantParams, params: &ModelParams, ri
         dx_um: Vec::new(),
         offset_um: Vec::new(),
         span_n: Vec::new(),
+        drift_um: Vec::new(),
     };
     for (k, r) in t.records.iter().enumerate() {
         let b = p.belt();
         run.offset_um.push(b.mesh_offset_m * 1e6);
         run.span_n.push(b.span2_n - b.span1_n);
+        let recorded = f64::from(r.motor_counts.0.wrapping_sub(x0));
+        run.drift_um
+            .push(((p.motor_counts() - p0) as f64 - recorded) / cpm * 1000.0);
         let current = r.out.current_a.to_num::<f64>();
         let (_, f) = m.model4_step(r.motor_counts.0, current);
         let mut row = model4_row(&f, cpm).to_vec();
@@ -131,4 +179,10 @@ fn main() {
         }
         println!(" | mean square {:.1} um", (ms / runs.len() as f64).sqrt());
     }
+    print!("replay's motor drift from the encoder, RMS um:");
+    for r in &runs {
+        let d = (r.drift_um.iter().map(|d| d * d).sum::<f64>() / r.drift_um.len() as f64).sqrt();
+        print!(" {} {d:.0}", r.name);
+    }
+    println!();
 }
