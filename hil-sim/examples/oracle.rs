@@ -15,7 +15,9 @@
 //! recorded currents, so it also prints how far its motor drifts from the recorded encoder.
 //! `ORACLE_REPLAY_SCALE=field*factor,...` scales the replay's parameters (`mass`, `preload`,
 //! `rigidity`, `tooth`, `mu`, `sigma0`, `guide`, `gap`): how much a model's parameters may be
-//! off.
+//! off. `ORACLE_REPLAY_TIE=kp,kd` ties the replay's motor to the recorded encoder by a
+//! correction current `kp e + kd de/dt` (e the encoder less the replay's motor, um and um/tick;
+//! A per um): an observer, not an open-loop model.
 #![allow(clippy::print_stdout)]
 
 use estimator_core::model::ModelParams;
@@ -74,6 +76,12 @@ fn replay(t: &Trace, s: &Scenario, plant: &PlantParams, params: &ModelParams, ri
         }
     }
     let mut p = Plant::new(&model, s.start_mm, t.seed.wrapping_add(shift)).expect("plant");
+    let tie: (f64, f64) = std::env::var("ORACLE_REPLAY_TIE")
+        .ok()
+        .map_or((0.0, 0.0), |v| {
+            let (a, b) = v.split_once(',').expect("ORACLE_REPLAY_TIE: kp,kd");
+            (a.parse().expect("kp"), b.parse().expect("kd"))
+        });
     let cpm = rig.counts_per_mm();
     let x0 = t.records[0].motor_counts.0;
     let p0 = p.motor_counts();
@@ -99,7 +107,12 @@ fn replay(t: &Trace, s: &Scenario, plant: &PlantParams, params: &ModelParams, ri
         row.push(f.slip_um);
         run.terms.push(row);
         run.dx_um.push(t.dx_um(k));
-        p.step(current, 1.0 / 2000.0);
+        let err_um = -run.drift_um[k];
+        let prev_um = if k > 0 { -run.drift_um[k - 1] } else { err_um };
+        p.step(
+            current + tie.0 * err_um + tie.1 * (err_um - prev_um),
+            1.0 / 2000.0,
+        );
     }
     run
 }
