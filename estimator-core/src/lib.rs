@@ -58,16 +58,24 @@ impl BuildContext {
         rate_hz: 2000.0,
     };
 
-    /// Checks the geometry and the rate (`100..=100_000` Hz, named `drive.rate_hz`).
+    /// Checks the geometry and the rate ([`BuildContext::check_rate_hz`]).
     pub fn new(rig: rig::Rig, rate_hz: f64) -> Result<BuildContext, ConfigError> {
         rig.validate()?;
+        Ok(BuildContext {
+            rig,
+            rate_hz: Self::check_rate_hz(rate_hz)?,
+        })
+    }
+
+    /// A control rate the drive takes: `100..=100_000` Hz, named `drive.rate_hz`.
+    pub fn check_rate_hz(rate_hz: f64) -> Result<f64, ConfigError> {
         if !rate_hz.is_finite() {
             return Err(ConfigError::NotFinite(ConfigField::DriveRateHz));
         }
         if !(100.0..=100_000.0).contains(&rate_hz) {
             return Err(ConfigError::OutOfRange(ConfigField::DriveRateHz));
         }
-        Ok(BuildContext { rig, rate_hz })
+        Ok(rate_hz)
     }
 
     /// The drive train's geometry.

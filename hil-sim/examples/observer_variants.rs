@@ -632,11 +632,14 @@ fn main() {
             } else {
                 &cal_runs
             };
-        let sse = |v: &[f64]| {
+        // The search's objective: the joint least squares' residual sum over the ticks of `on`
+        // that `keep` takes, for the observer's coordinates `v`.
+        let objective = |on: &[Run], v: &[f64], keep: &dyn Fn(&Run, usize) -> bool| {
             let o = Obs::of(v, variant);
-            let g: Vec<Vec<f64>> = fit_runs.iter().map(|r| o.offsets(r, cpm)).collect();
-            fit(fit_runs, &g, unit).map_or(f64::INFINITY, |f| f.1)
+            let g: Vec<Vec<f64>> = on.iter().map(|r| o.offsets(r, cpm)).collect();
+            fit_where(on, &g, unit, keep).map_or(f64::INFINITY, |f| f.1)
         };
+        let sse = |v: &[f64]| objective(fit_runs, v, &|_, _| true);
         let mut x = if matches!(variant, Variant::AsIs | Variant::HeldOutWeights) {
             x0
         } else if variant == Variant::Bagged {
@@ -645,12 +648,7 @@ fn main() {
             // the one the data's subsets agree on).
             let mut fits: Vec<Vec<f64>> = Vec::new();
             for b in 0..4 {
-                let train = |v: &[f64]| {
-                    let o = Obs::of(v, variant);
-                    let g: Vec<Vec<f64>> = cal_runs.iter().map(|r| o.offsets(r, cpm)).collect();
-                    fit_where(&cal_runs, &g, false, &|_, k| (k / 4000) % 4 != b)
-                        .map_or(f64::INFINITY, |f| f.1)
-                };
+                let train = |v: &[f64]| objective(&cal_runs, v, &|_, k| (k / 4000) % 4 != b);
                 let mut v = hil_sim::fit::nelder_mead(&train, &x0, &step, 1e-9, 600).x;
                 for i in [0, 3, 4, 5] {
                     v[i] = v[i].abs();
@@ -666,12 +664,7 @@ fn main() {
                 })
                 .collect()
         } else if variant == Variant::CvStarts {
-            let train = |v: &[f64]| {
-                let o = Obs::of(v, variant);
-                let g: Vec<Vec<f64>> = cal_runs.iter().map(|r| o.offsets(r, cpm)).collect();
-                fit_where(&cal_runs, &g, false, &|r, k| !held_out(r, k))
-                    .map_or(f64::INFINITY, |f| f.1)
-            };
+            let train = |v: &[f64]| objective(&cal_runs, v, &|r, k| !held_out(r, k));
             let starts = [
                 x0.clone(),
                 vec![x0[0], x0[1], x0[2], x0[3], 250.0, 220.0],

@@ -46,12 +46,12 @@ fn replay(t: &Trace, s: &Scenario, plant: &PlantParams, params: &ModelParams, ri
     let shift: u64 = std::env::var("ORACLE_REPLAY_SEED")
         .ok()
         .map_or(0, |v| v.parse().expect("ORACLE_REPLAY_SEED: an integer"));
-    let model = std::env::var("ORACLE_REPLAY_PLANT").ok().map(|n| {
-        hil_sim::generalise::plant_named(Some(&n))
+    let mut model = match std::env::var("ORACLE_REPLAY_PLANT") {
+        Ok(n) => hil_sim::generalise::plant_named(Some(&n))
             .expect("built-in plants")
-            .expect("ORACLE_REPLAY_PLANT: a built-in plant's name")
-    });
-    let mut model = model.unwrap_or_else(|| plant.clone());
+            .expect("ORACLE_REPLAY_PLANT: a built-in plant's name"),
+        Err(_) => plant.clone(),
+    };
     for item in std::env::var("ORACLE_REPLAY_SCALE")
         .unwrap_or_default()
         .split(',')

@@ -164,16 +164,6 @@ pub enum PilError {
     /// The drive latched a fault during a bench run.
     #[error("drive fault {0}")]
     Fault(estimator_core::fault::Faults),
-    /// The drive reported a value this side cannot run with.
-    #[error("the drive reports {field} = {value}: {rule}")]
-    BadValue {
-        /// The field.
-        field: &'static str,
-        /// What the drive said.
-        value: f64,
-        /// What this side needs.
-        rule: &'static str,
-    },
 }
 
 /// How to start a PIL session.

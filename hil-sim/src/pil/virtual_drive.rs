@@ -18,7 +18,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use belt_link::{kind, Receiver, Reply, Request, MAX_ENCODED};
-use estimator_core::settings;
+use estimator_core::{settings, BuildContext};
 
 use super::{PilController, PilError, PilOptions};
 use crate::plant::{Plant, PlantParams};
@@ -102,18 +102,9 @@ pub struct VirtualDriveEnd {
 fn control_rate(pil: &mut PilController) -> Result<f64, PilError> {
     let key = settings::field_named("drive.rate_hz").map_or(4, |f| f.key());
     match pil.call(&Request::ConfigGet { key })? {
+        // The plant steps by its inverse: the core's own check of the rate, by name.
         Reply::ConfigValue { active_bits, .. } => {
-            // The range a drive image takes (`PartsImage`): the plant steps by its inverse.
-            let rate_hz = f64::from_bits(active_bits);
-            if (100.0..=100_000.0).contains(&rate_hz) {
-                Ok(rate_hz)
-            } else {
-                Err(PilError::BadValue {
-                    field: "drive.rate_hz",
-                    value: rate_hz,
-                    rule: "outside 100..=100000 Hz",
-                })
-            }
+            Ok(BuildContext::check_rate_hz(f64::from_bits(active_bits))?)
         }
         other => Err(PilError::UnexpectedReply {
             kind: belt_link::kind::CONFIG_GET,
