@@ -590,25 +590,9 @@ fn model4(
             y.push(r.dx_um[i]);
         }
     }
-    let mut ata = vec![0.0f64; NB * NB];
-    let mut atb = [0.0f64; NB];
-    let mut yy = 0.0;
+    let mut fixed = crate::tables::Bordered::new(NB);
     for (row, &v) in cols.iter().zip(&y) {
-        yy += v * v;
-        for a in 0..NB {
-            if row[a] == 0.0 {
-                continue;
-            }
-            atb[a] += row[a] * v;
-            for b in a..NB {
-                ata[a * NB + b] += row[a] * row[b];
-            }
-        }
-    }
-    for a in 0..NB {
-        for b in 0..a {
-            ata[a * NB + b] = ata[b * NB + a];
-        }
+        fixed.add(row, v);
     }
     // The observer's offset along every run, for candidate parameters (quantised as the blob
     // holds them); None where they are refused.
@@ -636,30 +620,12 @@ fn model4(
     };
     // The joint least squares with the offset `g` as the last column: (weights, residual sum).
     let solve = |g: &[f64]| -> Option<(Vec<f64>, f64)> {
-        const N: usize = NB + 1;
-        let mut a = vec![0.0f64; N * N];
-        let mut b = vec![0.0f64; N];
-        for i in 0..NB {
-            a[i * N..i * N + NB].copy_from_slice(&ata[i * NB..i * NB + NB]);
-            b[i] = atb[i];
-        }
-        for ((row, &v), &gv) in cols.iter().zip(&y).zip(g) {
-            for i in 0..NB {
-                a[i * N + NB] += row[i] * gv;
-            }
-            a[NB * N + NB] += gv * gv;
-            b[NB] += gv * v;
-        }
-        for i in 0..NB {
-            a[NB * N + i] = a[i * N + NB];
-        }
-        for i in 0..N {
-            a[i * N + i] += 1e-6 * a[i * N + i] + 1e-9;
-        }
-        let bb = b.clone();
-        let w = crate::tables::solve_spd(a, b)?;
-        let sse = yy - w.iter().zip(&bb).map(|(p, q)| p * q).sum::<f64>();
-        Some((w, sse))
+        fixed.solve_with(
+            cols.iter()
+                .zip(&y)
+                .zip(g)
+                .map(|((row, &v), &gv)| (&row[..], v, gv)),
+        )
     };
     const MAX_EVALS: usize = 500;
     let mut evals = 0usize;

@@ -8,6 +8,7 @@
 #![warn(missing_docs)]
 
 pub mod baseline;
+pub mod belt_observer;
 pub mod calfile;
 pub mod calibrate;
 pub mod controller;

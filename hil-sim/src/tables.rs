@@ -128,6 +128,58 @@ impl NormalEquations {
     }
 }
 
+/// Normal equations of fixed columns, solved again and again with one more column beside them
+/// (a state whose parameters a search varies, fitted jointly with the fixed terms' weights).
+#[derive(Clone, Debug)]
+pub struct Bordered(NormalEquations);
+
+impl Bordered {
+    /// No rows yet, `n` fixed columns.
+    pub fn new(n: usize) -> Bordered {
+        Bordered(NormalEquations::new(n))
+    }
+
+    /// One observation `y` of the fixed columns `row`.
+    pub fn add(&mut self, row: &[f64], y: f64) {
+        self.0.add(row, y);
+    }
+
+    /// The weights (the extra column's last) and the residual sum, with `rows` the same
+    /// observations as added, in order, each with its extra column's value: `(row, y, extra)`.
+    /// A ridge of 1e-6 of each diagonal entry plus 1e-9; `None` if still singular.
+    pub fn solve_with<'a>(
+        &self,
+        rows: impl Iterator<Item = (&'a [f64], f64, f64)>,
+    ) -> Option<(Vec<f64>, f64)> {
+        let fixed = &self.0;
+        let n = fixed.atb.len();
+        let m = n + 1;
+        let mut a = vec![0.0; m * m];
+        for i in 0..n {
+            a[i * m..i * m + n].copy_from_slice(&fixed.ata[i * n..(i + 1) * n]);
+        }
+        let mut b = fixed.atb.clone();
+        b.push(0.0);
+        for (row, y, c) in rows {
+            for (i, &ri) in row.iter().enumerate().take(n) {
+                a[i * m + n] += ri * c;
+            }
+            a[n * m + n] += c * c;
+            b[n] += c * y;
+        }
+        for i in 0..n {
+            a[n * m + i] = a[i * m + n];
+        }
+        for i in 0..m {
+            a[i * m + i] += 1e-6 * a[i * m + i] + 1e-9;
+        }
+        let rhs = b.clone();
+        let w = solve_spd(a, b)?;
+        let sse = fixed.yy - w.iter().zip(&rhs).map(|(p, q)| p * q).sum::<f64>();
+        Some((w, sse))
+    }
+}
+
 /// Solves the symmetric positive definite system `a x = b` (row-major n x n) by Cholesky.
 pub fn solve_spd(mut a: Vec<f64>, mut b: Vec<f64>) -> Option<Vec<f64>> {
     let n = b.len();
