@@ -21,6 +21,8 @@
 //!
 //! `RO_GUIDE=1` gives the observer the guide's friction along the travel as
 //! `belt_observer::guide_profile` measures it on the calibration recordings (before any fit).
+//! `RO_SEED=N` takes the held-out workloads of seed N (11). `RO_CAPSTAN_TAYLOR=1` gives the
+//! observer the capstan's second-order polynomial.
 //! `RO_DROP=plays,current` leaves those of Model 4's terms out of the fits (not of the
 //! identification). `RO_RAW_ENCODER=1` feeds the counts without the tracking filter.
 #![allow(clippy::print_stdout)]
@@ -197,12 +199,15 @@ fn main() {
         .zip(&scenarios)
         .map(|(t, s)| replay(t, s, &plant, &cal.params, &rig))
         .collect();
-    let mut runs: Vec<Run> = hil_sim::generalise::probe_set(&plant, 11)
+    let seed = env_num("RO_SEED", 11) as u64;
+    let suffix = format!("-{seed}");
+    let mut runs: Vec<Run> = hil_sim::generalise::probe_set(&plant, seed)
         .expect("held-out runs")
         .iter()
         .map(|(s, t)| replay(t, s, &plant, &cal.params, &rig))
         .collect();
 
+    physics.capstan_taylor = std::env::var("RO_CAPSTAN_TAYLOR").is_ok();
     if std::env::var("RO_GUIDE").is_ok() {
         let fit_runs: Vec<FitRun> = cal_runs.iter().map(|r| r.fit.clone()).collect();
         physics.guide_profile = belt_observer::guide_profile(&fit_runs, &physics);
@@ -280,7 +285,7 @@ fn main() {
         let mut generated = 0.0;
         for r in &runs {
             let e = rms(r, slip, &w);
-            if r.name.ends_with("-11") {
+            if r.name.ends_with(&suffix) {
                 generated += e * e;
             }
             print!(" {} {e:.1}", r.name);

@@ -6,9 +6,10 @@
 //! - the carriage's position and velocity (mass, the guide's Coulomb friction, eq. 2);
 //! - the mesh offset `o = P - b` inside the tooth gap (eq. 3) and the bristle deflection `z`
 //!   of the belt's friction on the tooth tips (eq. 11 with the plant's renewal term);
-//! - gear backlash and stiffness and the two spans (eqs. 4, 6) as one dead-zone spring between
-//!   the pulley and the carriage, the belt at the pulley massless: each step solves the belt's
-//!   force balance (teeth + capstan friction of eq. 10 = span force) for the slip `u`,
+//! - gear backlash and stiffness and the two spans (eqs. 4, 6) as one dead-zone spring from the
+//!   motor, through the gear and the belt, to the carriage; the belt at the pulley massless:
+//!   each step solves the belt's force balance (teeth + capstan friction of eq. 10 = span
+//!   force and damping) for the slip `u`,
 //!   implicitly in `o` (the sliding relaxes in ~0.3 ms, under a tick), by two Newton steps
 //!   from the last slip with the bristles' relaxation rate of the last step.
 //!
@@ -76,6 +77,9 @@ pub struct BeltPhysics {
     pub newton_per_a: f64,
     /// The guide's friction along the travel less its mean, N ([`guide_profile`]); none: flat.
     pub guide_profile: Option<GuideProfile>,
+    /// The capstan friction as its Taylor polynomial to `mu²` instead of eq. 10's
+    /// exponential: no exponential and no division, the cheaper form for a fixed-point port.
+    pub capstan_taylor: bool,
     /// Belt metres per motor count.
     pub m_per_count: f64,
 }
@@ -154,6 +158,7 @@ impl BeltPhysics {
             accel_per_a: p.motor.torque_constant_nm_per_a * n_r / drive_mass_kg,
             newton_per_a: p.motor.torque_constant_nm_per_a * n_r,
             guide_profile: None,
+            capstan_taylor: false,
             m_per_count: r * std::f64::consts::TAU
                 / (4.0 * f64::from(p.encoder.lines) * p.gearbox.ratio),
         }
@@ -177,19 +182,35 @@ impl BeltPhysics {
     }
 
     fn spans(&self, x: f64) -> (f64, f64) {
-        let l1 = (self.span_offset_m + x).clamp(1e-3, self.length_m - 1e-3);
-        (l1, self.length_m - l1)
+        // A span shorter than 1 mm is held at 1 mm (max/min: clamp panics on a short belt).
+        let l1 = (self.span_offset_m + x).min(self.length_m - 1e-3).max(1e-3);
+        (l1, (self.length_m - l1).max(1e-3))
     }
 
-    /// Stribeck curve g(u).
+    /// Stribeck curve g(u), exponent 2 (the paper rig's; the plant's is a parameter).
     fn stribeck(&self, u: f64) -> f64 {
         let r = u / self.stribeck_m_per_s;
         self.mu_kinetic + (self.mu_static - self.mu_kinetic) * (-(r * r).min(40.0)).exp()
     }
 
+    /// The bristles' relaxation rate `sigma0 |u| / g(u) + kappa |surface|`, 1/s; a friction
+    /// coefficient of 0 relaxes at once rather than dividing by 0.
+    fn relaxation(&self, u: f64, surface: f64) -> f64 {
+        self.sigma0_per_m * u.abs() / self.stribeck(u).max(1e-6) + self.kappa_per_m * surface.abs()
+    }
+
     /// Capstan friction (eq. 10) for `mu` at carriage position `x`, and its slope in `mu`.
     fn capstan(&self, mu: f64, x: f64) -> (f64, f64) {
         let (l1, l2) = self.spans(x);
+        if self.capstan_taylor {
+            // F-bar (a + a² (1/2 - L2 / L)), a = alpha mu: eq. 10 to second order in a.
+            let a = self.wrap_rad * mu.clamp(-1.0, 1.0);
+            let c = 0.5 - l2 / self.length_m;
+            return (
+                self.preload_n * (a + a * a * c),
+                self.preload_n * self.wrap_rad * (1.0 + 2.0 * a * c),
+            );
+        }
         // |mu| <= 1 bounds gamma (a coefficient beyond is no belt's).
         let gamma = (mu.clamp(-1.0, 1.0) * self.wrap_rad).exp();
         let d = l1 + gamma * l2;
@@ -200,8 +221,8 @@ impl BeltPhysics {
         )
     }
 
-    /// Gear and both spans in series: the force for the deflection `q` between pulley and
-    /// carriage, and its slope (0 in the backlash).
+    /// Gear and both spans in series: the force for the deflection `q` from the motor's belt
+    /// position (less the mesh offset) to the carriage, and its slope (0 in the backlash).
     fn chain(&self, q: f64, x: f64) -> (f64, f64) {
         let (l1, l2) = self.spans(x);
         let ks = self.axial_rigidity_n * self.length_m / (l1 * l2);
@@ -306,8 +327,15 @@ impl BeltObserver {
             v0 + a * T + g[1] * r / T,
             a0 + 2.0 * g[2] * r / (T * T),
         ];
-        // A jump the filter cannot follow (a restart, a wild count) resets it.
-        if r.abs() > 1e-3 || !self.tracking {
+        // A jump the filter cannot follow (a restart, a wild count) resets it, and the carriage
+        // moves with it: the jump is no travel of the pulley under the belt.
+        // NaN counts as a jump.
+        let jump = r.abs().partial_cmp(&1e-3) != Some(std::cmp::Ordering::Less);
+        if jump && self.tracking {
+            self.x += raw - self.pm_prev;
+            self.pm_prev = raw;
+        }
+        if jump || !self.tracking {
             self.track = [raw, 0.0, 0.0];
         }
         let pm = self.track[0];
@@ -315,8 +343,7 @@ impl BeltObserver {
         self.pm_prev = pm;
 
         // The relaxation rate from the last slip; Newton from the last slip.
-        let lambda =
-            p.sigma0_per_m * self.u.abs() / p.stribeck(self.u) + p.kappa_per_m * surface.abs();
+        let lambda = p.relaxation(self.u, surface);
         let m0 = (p.sigma0_per_m - p.sigma1_s_per_m * lambda) * self.z;
         let m1 = p.sigma1_s_per_m + p.sigma2_s_per_m;
         let mut u = self.u;
@@ -326,14 +353,23 @@ impl BeltObserver {
             let teeth = dead_zone(o, p.half_gap_m);
             let k_teeth = if teeth == 0.0 { 0.0 } else { p.tooth_n_per_m };
             let (f_f, k_f) = p.capstan(m0 + m1 * u, self.x);
-            let residual = f_chain - p.tooth_n_per_m * teeth - f_f;
-            // The slope is positive: the capstan's is, the springs' are not negative.
-            let slope = T * (k_chain + k_teeth) + k_f * m1;
-            u = (u + residual / slope).clamp(-MAX_SLIP_M_PER_S, MAX_SLIP_M_PER_S);
+            // The span's damping acts on the belt as on the carriage (the belt moves at the
+            // pulley's surface speed less the slip).
+            let damping = p.span_damping_n_s_per_m * (surface - u - self.v);
+            let residual = f_chain + damping - p.tooth_n_per_m * teeth - f_f;
+            // The residual falls with u: none of these slopes is negative.
+            let slope = T * (k_chain + k_teeth) + k_f * m1 + p.span_damping_n_s_per_m;
+            if slope > 0.0 {
+                u = (u + residual / slope).clamp(-MAX_SLIP_M_PER_S, MAX_SLIP_M_PER_S);
+            }
+        }
+        // Physics a search drove to nonsense give no slip rather than NaN.
+        if !u.is_finite() {
+            u = 0.0;
         }
         self.u = u;
         self.o += T * u;
-        let lambda = p.sigma0_per_m * u.abs() / p.stribeck(u) + p.kappa_per_m * surface.abs();
+        let lambda = p.relaxation(u, surface);
         let e = lambda * T;
         self.z = if e < 1e-9 {
             self.z + u * T
@@ -378,7 +414,11 @@ impl GuideProfile {
     /// The profile at carriage position `x_m`, N.
     pub fn at(&self, x_m: f64) -> f64 {
         let n = self.delta_n.len();
-        if n == 0 {
+        let valid = self.step_m > 0.0
+            && self.step_m.is_finite()
+            && self.start_m.is_finite()
+            && x_m.is_finite();
+        if n == 0 || !valid {
             return 0.0;
         }
         let pos = ((x_m - self.start_m) / self.step_m).clamp(0.0, (n - 1) as f64);
@@ -396,13 +436,16 @@ impl GuideProfile {
 pub const GUIDE_BIN_M: f64 = 0.01;
 /// Fewest cruising ticks a bin needs to be estimated; emptier bins take their neighbours'.
 const GUIDE_MIN_TICKS: usize = 200;
+/// Most bins: 10 m of travel.
+const MAX_GUIDE_BINS: usize = 1000;
 
-/// The friction along the travel from the calibration recordings: where the drive cruises (no
-/// acceleration over ±10 ms, at least 5 mm/s), the motor's force `newton_per_a i sgn(v)` is
+/// The friction along the travel from the calibration recordings: where the drive cruises (the
+/// speed over the 20 ms before and after within 2 %, at least 5 mm/s), the motor's force `newton_per_a i sgn(v)` is
 /// the friction of guide, motor and belt. Fitted by least squares as one value per 10 mm bin
 /// plus a viscous term in `|v|` (the motor's, which differs move by move), less the mean of the
-/// bins: only the guide's friction varies along the travel, the rest is the same everywhere.
-/// `None` without enough cruising.
+/// estimated bins: only the guide's friction varies along the travel, the rest is the same
+/// everywhere. Non-finite currents are left out. `None` without enough cruising, or for counts
+/// spread over more than 10 m.
 pub fn guide_profile(runs: &[FitRun], p: &BeltPhysics) -> Option<GuideProfile> {
     const W: usize = 20;
     let mut samples: Vec<(f64, f64, f64)> = Vec::new();
@@ -419,7 +462,10 @@ pub fn guide_profile(runs: &[FitRun], p: &BeltPhysics) -> Option<GuideProfile> {
             if v.abs() < 5e-3 || (v_late - v_early).abs() > 0.02 * v.abs() + 1e-3 {
                 continue;
             }
-            samples.push((x[k], v.abs(), p.newton_per_a * r.inputs[k].1 * v.signum()));
+            let amps = r.inputs[k].1;
+            if amps.is_finite() {
+                samples.push((x[k], v.abs(), p.newton_per_a * amps * v.signum()));
+            }
         }
     }
     let lo = samples.iter().map(|s| s.0).fold(f64::INFINITY, f64::min);
@@ -430,7 +476,12 @@ pub fn guide_profile(runs: &[FitRun], p: &BeltPhysics) -> Option<GuideProfile> {
     if hi.partial_cmp(&lo) != Some(std::cmp::Ordering::Greater) {
         return None;
     }
-    let bins = ((hi - lo) / GUIDE_BIN_M).ceil().max(1.0) as usize;
+    // Runs that disagree about where the travel is (counts not from one zero) are refused.
+    let span_bins = ((hi - lo) / GUIDE_BIN_M).ceil().max(1.0);
+    if span_bins > MAX_GUIDE_BINS as f64 {
+        return None;
+    }
+    let bins = span_bins as usize;
     let bin = |x: f64| (((x - lo) / GUIDE_BIN_M) as usize).min(bins - 1);
     let mut count = vec![0usize; bins];
     for s in &samples {
@@ -526,9 +577,11 @@ pub struct Identified {
 
 /// Fits `params` (log factors on a start) by Nelder-Mead on the fit RMS of the runs' terms
 /// with the observer's offset as one more. One round of `evaluations` from each of `starts`,
-/// then `rounds` more from the best with a fresh simplex each (a collapsed simplex stops
-/// short). Several starts because the fit has local minima: a heavy carriage fitted from a
-/// light one's physics settles at a third of the preload and the guide's friction.
+/// then up to `rounds` more from the best with a fresh simplex each, until one gains nothing
+/// (a collapsed simplex stops short). Several starts because the fit has local minima: a heavy
+/// carriage fitted from a light one's physics settles at 5 of its 8 kg with half its
+/// preload. `None` without a start or a row. The carriage mass moves the tracking filter's
+/// acceleration per ampere only through the physics it was built from (a few per cent).
 pub fn identify(
     runs: &[FitRun],
     starts: &[BeltPhysics],
@@ -537,6 +590,9 @@ pub fn identify(
     rounds: usize,
 ) -> Option<Identified> {
     let (fixed, rows) = fixed_terms(runs);
+    if rows == 0 {
+        return None;
+    }
     let at = |start: &BeltPhysics, x: &[f64]| {
         let mut p = start.clone();
         for (&param, v) in params.iter().zip(x) {
@@ -781,6 +837,47 @@ mod tests {
             corr > 0.9 && (0.7..1.3).contains(&gain),
             "correlation {corr:.2}, gain {gain:.2} over {k} bins"
         );
+    }
+
+    /// Physics no plant has (no bristle damping, no friction, a belt shorter than its spans,
+    /// no gear stiffness, no carriage mass) give a finite estimate, not a panic or NaN.
+    #[test]
+    fn odd_physics_give_a_finite_estimate() {
+        let params = PlantParams::paper_rig();
+        let good = BeltPhysics::of(&params, &params);
+        let odd = [
+            BeltPhysics {
+                sigma1_s_per_m: 0.0,
+                sigma2_s_per_m: 0.0,
+                span_damping_n_s_per_m: 0.0,
+                ..good.clone()
+            },
+            BeltPhysics {
+                mu_static: 0.0,
+                mu_kinetic: 0.0,
+                ..good.clone()
+            },
+            BeltPhysics {
+                length_m: 1e-4,
+                gear_n_per_m: 0.0,
+                ..good.clone()
+            },
+            BeltPhysics {
+                mass_kg: 0.0,
+                stribeck_m_per_s: 0.0,
+                ..good.clone()
+            },
+        ];
+        for p in odd {
+            let mut obs = BeltObserver::new(p.clone(), 0);
+            for k in 0..2000i64 {
+                let e = obs.step(k * k % 7919 - 3000, (k % 13) as f64 - 6.0);
+                assert!(
+                    e.offset_um.is_finite() && e.error_um.is_finite(),
+                    "tick {k}: {e:?} with {p:?}"
+                );
+            }
+        }
     }
 
     proptest! {
