@@ -240,20 +240,8 @@ fn main() {
             found.start_rms_um, found.fit_rms_um
         );
         let own = BeltPhysics::of(&plant, &plant);
-        let ratio = |p: &BeltPhysics, q: &BeltPhysics| {
-            [
-                p.mass_kg / q.mass_kg,
-                p.guide_n / q.guide_n,
-                p.preload_n / q.preload_n,
-                p.half_gap_m / q.half_gap_m,
-                p.sigma0_per_m / q.sigma0_per_m,
-                p.mu_kinetic / q.mu_kinetic,
-                p.kappa_per_m / q.kappa_per_m,
-                p.axial_rigidity_n / q.axial_rigidity_n,
-            ]
-        };
-        for ((_, n), r) in Param::ALL.iter().zip(ratio(&found.physics, &own)) {
-            print!(" {n} {r:.2}");
+        for &(p, name) in &Param::ALL {
+            print!(" {name} {:.2}", found.physics.value(p) / own.value(p));
         }
         println!();
         physics = found.physics;

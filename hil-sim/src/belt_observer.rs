@@ -164,6 +164,20 @@ impl BeltPhysics {
         }
     }
 
+    /// The value of `param` (the kinetic coefficient for both friction coefficients).
+    pub fn value(&self, param: Param) -> f64 {
+        match param {
+            Param::Mass => self.mass_kg,
+            Param::Guide => self.guide_n,
+            Param::Preload => self.preload_n,
+            Param::Gap => self.half_gap_m,
+            Param::Sigma0 => self.sigma0_per_m,
+            Param::Mu => self.mu_kinetic,
+            Param::Kappa => self.kappa_per_m,
+            Param::Rigidity => self.axial_rigidity_n,
+        }
+    }
+
     /// Multiplies `param` by `factor`.
     pub fn scale(&mut self, param: Param, factor: f64) {
         match param {
@@ -244,6 +258,11 @@ fn dead_zone(d: f64, h: f64) -> f64 {
 
 /// The tracking filter's discount: critically damped, ~16 Hz for the disturbance.
 pub const TRACK_THETA: f64 = 0.95;
+/// Its gains for position, velocity and acceleration (critically damped alpha-beta-gamma).
+const TRACK_GAINS: [f64; 3] = {
+    let (t, d) = (TRACK_THETA, 1.0 - TRACK_THETA);
+    [1.0 - t * t * t, 1.5 * d * d * (1.0 + t), 0.5 * d * d * d]
+};
 /// Newton steps per tick on the belt's force balance.
 pub const NEWTON_STEPS: u32 = 2;
 /// Largest slip the solve accepts, m/s (a belt slipping faster is thrown, not observed).
@@ -312,12 +331,7 @@ impl BeltObserver {
             0.0
         };
         // Alpha-beta-gamma with the current's acceleration as the model's.
-        let th = TRACK_THETA;
-        let g = [
-            1.0 - th * th * th,
-            1.5 * (1.0 - th) * (1.0 - th) * (1.0 + th),
-            0.5 * (1.0 - th).powi(3),
-        ];
+        let g = TRACK_GAINS;
         let [p0, v0, a0] = self.track;
         let a = a0 + p.accel_per_a * current_a;
         let pred = p0 + v0 * T + 0.5 * a * T * T;
@@ -380,16 +394,9 @@ impl BeltObserver {
         // The carriage, on the chain's force (symplectic Euler, Coulomb friction implicit).
         let f = p.chain(pm - self.o - self.x, self.x).0
             + p.span_damping_n_s_per_m * (surface - u - self.v);
-        let v_trial = self.v + T * f / p.mass_kg;
         let guide_n = p.guide_n + p.guide_profile.as_ref().map_or(0.0, |g| g.at(self.x));
-        let dv = T * guide_n.max(0.0) / p.mass_kg;
-        self.v = if v_trial > dv {
-            v_trial - dv
-        } else if v_trial < -dv {
-            v_trial + dv
-        } else {
-            0.0
-        };
+        self.v =
+            crate::plant::coulomb(self.v + T * f / p.mass_kg, T * guide_n.max(0.0) / p.mass_kg);
         self.x += T * self.v;
         BeltEstimate {
             offset_um: self.o * 1e6,
@@ -492,12 +499,15 @@ pub fn guide_profile(runs: &[FitRun], p: &BeltPhysics) -> Option<GuideProfile> {
     if used.len() < 2 {
         return None;
     }
-    let index = |b: usize| used.iter().position(|&u| u == b);
+    let mut slot = vec![None; bins];
+    for (i, &b) in used.iter().enumerate() {
+        slot[b] = Some(i);
+    }
     let n = used.len() + 1;
     let mut ne = crate::tables::NormalEquations::new(n);
     let mut row = vec![0.0; n];
     for s in &samples {
-        let Some(i) = index(bin(s.0)) else { continue };
+        let Some(i) = slot[bin(s.0)] else { continue };
         row.iter_mut().for_each(|v| *v = 0.0);
         row[i] = 1.0;
         row[n - 1] = s.1;
@@ -610,7 +620,7 @@ pub fn identify(
                 .map(|((row, &y), &c)| (&row[..], y, c))
         });
         match fixed.solve_with(all) {
-            Some((_, sse)) if sse.is_finite() => (sse.max(0.0) / rows.max(1) as f64).sqrt(),
+            Some((_, sse)) if sse.is_finite() => (sse.max(0.0) / rows as f64).sqrt(),
             _ => f64::MAX,
         }
     };
