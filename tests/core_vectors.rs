@@ -115,6 +115,44 @@ mod tests {
         }
     }
 
+    /// The fixed-point belt observer (`model::belt`, not yet in the drive) through moves out
+    /// and back, bit for bit as on the host. Its cost per step is logged: TIM2 counts
+    /// instructions exactly only under `--icount 0` (see README, "A reduced plant observer").
+    #[test]
+    fn belt_observer_matches_the_host() {
+        // SAFETY: TIM2 as an instruction counter, as `hardware::qemu` sets it up (PSC = 0,
+        // ARR = 0, no interrupt); nothing else in this test uses it.
+        let tim2 = unsafe { &*stm32f4xx_hal::pac::TIM2::ptr() };
+        unsafe {
+            (*stm32f4xx_hal::pac::RCC::ptr())
+                .apb1enr()
+                .modify(|_, w| w.tim2en().set_bit());
+            tim2.psc().write(|w| w.bits(0));
+            tim2.arr().write(|w| w.bits(0));
+        }
+        tim2.cr1().write(|w| w.cen().set_bit());
+        let d = vectors::belt_observer(|s, c, counts, current| {
+            cortex_m::interrupt::free(|_| {
+                let t0 = tim2.cnt().read().bits();
+                s.step(c, counts, current);
+                let t1 = tim2.cnt().read().bits();
+                t1.wrapping_sub(t0).wrapping_sub(5)
+            })
+        });
+        let (crc, last, range) = vectors::BELT;
+        defmt::assert_eq!(d.offset_range_bits, range);
+        defmt::assert_eq!(d.final_offset_bits, last);
+        defmt::assert_eq!(d.crc, crc);
+        defmt::info!(
+            "belt observer: {=u32} steps bit-identical, offset {=i32}..{=i32} um/65536; TIM2 per step mean {=u64}/10, max {=u32}",
+            vectors::BELT_TICKS,
+            range.0,
+            range.1,
+            d.measured_sum * 10 / vectors::BELT_TICKS as u64,
+            d.measured_max
+        );
+    }
+
     /// Every model through three moves, compared block by block with the host's run.
     #[test]
     fn closed_loop_runs_match_the_host() {

@@ -110,3 +110,90 @@ pub fn closed_loop(model: crate::model::ModelKind) -> RunDigest {
     digest.final_counts = drive.telemetry().motor_counts.0;
     digest
 }
+
+/// Ticks of the belt observer's run.
+pub const BELT_TICKS: u32 = 3000;
+
+/// Digest of the belt observer's run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BeltDigest {
+    /// CRC-32 of every tick's offset and error bits.
+    pub crc: u32,
+    /// Final mesh offset, I16F16 um.
+    pub final_offset_bits: i32,
+    /// Smallest and largest offset over the run (shows the belt crossed the gap).
+    pub offset_range_bits: (i32, i32),
+    /// What `measure` returned: sum and largest (instructions per step on the target).
+    pub measured_sum: u64,
+    /// See [`BeltDigest::measured_sum`].
+    pub measured_max: u32,
+}
+
+/// The fixed-point belt observer (`model::belt`) on the paper rig's physics with a guide
+/// profile through moves out and back (trapezoids, 25 um per tick at most, with the current a drive would draw).
+/// `measure` runs one step and returns its cost (0 on the host).
+#[inline(never)]
+pub fn belt_observer(
+    mut measure: impl FnMut(
+        &mut crate::model::belt::BeltState,
+        &crate::model::belt::BeltCoeffs,
+        i32,
+        i32,
+    ) -> u32,
+) -> BeltDigest {
+    use crate::model::belt::{BeltParams, BeltState};
+    use belt_link::Crc32;
+    // A guide profile of 40 points, 10 mm apart, -0.8..0.8 N.
+    let mut p = BeltParams::PAPER;
+    p.guide_bins = 40;
+    for (k, d) in p.guide_delta_n.iter_mut().take(40).enumerate() {
+        *d = ((k * 37) % 17) as f64 * 0.1 - 0.8;
+    }
+    let Ok(c) = p.build(1.0 / 2000.0) else {
+        panic!("paper physics refused")
+    };
+    let mut s = BeltState::new(&c, 0);
+    let mut crc = Crc32::new();
+    let mut digest = BeltDigest {
+        crc: 0,
+        final_offset_bits: 0,
+        offset_range_bits: (i32::MAX, i32::MIN),
+        measured_sum: 0,
+        measured_max: 0,
+    };
+    // Velocity in Q8 counts per tick, acceleration 1/8 count per tick² (~1.07 m/s²).
+    let (mut pos_q8, mut vel_q8) = (0i64, 0i64);
+    let targets = [60_000i64, 10_000, 40_000, 38_000];
+    let mut next = 0;
+    for _ in 0..BELT_TICKS {
+        let target = targets[next.min(targets.len() - 1)] << 8;
+        let to_go = target - pos_q8;
+        // Brake when the distance to stop reaches what is left.
+        let stop_q8 = vel_q8 * vel_q8 / (2 * 32) + vel_q8.abs();
+        let want = if to_go.abs() <= stop_q8 {
+            0
+        } else {
+            to_go.signum() * 47 * 256
+        };
+        let accel = (want - vel_q8).clamp(-32, 32);
+        vel_q8 += accel;
+        pos_q8 += vel_q8;
+        if to_go.abs() < 256 && vel_q8.abs() < 64 && next < targets.len() {
+            next += 1;
+        }
+        // Current: 0.2 A per 1/8 count per tick², 0.15 A against the motion.
+        let current_bits = (accel * 13_107 / 32 + vel_q8.signum() * 9_830) as i32;
+        let counts = (pos_q8 >> 8) as i32;
+        let cost = measure(&mut s, &c, counts, current_bits);
+        digest.measured_sum += cost as u64;
+        digest.measured_max = digest.measured_max.max(cost);
+        let (o, e) = (s.offset_um_bits(), s.error_um_bits());
+        crc.update(&o.to_le_bytes());
+        crc.update(&e.to_le_bytes());
+        let (lo, hi) = digest.offset_range_bits;
+        digest.offset_range_bits = (lo.min(o), hi.max(o));
+    }
+    digest.crc = crc.finish();
+    digest.final_offset_bits = s.offset_um_bits();
+    digest
+}

@@ -23,6 +23,8 @@
 //! `belt_observer::guide_profile` measures it on the calibration recordings (before any fit).
 //! `RO_SEED=N` takes the held-out workloads of seed N (11). `RO_CAPSTAN_TAYLOR=1` gives the
 //! observer the capstan's second-order polynomial.
+//! `RO_DRIVE_PORT=1` runs the drive's fixed-point port (`estimator_core::model::belt`:
+//! Taylor capstan, guide profile in 64 points) in place of the `f64` observer.
 //! `RO_DROP=plays,current` leaves those of Model 4's terms out of the fits (not of the
 //! identification). `RO_RAW_ENCODER=1` feeds the counts without the tracking filter.
 #![allow(clippy::print_stdout)]
@@ -79,6 +81,9 @@ fn replay(t: &Trace, s: &Scenario, plant: &PlantParams, params: &ModelParams, ri
 
 /// The reduced observer's offset and predicted error over a run, um.
 fn observe(run: &Run, physics: &BeltPhysics) -> (Vec<f64>, Vec<f64>) {
+    if physics.drive_port {
+        return belt_observer::port_estimates(&run.fit, physics);
+    }
     let mut o = belt_observer::BeltObserver::new(physics.clone(), run.fit.inputs[0].0);
     o.set_tracking(std::env::var("RO_RAW_ENCODER").is_err());
     run.fit
@@ -208,6 +213,9 @@ fn main() {
         .collect();
 
     physics.capstan_taylor = std::env::var("RO_CAPSTAN_TAYLOR").is_ok();
+    // The drive's fixed-point port has the Taylor capstan.
+    physics.drive_port = std::env::var("RO_DRIVE_PORT").is_ok();
+    physics.capstan_taylor |= physics.drive_port;
     if std::env::var("RO_GUIDE").is_ok() {
         let fit_runs: Vec<FitRun> = cal_runs.iter().map(|r| r.fit.clone()).collect();
         physics.guide_profile = belt_observer::guide_profile(&fit_runs, &physics);

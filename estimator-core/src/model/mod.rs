@@ -87,6 +87,7 @@
 //! `UMULL`/`SMULL`/`SMLAL`). See the size guards below for `ModelCoeffs` and `ModelState`.
 
 pub mod baseline;
+pub mod belt;
 pub mod fixmath;
 
 mod convert;

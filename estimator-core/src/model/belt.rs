@@ -1,0 +1,747 @@
+//! The reduced plant observer of the belt in fixed point: the port of `hil_sim::belt_observer`
+//! (the `f64` original, measured there against the slip observer) for the drive's tick. It is
+//! not yet Model 4's term; this module is the step and its cost.
+//!
+//! One step per tick, from the motor counts and the drive's current:
+//! 1. an alpha-beta-gamma tracking filter on the counts, its model acceleration the current's;
+//! 2. the belt's force balance at the pulley (gear and spans as one dead-zone spring, teeth,
+//!    the capstan friction of eq. 10 to second order in `alpha mu`, span damping) solved for
+//!    the slip by two Newton steps from the last slip;
+//! 3. the bristles (eq. 11 with the renewal term) relaxed exactly over the tick;
+//! 4. the carriage (mass, guide Coulomb friction with its profile along the travel) by
+//!    symplectic Euler.
+//!
+//! # Fixed point
+//! Lengths are metres in Q36: `i32` for the state (mesh offset, bristles, the carriage and the
+//! tracking filter relative to the counts: +-31 mm at 1.5e-11 m), `i64` only for the carriage's
+//! position along the travel, which sets the spans' lengths (Q16 metres). Velocities and slips
+//! are Q36 metres per tick, accelerations Q36 metres per tick². Forces are Q16 newtons,
+//! friction coefficients Q30, the bristles' relaxation per tick `lambda T` Q24 (capped at 64:
+//! `e^-64` is 0 in Q30). Build-time factors have [`Scale`]'s 32 significant bits, applied with
+//! 32-bit shifts. The tick's divisions (the chain's stiffness, two Newton steps, the relaxation
+//! rate and its `(1 - e^-x) / x`) are 32-bit `UDIV`s on 16-bit normalised divisors
+//! ([`recip`]): 2^-15 relative, well inside what the physics is known to. The exponentials are
+//! third-order polynomials below 1/64 and [`exp2_neg_q30`] above. Every operation saturates:
+//! any counts, current and state give a defined state, never a panic.
+//!
+//! Against the `f64` observer on the same inputs: within 0.3 um (hil-sim's
+//! `the_fixed_point_port_follows_the_f64_observer`); bit-identical on the Cortex-M4
+//! (`tests/core_vectors.rs`); about 1,200 instructions a step (README).
+
+use super::convert::finite;
+use super::fixmath::{exp2_neg_q30, sat_i32, Scale, ONE_Q30};
+use crate::{ConfigError, ConfigField};
+
+/// The observer's parameters, SI units, belt travel for the gear's (see `hil-sim`'s
+/// `BeltPhysics`, which identifies them).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BeltParams {
+    /// Carriage mass, kg.
+    pub mass_kg: f64,
+    /// Guide Coulomb friction, N.
+    pub guide_n: f64,
+    /// Belt preload F-bar, N.
+    pub preload_n: f64,
+    /// Axial rigidity AE, N.
+    pub axial_rigidity_n: f64,
+    /// Belt free length L, m.
+    pub length_m: f64,
+    /// Span from pulley to carriage at x = 0, m.
+    pub span_offset_m: f64,
+    /// Wrap angle, rad.
+    pub wrap_rad: f64,
+    /// LuGre bristle stiffness, 1/m.
+    pub sigma0_per_m: f64,
+    /// Bristle damping, s/m.
+    pub sigma1_s_per_m: f64,
+    /// Viscous friction, s/m.
+    pub sigma2_s_per_m: f64,
+    /// Static friction coefficient.
+    pub mu_static: f64,
+    /// Kinetic friction coefficient.
+    pub mu_kinetic: f64,
+    /// Stribeck velocity, m/s.
+    pub stribeck_m_per_s: f64,
+    /// Renewal of the contact per metre of pulley travel, 1/m.
+    pub kappa_per_m: f64,
+    /// Half the tooth gap, m.
+    pub half_gap_m: f64,
+    /// Teeth stiffness, N/m.
+    pub tooth_n_per_m: f64,
+    /// Gear half backlash as belt travel, m.
+    pub gear_half_m: f64,
+    /// Gear stiffness as belt stiffness, N/m.
+    pub gear_n_per_m: f64,
+    /// Span damping, N s/m.
+    pub span_damping_n_s_per_m: f64,
+    /// Acceleration of the whole drive per ampere, belt m/s² per A.
+    pub accel_per_a: f64,
+    /// Belt metres per motor count.
+    pub m_per_count: f64,
+    /// The guide's friction along the travel less its mean (N at evenly spaced carriage
+    /// positions, the first `guide_bins` of `guide_delta_n`), linear between, held flat beyond.
+    pub guide_delta_n: [f64; MAX_GUIDE_BINS],
+    /// See [`BeltParams::guide_delta_n`]; 0: a flat guide.
+    pub guide_bins: usize,
+    /// Carriage position of the first point and the points' spacing, m.
+    pub guide_start_m: f64,
+    /// See [`BeltParams::guide_start_m`].
+    pub guide_step_m: f64,
+}
+
+/// Most points of the guide's friction profile.
+pub const MAX_GUIDE_BINS: usize = 64;
+
+/// Q36 metres: `2^36` per metre.
+const M_Q36: f64 = (1u64 << 36) as f64;
+/// One in Q28 (`alpha mu` and the capstan's factors).
+const ONE_Q28: i64 = 1 << 28;
+/// Cap of `lambda T`, Q24 (64).
+const MAX_LAMBDA_Q24: u32 = 64 << 24;
+/// log2(e) in Q30.
+const LOG2_E_Q30: u64 = 1_549_082_005;
+/// The tracking filter's gains in Q32 (critically damped alpha-beta-gamma, discount 0.95, as
+/// the `f64` observer's): position `1 - t^3`, velocity `1.5 (1 - t)^2 (1 + t)`, acceleration
+/// `2 * 0.5 (1 - t)^3`.
+const TRACK_Q32: [i64; 3] = [612_569_711, 31_406_948, 536_871];
+/// Newton steps per tick.
+pub const NEWTON_STEPS: u32 = 2;
+
+/// Limits a machine's physics must keep for the formats above.
+const MAX_LENGTH_M: f64 = 100.0;
+const MAX_SMALL_M: f64 = 0.01;
+
+/// The observer's build-time constants.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BeltCoeffs {
+    m_per_count: Gain,
+    accel: Gain,
+    sigma0: Gain,
+    sigma1_t: Gain,
+    m1_t: Gain,
+    inv_stribeck: Gain,
+    kappa: Gain,
+    damping_t: Gain,
+    tt_per_m: Gain,
+    tooth: Gain,
+    span_per_ae_l: Gain,
+    inv_length: Gain,
+    mu_kinetic_q30: i32,
+    dmu_q30: i32,
+    wrap_q28: i32,
+    preload_q16: i32,
+    preload_wrap_q16: i32,
+    tooth_n_per_m: u32,
+    damping_t_n_per_m: u32,
+    gear_compliance_q60: u64,
+    guide_q16: i32,
+    guide_delta_q16: [i32; MAX_GUIDE_BINS],
+    guide_bins: u32,
+    guide_start_q16: i32,
+    /// Q16 m to Q16 points.
+    guide_per_step: Gain,
+    half_gap_q36: i32,
+    gear_half_q36: i32,
+    length_q16: i32,
+    span_offset_q16: i32,
+    max_slip_q36: i32,
+    jump_q36: i32,
+}
+
+impl BeltParams {
+    /// The paper rig's physics (hil-sim's preset as `BeltPhysics::of` derives them, rounded): the on-target vectors' machine.
+    pub const PAPER: BeltParams = BeltParams {
+        mass_kg: 2.5,
+        guide_n: 10.0,
+        preload_n: 40.0,
+        axial_rigidity_n: 2.0e5,
+        length_m: 0.94,
+        span_offset_m: 0.12,
+        wrap_rad: core::f64::consts::PI,
+        sigma0_per_m: 1360.0,
+        sigma1_s_per_m: 5.0,
+        sigma2_s_per_m: 0.05,
+        mu_static: 0.45,
+        mu_kinetic: 0.35,
+        stribeck_m_per_s: 1e-3,
+        kappa_per_m: 39.4,
+        half_gap_m: 1.4e-4,
+        tooth_n_per_m: 4e6,
+        gear_half_m: 6.06e-6,
+        gear_n_per_m: 3.82e6,
+        span_damping_n_s_per_m: 15.0,
+        accel_per_a: 4.9,
+        m_per_count: 5.35e-7,
+        guide_delta_n: [0.0; MAX_GUIDE_BINS],
+        guide_bins: 0,
+        guide_start_m: 0.0,
+        guide_step_m: 0.01,
+    };
+
+    /// Checks every field and converts for a tick of `tick_s` seconds; errors name the field.
+    pub fn build(&self, tick_s: f64) -> Result<BeltCoeffs, ConfigError> {
+        use ConfigField as F;
+        let in_range = |v: f64, lo: f64, hi: f64, f: F| -> Result<f64, ConfigError> {
+            let v = finite(v, f)?;
+            if !(lo..=hi).contains(&v) {
+                return Err(ConfigError::OutOfRange(f));
+            }
+            Ok(v)
+        };
+        let positive = |v: f64, hi: f64, f: F| -> Result<f64, ConfigError> {
+            let v = in_range(v, 0.0, hi, f)?;
+            if v == 0.0 {
+                return Err(ConfigError::OutOfRange(f));
+            }
+            Ok(v)
+        };
+        let t = positive(tick_s, 1.0, F::DriveRateHz)?;
+        let mass = positive(self.mass_kg, 1e4, F::Model4BeltMassKg)?;
+        let guide = in_range(self.guide_n, 0.0, 1e4, F::Model4BeltGuideN)?;
+        let preload = positive(self.preload_n, 4e3, F::Model4BeltPreloadN)?;
+        let ae = positive(self.axial_rigidity_n, 1e9, F::Model4BeltAxialRigidityN)?;
+        let length = in_range(self.length_m, 3e-3, MAX_LENGTH_M, F::Model4BeltLengthM)?;
+        let offset = in_range(self.span_offset_m, 0.0, length, F::Model4BeltSpanOffsetM)?;
+        let wrap = positive(self.wrap_rad, 7.0, F::Model4BeltWrapRad)?;
+        let sigma0 = positive(self.sigma0_per_m, 1e8, F::Model4BeltSigma0PerM)?;
+        let sigma1 = in_range(self.sigma1_s_per_m, 0.0, 1e4, F::Model4BeltSigma1SPerM)?;
+        let sigma2 = in_range(self.sigma2_s_per_m, 0.0, 1e4, F::Model4BeltSigma2SPerM)?;
+        let mu_k = positive(self.mu_kinetic, 1.0, F::Model4BeltMuKinetic)?;
+        let mu_s = in_range(self.mu_static, mu_k, 1.0, F::Model4BeltMuStatic)?;
+        let stribeck = positive(self.stribeck_m_per_s, 10.0, F::Model4BeltStribeckMPerS)?;
+        let kappa = in_range(self.kappa_per_m, 0.0, 1e6, F::Model4BeltKappaPerM)?;
+        let half_gap = positive(self.half_gap_m, MAX_SMALL_M, F::Model4BeltHalfGapM)?;
+        let tooth = positive(self.tooth_n_per_m, 1e9, F::Model4BeltToothNPerM)?;
+        let gear_half = in_range(self.gear_half_m, 0.0, MAX_SMALL_M, F::Model4BeltGearHalfM)?;
+        let gear = positive(self.gear_n_per_m, 1e9, F::Model4BeltGearNPerM)?;
+        let damping = in_range(
+            self.span_damping_n_s_per_m,
+            0.0,
+            1e5,
+            F::Model4BeltSpanDampingNSPerM,
+        )?;
+        let accel = in_range(self.accel_per_a, 0.0, 1e5, F::Model4BeltAccelPerA)?;
+        let mpc = positive(self.m_per_count, 1e-3, F::Model4BeltMPerCount)?;
+        if self.guide_bins > MAX_GUIDE_BINS {
+            return Err(ConfigError::TableSize(F::Model4BeltGuideProfileN));
+        }
+        let mut guide_delta_q16 = [0i32; MAX_GUIDE_BINS];
+        for (q16, &n) in guide_delta_q16
+            .iter_mut()
+            .zip(&self.guide_delta_n[..self.guide_bins])
+        {
+            let n = in_range(n, -1e4, 1e4, F::Model4BeltGuideProfileN)?;
+            *q16 = q(n, 16.0, F::Model4BeltGuideProfileN)?;
+        }
+        let guide_start = in_range(
+            self.guide_start_m,
+            -MAX_LENGTH_M,
+            MAX_LENGTH_M,
+            F::Model4BeltGuideProfileStartM,
+        )?;
+        let guide_step = in_range(
+            self.guide_step_m,
+            1e-3,
+            MAX_LENGTH_M,
+            F::Model4BeltGuideProfileStepM,
+        )?;
+        let scale = Gain::new;
+        let q30_per_q36 = 1.0 / 64.0;
+        Ok(BeltCoeffs {
+            m_per_count: scale(mpc * M_Q36, F::Model4BeltMPerCount)?,
+            // Current in I16F16 amperes.
+            accel: scale(accel * t * t * M_Q36 / 65536.0, F::Model4BeltAccelPerA)?,
+            sigma0: scale(sigma0 * q30_per_q36, F::Model4BeltSigma0PerM)?,
+            sigma1_t: scale(sigma1 / t * q30_per_q36, F::Model4BeltSigma1SPerM)?,
+            m1_t: scale(
+                (sigma1 + sigma2) / t * q30_per_q36,
+                F::Model4BeltSigma2SPerM,
+            )?,
+            inv_stribeck: scale(
+                1.0 / (stribeck * t) * 65536.0 / M_Q36,
+                F::Model4BeltStribeckMPerS,
+            )?,
+            kappa: scale(kappa * (1u64 << 24) as f64 / M_Q36, F::Model4BeltKappaPerM)?,
+            damping_t: scale(
+                damping / t * 65536.0 / M_Q36,
+                F::Model4BeltSpanDampingNSPerM,
+            )?,
+            tt_per_m: scale(t * t / mass * M_Q36 / 65536.0, F::Model4BeltMassKg)?,
+            tooth: scale(tooth * 65536.0 / M_Q36, F::Model4BeltToothNPerM)?,
+            // l1 l2 in Q18 m² to the compliance in Q60 m/N.
+            span_per_ae_l: scale(
+                (1u64 << 42) as f64 / (ae * length),
+                F::Model4BeltAxialRigidityN,
+            )?,
+            // l1 in Q16 m to l1 / L in Q30.
+            inv_length: scale((1u64 << 14) as f64 / length, F::Model4BeltLengthM)?,
+            mu_kinetic_q30: q(mu_k, 30.0, F::Model4BeltMuKinetic)?,
+            dmu_q30: q(mu_s - mu_k, 30.0, F::Model4BeltMuStatic)?,
+            wrap_q28: q(wrap, 28.0, F::Model4BeltWrapRad)?,
+            preload_q16: q(preload, 16.0, F::Model4BeltPreloadN)?,
+            preload_wrap_q16: q(preload * wrap, 16.0, F::Model4BeltPreloadN)?,
+            tooth_n_per_m: tooth as u32,
+            damping_t_n_per_m: (damping / t).min(u32::MAX as f64) as u32,
+            gear_compliance_q60: ((1u64 << 60) as f64 / gear) as u64,
+            guide_q16: q(guide, 16.0, F::Model4BeltGuideN)?,
+            guide_delta_q16,
+            guide_bins: self.guide_bins as u32,
+            guide_start_q16: q(guide_start, 16.0, F::Model4BeltGuideProfileStartM)?,
+            guide_per_step: scale(1.0 / guide_step, F::Model4BeltGuideProfileStepM)?,
+            half_gap_q36: q(half_gap, 36.0, F::Model4BeltHalfGapM)?,
+            gear_half_q36: q(gear_half, 36.0, F::Model4BeltGearHalfM)?,
+            length_q16: q(length, 16.0, F::Model4BeltLengthM)?,
+            span_offset_q16: q(offset, 16.0, F::Model4BeltSpanOffsetM)?,
+            max_slip_q36: q((10.0 * t).min(MAX_SMALL_M / 2.0), 36.0, F::DriveRateHz)?,
+            jump_q36: (1e-3 * M_Q36) as i32,
+        })
+    }
+}
+
+/// `v * 2^bits` rounded, if it fits an `i32`.
+fn q(v: f64, bits: f64, f: ConfigField) -> Result<i32, ConfigError> {
+    let scaled = v * super::fixmath::pow2(bits as i32);
+    super::fixmath::round_i32(scaled).ok_or(ConfigError::OutOfRange(f))
+}
+
+/// A positive build-time factor `mant 2^-shift`, `shift` in `1..=63`: [`Scale`]'s 32
+/// significant bits, applied with 32-bit shifts only (a 64-bit shift by a variable amount costs
+/// the M4 about ten instructions, and the tick applies some twenty factors).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Gain {
+    mant: u32,
+    shift: u8,
+}
+
+impl Gain {
+    fn new(v: f64, f: ConfigField) -> Result<Gain, ConfigError> {
+        let s = Scale::from_f64(v, f)?;
+        if s.shift == 0 {
+            return Err(ConfigError::OutOfRange(f));
+        }
+        Ok(Gain {
+            mant: s.mant,
+            shift: s.shift,
+        })
+    }
+}
+
+/// `p >> sh` for `sh` in `1..=63` from 32-bit shifts (`sh = 0` counts as 1).
+#[inline(always)]
+fn shr64(p: u64, sh: u32) -> u64 {
+    let (hi, lo) = ((p >> 32) as u32, p as u32);
+    if sh >= 32 {
+        (hi >> (sh - 32).min(31)) as u64
+    } else {
+        let sh = sh.max(1);
+        ((hi >> sh) as u64) << 32 | ((lo >> sh) | (hi << (32 - sh))) as u64
+    }
+}
+
+/// `v * g`, truncated towards 0 (symmetric about 0).
+#[inline(always)]
+fn mul(g: Gain, v: i32) -> i64 {
+    let m = shr64(v.unsigned_abs() as u64 * g.mant as u64, g.shift as u32) as i64;
+    if v < 0 {
+        -m
+    } else {
+        m
+    }
+}
+
+/// [`mul`] saturated to `i32`.
+#[inline(always)]
+fn mul32(g: Gain, v: i32) -> i32 {
+    sat_i32(mul(g, v))
+}
+
+/// `1 / d ~ m 2^-e` with `m` in `(2^16, 2^17]`: one 32-bit `UDIV` on the top 16 bits of `d`
+/// (relative error below 2^-15). `d = 0` counts as 1.
+#[inline]
+pub fn recip(d: u64) -> (u32, u32) {
+    let n = 63 - (d | 1).leading_zeros();
+    let top = if n > 15 {
+        shr64(d, n - 15) as u32
+    } else {
+        (d as u32) << (15 - n)
+    };
+    // `top` is in [2^15, 2^16); or-ing the bit in lets the compiler drop the zero check.
+    (u32::MAX / (top | 0x8000), n + 17)
+}
+
+/// `num 2^s / d` for `(m, e) = recip(d)`, truncated towards 0, saturated to `i32`.
+#[inline]
+fn div(num: i32, (m, e): (u32, u32), s: u32) -> i32 {
+    let a = num.unsigned_abs() as u64 * m as u64; // < 2^48
+    let r = if e > s {
+        shr64(a, e - s).min(i32::MAX as u64)
+    } else if e == s {
+        a.min(i32::MAX as u64)
+    } else if a >> (32 - (s - e).min(31)) != 0 {
+        i32::MAX as u64
+    } else {
+        a << (s - e)
+    } as i32;
+    if num < 0 {
+        -r
+    } else {
+        r
+    }
+}
+
+#[inline(always)]
+fn dead_zone(d: i32, h: i32) -> i32 {
+    if d > h {
+        d - h
+    } else if d < -h {
+        d + h
+    } else {
+        0
+    }
+}
+
+/// The observer's state (a few words; `Copy` for the drive's double buffering). The tracking
+/// filter and the carriage are kept relative to the counts (`i32`): only the spans' lengths
+/// need the absolute position.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct BeltState {
+    /// The counts of the last step.
+    counts: i32,
+    /// Tracking filter: position less the counts' (Q36 m), velocity (per tick), disturbance
+    /// acceleration (per tick²).
+    track: [i32; 3],
+    /// Carriage less the tracked motor position, Q36 m, and its velocity, Q36 m per tick.
+    d: i32,
+    v: i32,
+    /// Mesh offset and bristle deflection, Q36 m.
+    o: i32,
+    z: i32,
+    /// The last slip, Q36 m per tick, and its part of the bristles' relaxation, Q24.
+    du: i32,
+    slide: u32,
+}
+
+impl BeltState {
+    /// At rest at motor position `counts`, on the forward flanks and unloaded.
+    pub fn new(c: &BeltCoeffs, counts: i32) -> BeltState {
+        BeltState {
+            counts,
+            track: [0; 3],
+            d: -c.half_gap_q36.saturating_add(c.gear_half_q36),
+            v: 0,
+            o: c.half_gap_q36,
+            z: 0,
+            du: 0,
+            slide: 0,
+        }
+    }
+
+    /// Mesh offset `P - b`, Q36 m.
+    pub fn offset_q36(&self) -> i32 {
+        self.o
+    }
+
+    /// Mesh offset in I16F16 micrometres (`1e6 / 2^20 = 15625 / 2^14` exactly).
+    pub fn offset_um_bits(&self) -> i32 {
+        sat_i32((self.o as i64 * 15625 + (1 << 13)) >> 14)
+    }
+
+    /// Carriage less the motor's belt position (the tracked one), I16F16 micrometres.
+    pub fn error_um_bits(&self) -> i32 {
+        sat_i32((self.d as i64 * 15625 + (1 << 13)) >> 14)
+    }
+
+    /// The chain's stiffness at carriage position `x` (Q36 m), N/m, and `l1 / L - 1/2` in Q30.
+    #[inline(always)]
+    fn geometry(c: &BeltCoeffs, x16: i32) -> (u32, i32) {
+        const MM_Q16: i32 = 66; // 1 mm, rounded up
+        let l1 = c
+            .span_offset_q16
+            .saturating_add(x16)
+            .min(c.length_q16 - MM_Q16)
+            .max(MM_Q16);
+        let l2 = (c.length_q16 - l1).max(MM_Q16);
+        // l1 l2 < 2^46 in Q32 m²; Q18 fits a u32.
+        let p = ((l1 as u64 * l2 as u64) >> 14) as u32;
+        let compliance = shr64(
+            p as u64 * c.span_per_ae_l.mant as u64,
+            c.span_per_ae_l.shift as u32,
+        )
+        .saturating_add(c.gear_compliance_q60);
+        // 2^60 / compliance, N/m.
+        let (m, e) = recip(compliance);
+        let k = if e >= 60 {
+            m >> (e - 60).min(31)
+        } else if e + 15 <= 60 {
+            u32::MAX
+        } else {
+            m << (60 - e)
+        };
+        let ratio = mul32(c.inv_length, l1) - (1 << 29);
+        (k, ratio)
+    }
+
+    /// The guide's friction less its mean at carriage position `x16` (Q16 m), N Q16.
+    #[inline(always)]
+    fn guide_profile(c: &BeltCoeffs, x16: i32) -> i32 {
+        let n = c.guide_bins as usize;
+        let d = &c.guide_delta_q16;
+        if n < 2 {
+            return if n == 1 { d[0] } else { 0 };
+        }
+        // Q16 points from the first, held within the table.
+        let pos = mul(c.guide_per_step, x16.saturating_sub(c.guide_start_q16))
+            .clamp(0, ((n - 1) as i64) << 16) as u32;
+        let k = ((pos >> 16) as usize).min(n - 2);
+        let t = (pos - ((k as u32) << 16)) as i64;
+        let (a, b) = (d[k] as i64, d[(k + 1) % MAX_GUIDE_BINS] as i64);
+        (a + (((b - a) * t) >> 16)) as i32
+    }
+
+    /// The slip's part of the bristles' relaxation over the tick `sigma0 |du| / g(u)`, Q24.
+    #[inline]
+    fn slide(c: &BeltCoeffs, du: i32) -> u32 {
+        // (u / v_s)² in Q32, capped at 49 (e^-49 is 0 in Q30).
+        let r = mul32(c.inv_stribeck, du).unsigned_abs().min(7 << 16) as u64;
+        let s = r * r;
+        let e = if s < 1 << 26 {
+            // Below 1/64: e^-s to third order (error below 3 units of Q30), no table.
+            let s = (s >> 2) as i32; // Q30, < 2^24
+            let s2 = ((s as i64 * s as i64) >> 30) as i32;
+            let s3 = ((s2 as i64 * s as i64) >> 30) as i32;
+            ONE_Q30 as i32 - s + s2 / 2 - s3 / 6
+        } else {
+            exp2_neg_q30(((s >> 8) * LOG2_E_Q30) >> 22) as i32
+        };
+        let g = c.mu_kinetic_q30 + ((c.dmu_q30 as i64 * e as i64) >> 30) as i32;
+        let num = mul32(c.sigma0, du).saturating_abs(); // Q30
+        div(num, recip(g.max(1074) as u64), 24).clamp(0, MAX_LAMBDA_Q24 as i32) as u32
+    }
+
+    /// One tick to motor position `counts` (unwrapped) with the drive's current in I16F16
+    /// amperes.
+    pub fn step(&mut self, c: &BeltCoeffs, counts: i32, current_bits: i32) {
+        // Tracking filter, per-tick units, relative to the counts: the prediction less this
+        // tick's counts is the last position less the travel of the counts since.
+        let travel = mul(c.m_per_count, counts.wrapping_sub(self.counts));
+        self.counts = counts;
+        let [e0, v0, a0] = self.track;
+        let a = a0.saturating_add(mul32(c.accel, current_bits));
+        let pred = e0 as i64 + v0 as i64 + (a >> 1) as i64 - travel;
+        let ds;
+        if pred.unsigned_abs() >= c.jump_q36 as u64 {
+            // A jump (restart, wild count): the filter restarts there and the carriage moves
+            // with it; the pulley did not travel under the belt.
+            self.track = [0; 3];
+            ds = 0;
+        } else {
+            let r = -(pred as i32);
+            let gain = |g: i64| ((g * r as i64 + (1 << 31)) >> 32) as i32;
+            let e = pred as i32 + gain(TRACK_Q32[0]);
+            self.track = [
+                e,
+                v0.saturating_add(a).saturating_add(gain(TRACK_Q32[1])),
+                a0.saturating_add(gain(TRACK_Q32[2])),
+            ];
+            // The tracked motor's travel this tick.
+            ds = (travel as i32).wrapping_add(e - e0);
+            // The carriage relative to the tracked motor.
+            self.d = self.d.saturating_sub(ds);
+        }
+        let x = mul(c.m_per_count, counts) + self.track[0] as i64 + self.d as i64;
+        let x16 = sat_i32(x >> 20);
+        let (k_chain, ratio) = Self::geometry(c, x16);
+        let renew = mul32(c.kappa, ds.saturating_abs()) as u32;
+        let lambda = self.slide.saturating_add(renew).min(MAX_LAMBDA_Q24);
+        // m0 = sigma0 z - sigma1 lambda z (Q30).
+        let lz = sat_i32((lambda as i64 * self.z as i64) >> 24);
+        let m0 = mul(c.sigma0, self.z) - mul(c.sigma1_t, lz);
+        let rel = self.d.saturating_neg(); // motor less carriage
+        let k_chain64 = k_chain as i64;
+        let mut du = self.du;
+        for _ in 0..NEWTON_STEPS {
+            let o = self.o.saturating_add(du);
+            let q = dead_zone(rel.saturating_sub(o), c.gear_half_q36);
+            let f_chain = (k_chain64 * q as i64) >> 20;
+            let k_c = if q == 0 { 0 } else { k_chain as u64 };
+            let teeth = dead_zone(o, c.half_gap_q36);
+            let f_teeth = mul(c.tooth, teeth);
+            let k_t = if teeth == 0 {
+                0
+            } else {
+                c.tooth_n_per_m as u64
+            };
+            let mu = (m0 + mul(c.m1_t, du)).clamp(-(ONE_Q30 as i64), ONE_Q30 as i64) as i32;
+            let a = ((c.wrap_q28 as i64 * mu as i64) >> 30) as i32; // Q28
+            let ac = ((a as i64 * ratio as i64) >> 30) as i32; // Q28
+            let f_f = (c.preload_q16 as i64 * (a as i64 + ((a as i64 * ac as i64) >> 28))) >> 28;
+            // N Q16 per unit of mu.
+            let slope_f = ((c.preload_wrap_q16 as i64 * (ONE_Q28 + 2 * ac as i64)) >> 28) as i32;
+            let rel_v = ds.saturating_sub(du).saturating_sub(self.v);
+            let damping = mul(c.damping_t, rel_v);
+            let residual = sat_i32(f_chain + damping - f_teeth - f_f);
+            // N/m; the capstan's through mu's slope in du (Q30 per Q36, Q16 -> Q10 N/m).
+            let slope =
+                k_c + k_t + (mul(c.m1_t, slope_f).max(0) as u64 >> 10) + c.damping_t_n_per_m as u64;
+            if slope > 0 {
+                // N Q16 / (N/m) = m Q16; Q36 wanted.
+                let step = div(residual, recip(slope), 20);
+                du = du
+                    .saturating_add(step)
+                    .clamp(-c.max_slip_q36, c.max_slip_q36);
+            }
+        }
+        self.du = du;
+        self.o = self.o.saturating_add(du);
+        // Bristles: z e^-l + du (1 - e^-l) / l.
+        self.slide = Self::slide(c, du);
+        let lambda = self.slide.saturating_add(renew).min(MAX_LAMBDA_Q24);
+        self.z = if lambda < 1 << 18 {
+            // Below 1/64: e^-l and (1 - e^-l) / l to third order (error below 3 units of
+            // Q30), no table and no division.
+            let l = (lambda << 6) as i32; // Q30, < 2^24
+            let l2 = ((l as i64 * l as i64) >> 30) as i32;
+            let l3 = ((l2 as i64 * l as i64) >> 30) as i32;
+            let decay = ONE_Q30 as i32 - l + l2 / 2 - l3 / 6;
+            let phi = ONE_Q30 as i32 - l / 2 + l2 / 6 - l3 / 24;
+            sat_i32(((self.z as i64 * decay as i64) >> 30) + ((du as i64 * phi as i64) >> 30))
+        } else {
+            let decay = exp2_neg_q30((lambda as u64 * LOG2_E_Q30) >> 22) as i32; // Q30
+            let phi = div(ONE_Q30 as i32 - decay, recip(lambda as u64), 24); // Q30
+            sat_i32(((self.z as i64 * decay as i64) >> 30) + ((du as i64 * phi as i64) >> 30))
+        };
+        // The carriage on the chain's force, Coulomb friction implicit.
+        let q = dead_zone(rel.saturating_sub(self.o), c.gear_half_q36);
+        let rel_v = ds.saturating_sub(du).saturating_sub(self.v);
+        let f = sat_i32(((k_chain64 * q as i64) >> 20) + mul(c.damping_t, rel_v));
+        let v = self.v.saturating_add(mul32(c.tt_per_m, f));
+        let guide = c
+            .guide_q16
+            .saturating_add(Self::guide_profile(c, x16))
+            .max(0);
+        let dv = mul32(c.tt_per_m, guide);
+        self.v = if v > dv {
+            v - dv
+        } else if v < -dv {
+            v + dv
+        } else {
+            0
+        };
+        self.d = self.d.saturating_add(self.v);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    #[test]
+    fn tracking_gains_are_the_f64_observer_s() {
+        let (t, d) = (0.95f64, 0.05f64);
+        let g = [1.0 - t * t * t, 1.5 * d * d * (1.0 + t), d * d * d];
+        for (q, g) in TRACK_Q32.iter().zip(g) {
+            assert!((*q as f64 / 2f64.powi(32) - g).abs() < 1e-9, "{q} {g}");
+        }
+        assert!((LOG2_E_Q30 as f64 / 2f64.powi(30) - core::f64::consts::LOG2_E).abs() < 1e-9);
+    }
+
+    #[test]
+    fn reciprocal_within_2_pow_minus_15() {
+        for d in [
+            1u64,
+            2,
+            3,
+            1000,
+            65_535,
+            65_536,
+            1 << 40,
+            u64::MAX,
+            987_654_321_987,
+        ] {
+            let (m, e) = recip(d);
+            let approx = m as f64 / 2f64.powi(e as i32);
+            assert!((approx * d as f64 - 1.0).abs() < 2f64.powi(-15), "{d}");
+        }
+    }
+
+    #[test]
+    fn bad_physics_is_refused_by_name() {
+        let mut p = BeltParams::PAPER;
+        p.mu_static = 0.1; // below kinetic
+        assert_eq!(
+            p.build(5e-4),
+            Err(ConfigError::OutOfRange(ConfigField::Model4BeltMuStatic))
+        );
+        let mut p = BeltParams::PAPER;
+        p.half_gap_m = f64::NAN;
+        assert_eq!(
+            p.build(5e-4),
+            Err(ConfigError::NotFinite(ConfigField::Model4BeltHalfGapM))
+        );
+        let mut p = BeltParams::PAPER;
+        p.mass_kg = 0.0;
+        assert_eq!(
+            p.build(5e-4),
+            Err(ConfigError::OutOfRange(ConfigField::Model4BeltMassKg))
+        );
+    }
+
+    #[test]
+    fn a_reversal_moves_the_belt_across_the_gap() {
+        let c = BeltParams::PAPER.build(5e-4).unwrap();
+        let mut s = BeltState::new(&c, 0);
+        let h_um = 140.0;
+        let um = |s: &BeltState| s.offset_um_bits() as f64 / 65536.0;
+        assert!((um(&s) - h_um).abs() < 0.01);
+        // 50 mm/s forward for 0.2 s, then back: a 0.535 um count.
+        let mut counts = 0i32;
+        let amps = |a: f64| (a * 65536.0) as i32;
+        for _ in 0..400 {
+            counts += 47;
+            s.step(&c, counts, amps(0.15));
+        }
+        let forward = um(&s);
+        for _ in 0..2000 {
+            counts -= 47;
+            s.step(&c, counts, amps(-0.15));
+        }
+        let back = um(&s);
+        assert!(forward > 100.0, "{forward}");
+        assert!(back < forward - 100.0, "{forward} -> {back}");
+    }
+
+    proptest! {
+        /// Any counts (small steps through the Newton path, wild ones through the jump), any
+        /// current and physics anywhere in the accepted ranges give a defined state.
+        #[test]
+        fn any_input_gives_a_defined_state(
+            start in any::<i32>(),
+            steps in proptest::collection::vec((any::<i16>(), any::<bool>(), any::<i32>()), 1..300),
+            mass in 1e-3f64..1e4,
+            sigma0 in 1.0f64..1e8,
+            gap in 1e-6f64..0.01,
+            preload in 0.1f64..4e3,
+            tooth in 1e2f64..1e9,
+            kappa in 0.0f64..1e6,
+            wrap in 0.1f64..7.0,
+        ) {
+            let mut p = BeltParams::PAPER;
+            p.mass_kg = mass;
+            p.sigma0_per_m = sigma0;
+            p.half_gap_m = gap;
+            p.preload_n = preload;
+            p.tooth_n_per_m = tooth;
+            p.kappa_per_m = kappa;
+            p.wrap_rad = wrap;
+            let c = p.build(5e-4).unwrap();
+            let mut s = BeltState::new(&c, start);
+            let mut counts = start;
+            for (delta, wild, amps) in steps {
+                counts = if wild { amps } else { counts.wrapping_add(i32::from(delta)) };
+                s.step(&c, counts, amps);
+                let _ = (s.offset_um_bits(), s.error_um_bits());
+            }
+        }
+    }
+}
