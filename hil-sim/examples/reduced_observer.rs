@@ -25,6 +25,9 @@
 //! observer the capstan's second-order polynomial.
 //! `RO_DRIVE_PORT=1` runs the drive's fixed-point port (`estimator_core::model::belt`:
 //! Taylor capstan, guide profile in 64 points) in place of the `f64` observer.
+//! `RO_DECIMATE=N` steps the `f64` observer once per N ticks.
+//! Each row also counts the runs where it is below the best of the other estimators (Models
+//! 1-3 and the baselines, as `hil-sim generalise` measures them) and within 4x of the floor.
 //! `RO_DROP=plays,current` leaves those of Model 4's terms out of the fits (not of the
 //! identification). `RO_RAW_ENCODER=1` feeds the counts without the tracking filter.
 #![allow(clippy::print_stdout)]
@@ -206,8 +209,8 @@ fn main() {
         .collect();
     let seed = env_num("RO_SEED", 11) as u64;
     let suffix = format!("-{seed}");
-    let mut runs: Vec<Run> = hil_sim::generalise::probe_set(&plant, seed)
-        .expect("held-out runs")
+    let probes = hil_sim::generalise::probe_set(&plant, seed).expect("held-out runs");
+    let mut runs: Vec<Run> = probes
         .iter()
         .map(|(s, t)| replay(t, s, &plant, &cal.params, &rig))
         .collect();
@@ -216,6 +219,7 @@ fn main() {
     // The drive's fixed-point port has the Taylor capstan.
     physics.drive_port = std::env::var("RO_DRIVE_PORT").is_ok();
     physics.capstan_taylor |= physics.drive_port;
+    physics.decimation = env_num("RO_DECIMATE", 1).max(1) as u32;
     if std::env::var("RO_GUIDE").is_ok() {
         let fit_runs: Vec<FitRun> = cal_runs.iter().map(|r| r.fit.clone()).collect();
         physics.guide_profile = belt_observer::guide_profile(&fit_runs, &physics);
@@ -269,6 +273,42 @@ fn main() {
         print!(" {} {d:.1} ({t:.0})", r.name);
     }
     println!();
+    // The other estimators on the same runs, as `hil-sim generalise` measures them: the best of
+    // Models 1-3 and the baselines, and the floor (the run again with another seed).
+    let coeffs = cal.params.build(&rig).expect("calibration builds");
+    let others: Vec<(f64, f64)> = probes
+        .iter()
+        .map(|(s, t)| {
+            let est = hil_sim::eval::estimates(t, &coeffs);
+            let best = hil_sim::eval::table3(t, &est)
+                .into_iter()
+                .filter(|(k, _)| !matches!(*k, "none" | "model4"))
+                .map(|(_, st)| st.rms_um)
+                .fold(f64::INFINITY, f64::min);
+            let b = hil_sim::eval::run_in_process(
+                s,
+                &plant,
+                &ModelParams::PAPER,
+                estimator_core::model::ModelKind::None,
+                2,
+                &mut |_| {},
+            )
+            .expect("second run");
+            let n = t.records.len().min(b.records.len());
+            let floor = ((0..n)
+                .map(|i| (t.dx_um(i) - b.dx_um(i)).powi(2))
+                .sum::<f64>()
+                / n.max(1) as f64
+                / 2.0)
+                .sqrt();
+            (best, floor)
+        })
+        .collect();
+    print!("best of the other estimators (floor), um:");
+    for (r, (best, floor)) in runs.iter().zip(&others) {
+        print!(" {} {best:.1} ({floor:.1})", r.name);
+    }
+    println!();
     for (slip, name) in [
         (0, "slip as built"),
         (1, "true offset"),
@@ -278,18 +318,21 @@ fn main() {
     ] {
         let (w, fit_rms) = fit(&cal_runs, slip);
         print!("{name:16} fit {fit_rms:5.2} |");
-        let mut generated = 0.0;
-        for r in &runs {
+        let (mut generated, mut best, mut near) = (0.0, 0, 0);
+        for (r, (other, floor)) in runs.iter().zip(&others) {
             let e = rms(r, slip, &w);
             if r.name.ends_with(&suffix) {
                 generated += e * e;
             }
+            best += (e < *other) as usize;
+            near += (e <= 4.0 * floor) as usize;
             print!(" {} {e:.1}", r.name);
         }
         println!(
-            " | generated mean square {:.1} um (weight {:.3})",
+            " | generated mean square {:.1} um (weight {:.3}) | best on {best} of {n}, within 4x of the floor on {near}",
             (generated / 6.0).sqrt(),
-            w.last().copied().unwrap_or(0.0)
+            w.last().copied().unwrap_or(0.0),
+            n = runs.len()
         );
     }
 }

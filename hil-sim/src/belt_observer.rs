@@ -48,6 +48,9 @@ pub struct BeltPhysics {
     /// [`offsets`] runs the drive's fixed-point port (`estimator_core::model::belt`, Taylor
     /// capstan, the guide profile in at most 64 points) instead of [`BeltObserver`].
     pub drive_port: bool,
+    /// The `f64` observer steps once per this many ticks (at least 1), on the last counts and
+    /// the ticks' mean current, and holds its estimate between: the measure of a cheaper rate.
+    pub decimation: u32,
 }
 
 /// The parameters [`identify`] can fit, each as a factor on its start.
@@ -131,6 +134,7 @@ impl BeltPhysics {
             guide_profile: None,
             capstan_taylor: false,
             drive_port: false,
+            decimation: 1,
         }
     }
 
@@ -265,10 +269,13 @@ fn dead_zone(d: f64, h: f64) -> f64 {
 /// The tracking filter's discount: critically damped, ~16 Hz for the disturbance.
 pub const TRACK_THETA: f64 = 0.95;
 /// Its gains for position, velocity and acceleration (critically damped alpha-beta-gamma).
-const TRACK_GAINS: [f64; 3] = {
-    let (t, d) = (TRACK_THETA, 1.0 - TRACK_THETA);
+const TRACK_GAINS: [f64; 3] = track_gains(TRACK_THETA);
+
+/// Critically damped alpha-beta-gamma gains for the discount `t` per step.
+const fn track_gains(t: f64) -> [f64; 3] {
+    let d = 1.0 - t;
     [1.0 - t * t * t, 1.5 * d * d * (1.0 + t), 0.5 * d * d * d]
-};
+}
 /// Newton steps per tick on the belt's force balance.
 pub const NEWTON_STEPS: u32 = 2;
 /// Largest slip the solve accepts, m/s (a belt slipping faster is thrown, not observed).
@@ -290,6 +297,10 @@ pub struct BeltObserver {
     track: [f64; 3],
     tracking: bool,
     pm_prev: f64,
+    /// Ticks since the last step (decimation), their current summed, the last estimate.
+    pending: u32,
+    current_sum: f64,
+    last: BeltEstimate,
 }
 
 /// What one step tells.
@@ -315,6 +326,12 @@ impl BeltObserver {
             track: [pm, 0.0, 0.0],
             tracking: true,
             pm_prev: pm,
+            pending: 0,
+            current_sum: 0.0,
+            last: BeltEstimate {
+                offset_um: p.belt.half_gap_m * 1e6,
+                error_um: -(p.belt.half_gap_m + p.belt.gear_half_m) * 1e6,
+            },
             p,
         }
     }
@@ -328,16 +345,35 @@ impl BeltObserver {
     /// One tick to motor position `counts` with the drive's current `current_a`. A
     /// non-finite current counts as 0.
     pub fn step(&mut self, counts: i64, current_a: f64) -> BeltEstimate {
-        const T: f64 = TICK_S;
-        let p = &self.p;
-        let raw = counts as f64 * p.belt.m_per_count;
         let current_a = if current_a.is_finite() {
             current_a
         } else {
             0.0
         };
+        self.pending += 1;
+        self.current_sum += current_a;
+        if self.pending < self.p.decimation {
+            return self.last;
+        }
+        let n = self.pending;
+        let current_a = self.current_sum / f64::from(n);
+        (self.pending, self.current_sum) = (0, 0.0);
+        self.last = self.update(counts, current_a, n);
+        self.last
+    }
+
+    /// One step of `n` ticks.
+    fn update(&mut self, counts: i64, current_a: f64, n: u32) -> BeltEstimate {
+        #[allow(non_snake_case)]
+        let T = TICK_S * f64::from(n);
+        let p = &self.p;
+        let raw = counts as f64 * p.belt.m_per_count;
         // Alpha-beta-gamma with the current's acceleration as the model's.
-        let g = TRACK_GAINS;
+        let g = if n == 1 {
+            TRACK_GAINS
+        } else {
+            track_gains(TRACK_THETA.powi(n as i32))
+        };
         let [p0, v0, a0] = self.track;
         let a = a0 + p.belt.accel_per_a * current_a;
         let pred = p0 + v0 * T + 0.5 * a * T * T;
