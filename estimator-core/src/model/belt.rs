@@ -17,8 +17,8 @@
 //! position along the travel, which sets the spans' lengths (Q16 metres). Velocities and slips
 //! are Q36 metres per tick, accelerations Q36 metres per tick². Forces are Q16 newtons,
 //! friction coefficients Q30, the bristles' relaxation per tick `lambda T` Q24 (capped at 64:
-//! `e^-64` is 0 in Q30). Build-time factors have [`Scale`]'s 32 significant bits, applied with
-//! 32-bit shifts. The tick's divisions (the chain's stiffness, two Newton steps, the relaxation
+//! `e^-64` is 0 in Q30). Build-time factors have 31 significant bits (a [`Scale`] halved for
+//! one `SMULL`), applied with 32-bit shifts. The tick's divisions (the chain's stiffness, two Newton steps, the relaxation
 //! rate and its `(1 - e^-x) / x`) are 32-bit `UDIV`s on 16-bit normalised divisors
 //! ([`recip`]): 2^-15 relative, well inside what the physics is known to. The exponentials are
 //! third-order polynomials below 1/64 and [`exp2_neg_q30`] above. Every operation saturates:
@@ -26,7 +26,7 @@
 //!
 //! Against the `f64` observer on the same inputs: within 0.3 um (hil-sim's
 //! `the_fixed_point_port_follows_the_f64_observer`); bit-identical on the Cortex-M4
-//! (`tests/core_vectors.rs`); about 1,200 instructions a step (README).
+//! (`tests/core_vectors.rs`); about 1,000 instructions a step (README).
 
 use super::convert::finite;
 use super::fixmath::{exp2_neg_q30, sat_i32, Scale, ONE_Q30};
@@ -304,24 +304,25 @@ fn q(v: f64, bits: f64, f: ConfigField) -> Result<i32, ConfigError> {
     super::fixmath::round_i32(scaled).ok_or(ConfigError::OutOfRange(f))
 }
 
-/// A positive build-time factor `mant 2^-shift`, `shift` in `1..=63`: [`Scale`]'s 32
-/// significant bits, applied with 32-bit shifts only (a 64-bit shift by a variable amount costs
-/// the M4 about ten instructions, and the tick applies some twenty factors).
+/// A positive build-time factor `mant 2^-shift`, `mant` in `[2^30, 2^31)` (31 significant
+/// bits, an `i32` for one `SMULL`), `shift` in `1..=63`: applied with 32-bit shifts only (a
+/// 64-bit shift by a variable amount costs the M4 about ten instructions, and the tick applies
+/// some twenty factors).
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct Gain {
-    mant: u32,
+    mant: i32,
     shift: u8,
 }
 
 impl Gain {
     fn new(v: f64, f: ConfigField) -> Result<Gain, ConfigError> {
         let s = Scale::from_f64(v, f)?;
-        if s.shift == 0 {
+        if s.shift < 2 {
             return Err(ConfigError::OutOfRange(f));
         }
         Ok(Gain {
-            mant: s.mant,
-            shift: s.shift,
+            mant: (s.mant >> 1) as i32,
+            shift: s.shift - 1,
         })
     }
 }
@@ -338,14 +339,17 @@ fn shr64(p: u64, sh: u32) -> u64 {
     }
 }
 
-/// `v * g`, truncated towards 0 (symmetric about 0).
+/// `floor(v * g)`: one `SMULL` and 32-bit shifts.
 #[inline(always)]
 fn mul(g: Gain, v: i32) -> i64 {
-    let m = shr64(v.unsigned_abs() as u64 * g.mant as u64, g.shift as u32) as i64;
-    if v < 0 {
-        -m
+    let p = v as i64 * g.mant as i64;
+    let (hi, lo) = ((p >> 32) as i32, p as u32);
+    let sh = g.shift as u32;
+    if sh >= 32 {
+        (hi >> (sh - 32).min(31)) as i64
     } else {
-        m
+        let sh = sh.max(1);
+        ((hi >> sh) as i64) << 32 | ((lo >> sh) | ((hi as u32) << (32 - sh))) as i64
     }
 }
 
@@ -366,6 +370,14 @@ pub fn recip(d: u64) -> (u32, u32) {
         (d as u32) << (15 - n)
     };
     // `top` is in [2^15, 2^16); or-ing the bit in lets the compiler drop the zero check.
+    (u32::MAX / (top | 0x8000), n + 17)
+}
+
+/// [`recip`] of a 32-bit `d` (one `CLZ`).
+#[inline(always)]
+fn recip32(d: u32) -> (u32, u32) {
+    let n = 31 - (d | 1).leading_zeros();
+    let top = if n > 15 { d >> (n - 15) } else { d << (15 - n) };
     (u32::MAX / (top | 0x8000), n + 17)
 }
 
@@ -515,7 +527,7 @@ impl BeltState {
         };
         let g = c.mu_kinetic_q30 + ((c.dmu_q30 as i64 * e as i64) >> 30) as i32;
         let num = mul32(c.sigma0, du).saturating_abs(); // Q30
-        div(num, recip(g.max(1074) as u64), 24).clamp(0, MAX_LAMBDA_Q24 as i32) as u32
+        div(num, recip32(g.max(1074) as u32), 24).clamp(0, MAX_LAMBDA_Q24 as i32) as u32
     }
 
     /// One tick to motor position `counts` (unwrapped) with the drive's current in I16F16
@@ -555,7 +567,7 @@ impl BeltState {
         let lambda = self.slide.saturating_add(renew).min(MAX_LAMBDA_Q24);
         // m0 = sigma0 z - sigma1 lambda z (Q30).
         let lz = sat_i32((lambda as i64 * self.z as i64) >> 24);
-        let m0 = mul(c.sigma0, self.z) - mul(c.sigma1_t, lz);
+        let m0 = sat_i32(mul(c.sigma0, self.z) - mul(c.sigma1_t, lz));
         let rel = self.d.saturating_neg(); // motor less carriage
         let k_chain64 = k_chain as i64;
         let mut du = self.du;
@@ -571,7 +583,9 @@ impl BeltState {
             } else {
                 c.tooth_n_per_m as u64
             };
-            let mu = (m0 + mul(c.m1_t, du)).clamp(-(ONE_Q30 as i64), ONE_Q30 as i64) as i32;
+            let mu = m0
+                .saturating_add(mul32(c.m1_t, du))
+                .clamp(-(ONE_Q30 as i32), ONE_Q30 as i32);
             let a = ((c.wrap_q28 as i64 * mu as i64) >> 30) as i32; // Q28
             let ac = ((a as i64 * ratio as i64) >> 30) as i32; // Q28
             let f_f = (c.preload_q16 as i64 * (a as i64 + ((a as i64 * ac as i64) >> 28))) >> 28;
@@ -585,7 +599,7 @@ impl BeltState {
                 k_c + k_t + (mul(c.m1_t, slope_f).max(0) as u64 >> 10) + c.damping_t_n_per_m as u64;
             if slope > 0 {
                 // N Q16 / (N/m) = m Q16; Q36 wanted.
-                let step = div(residual, recip(slope), 20);
+                let step = div(residual, recip32(slope.min(u32::MAX as u64) as u32), 20);
                 du = du
                     .saturating_add(step)
                     .clamp(-c.max_slip_q36, c.max_slip_q36);
@@ -607,7 +621,7 @@ impl BeltState {
             sat_i32(((self.z as i64 * decay as i64) >> 30) + ((du as i64 * phi as i64) >> 30))
         } else {
             let decay = exp2_neg_q30((lambda as u64 * LOG2_E_Q30) >> 22) as i32; // Q30
-            let phi = div(ONE_Q30 as i32 - decay, recip(lambda as u64), 24); // Q30
+            let phi = div(ONE_Q30 as i32 - decay, recip32(lambda), 24); // Q30
             sat_i32(((self.z as i64 * decay as i64) >> 30) + ((du as i64 * phi as i64) >> 30))
         };
         // The carriage on the chain's force, Coulomb friction implicit.
@@ -662,6 +676,9 @@ mod tests {
             let (m, e) = recip(d);
             let approx = m as f64 / 2f64.powi(e as i32);
             assert!((approx * d as f64 - 1.0).abs() < 2f64.powi(-15), "{d}");
+            if let Ok(d32) = u32::try_from(d) {
+                assert_eq!(recip32(d32), (m, e), "{d}");
+            }
         }
     }
 
