@@ -161,7 +161,7 @@ pub fn belt_observer(
         measured_sum: 0,
         measured_max: 0,
     };
-    // Velocity in Q8 counts per tick, acceleration 1/8 count per tick² (~1.07 m/s²).
+    // Velocity in Q8 counts per tick, acceleration 1/8 count per tick² (~0.27 m/s²).
     let (mut pos_q8, mut vel_q8) = (0i64, 0i64);
     let targets = [60_000i64, 10_000, 40_000, 38_000];
     let mut next = 0;

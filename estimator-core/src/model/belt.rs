@@ -16,8 +16,8 @@
 //! tracking filter relative to the counts: +-31 mm at 1.5e-11 m), `i64` only for the carriage's
 //! position along the travel, which sets the spans' lengths (Q16 metres). Velocities and slips
 //! are Q36 metres per tick, accelerations Q36 metres per tick². Forces are Q16 newtons,
-//! friction coefficients Q30, the bristles' relaxation per tick `lambda T` Q24 (capped at 64:
-//! `e^-64` is 0 in Q30). Build-time factors have 31 significant bits (a [`Scale`] halved for
+//! friction coefficients Q30, the bristles' relaxation per tick `lambda T` Q24 in a `u64`
+//! (its exponential is 0 in Q30 from 64 on, but its inverse sets the bristles' steady state). Build-time factors have 31 significant bits (a [`Scale`] halved for
 //! one `SMULL`), applied with 32-bit shifts. The tick's divisions (the chain's stiffness, two Newton steps, the relaxation
 //! rate and its `(1 - e^-x) / x`) are 32-bit `UDIV`s on 16-bit normalised divisors
 //! ([`recip`]): 2^-15 relative, well inside what the physics is known to. The exponentials are
@@ -96,8 +96,11 @@ pub const MAX_GUIDE_BINS: usize = 64;
 const M_Q36: f64 = (1u64 << 36) as f64;
 /// One in Q28 (`alpha mu` and the capstan's factors).
 const ONE_Q28: i64 = 1 << 28;
-/// Cap of `lambda T`, Q24 (64).
-const MAX_LAMBDA_Q24: u32 = 64 << 24;
+/// Cap of `lambda T`, Q24 (2^22: beyond the slip any tick can have with the physics `build`
+/// accepts, and every product below stays in 64 bits).
+const MAX_LAMBDA_Q24: u64 = 1 << 46;
+/// `lambda T` from which `e^-lambda T` is 0 in Q30 (64, Q24).
+const LAMBDA_ZERO_DECAY_Q24: u64 = 64 << 24;
 /// log2(e) in Q30.
 const LOG2_E_Q30: u64 = 1_549_082_005;
 /// The tracking filter's gains in Q32 (critically damped alpha-beta-gamma, discount 0.95, as
@@ -133,7 +136,7 @@ pub struct BeltCoeffs {
     preload_wrap_q16: i32,
     tooth_n_per_m: u32,
     damping_t_n_per_m: u32,
-    gear_compliance_q60: u64,
+    gear_compliance_q56: u64,
     guide_q16: i32,
     guide_delta_q16: [i32; MAX_GUIDE_BINS],
     guide_bins: u32,
@@ -203,7 +206,8 @@ impl BeltParams {
         let length = in_range(self.length_m, 3e-3, MAX_LENGTH_M, F::Model4BeltLengthM)?;
         let offset = in_range(self.span_offset_m, 0.0, length, F::Model4BeltSpanOffsetM)?;
         let wrap = positive(self.wrap_rad, 7.0, F::Model4BeltWrapRad)?;
-        let sigma0 = positive(self.sigma0_per_m, 1e8, F::Model4BeltSigma0PerM)?;
+        // Below 100 /m the bristles' deflection leaves the Q36 `i32` (+-31 mm).
+        let sigma0 = in_range(self.sigma0_per_m, 100.0, 1e8, F::Model4BeltSigma0PerM)?;
         let sigma1 = in_range(self.sigma1_s_per_m, 0.0, 1e4, F::Model4BeltSigma1SPerM)?;
         let sigma2 = in_range(self.sigma2_s_per_m, 0.0, 1e4, F::Model4BeltSigma2SPerM)?;
         let mu_k = positive(self.mu_kinetic, 1.0, F::Model4BeltMuKinetic)?;
@@ -221,7 +225,8 @@ impl BeltParams {
             F::Model4BeltSpanDampingNSPerM,
         )?;
         let accel = in_range(self.accel_per_a, 0.0, 1e5, F::Model4BeltAccelPerA)?;
-        let mpc = positive(self.m_per_count, 1e-3, F::Model4BeltMPerCount)?;
+        // A count beyond 0.1 mm is a jump to the tracking filter (1 mm).
+        let mpc = positive(self.m_per_count, 1e-4, F::Model4BeltMPerCount)?;
         if self.guide_bins > MAX_GUIDE_BINS {
             return Err(ConfigError::TableSize(F::Model4BeltGuideProfileN));
         }
@@ -268,9 +273,9 @@ impl BeltParams {
             )?,
             tt_per_m: scale(t * t / mass * M_Q36 / 65536.0, F::Model4BeltMassKg)?,
             tooth: scale(tooth * 65536.0 / M_Q36, F::Model4BeltToothNPerM)?,
-            // l1 l2 in Q18 m² to the compliance in Q60 m/N.
+            // l1 l2 in Q18 m² to the compliance in Q56 m/N (AE L above 256 N m).
             span_per_ae_l: scale(
-                (1u64 << 42) as f64 / (ae * length),
+                (1u64 << 38) as f64 / (ae * length),
                 F::Model4BeltAxialRigidityN,
             )?,
             // l1 in Q16 m to l1 / L in Q30.
@@ -282,7 +287,7 @@ impl BeltParams {
             preload_wrap_q16: q(preload * wrap, 16.0, F::Model4BeltPreloadN)?,
             tooth_n_per_m: tooth as u32,
             damping_t_n_per_m: (damping / t).min(u32::MAX as f64) as u32,
-            gear_compliance_q60: ((1u64 << 60) as f64 / gear) as u64,
+            gear_compliance_q56: ((1u64 << 56) as f64 / gear) as u64,
             guide_q16: q(guide, 16.0, F::Model4BeltGuideN)?,
             guide_delta_q16,
             guide_bins: self.guide_bins as u32,
@@ -305,7 +310,8 @@ fn q(v: f64, bits: f64, f: ConfigField) -> Result<i32, ConfigError> {
 }
 
 /// A positive build-time factor `mant 2^-shift`, `mant` in `[2^30, 2^31)` (31 significant
-/// bits, an `i32` for one `SMULL`), `shift` in `1..=63`: applied with 32-bit shifts only (a
+/// bits, an `i32` for one `SMULL`) and `shift` in `1..=62`, or 0 (`mant` 0) for a factor of 0
+/// or below 2^-62: applied with 32-bit shifts only (a
 /// 64-bit shift by a variable amount costs the M4 about ten instructions, and the tick applies
 /// some twenty factors).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -317,6 +323,10 @@ struct Gain {
 impl Gain {
     fn new(v: f64, f: ConfigField) -> Result<Gain, ConfigError> {
         let s = Scale::from_f64(v, f)?;
+        if s.mant < 2 {
+            // 0 (or below 2^-62): multiplies to 0.
+            return Ok(Gain { mant: 0, shift: 1 });
+        }
         if s.shift < 2 {
             return Err(ConfigError::OutOfRange(f));
         }
@@ -359,7 +369,7 @@ fn mul32(g: Gain, v: i32) -> i32 {
     sat_i32(mul(g, v))
 }
 
-/// `1 / d ~ m 2^-e` with `m` in `(2^16, 2^17]`: one 32-bit `UDIV` on the top 16 bits of `d`
+/// `1 / d ~ m 2^-e` with `m` in `(2^16, 2^17)`: one 32-bit `UDIV` on the top 16 bits of `d`
 /// (relative error below 2^-15). `d = 0` counts as 1.
 #[inline]
 pub fn recip(d: u64) -> (u32, u32) {
@@ -389,7 +399,7 @@ fn div(num: i32, (m, e): (u32, u32), s: u32) -> i32 {
         shr64(a, e - s).min(i32::MAX as u64)
     } else if e == s {
         a.min(i32::MAX as u64)
-    } else if a >> (32 - (s - e).min(31)) != 0 {
+    } else if s - e >= 31 || a >> (31 - (s - e)) != 0 {
         i32::MAX as u64
     } else {
         a << (s - e)
@@ -430,7 +440,7 @@ pub struct BeltState {
     z: i32,
     /// The last slip, Q36 m per tick, and its part of the bristles' relaxation, Q24.
     du: i32,
-    slide: u32,
+    slide: u64,
 }
 
 impl BeltState {
@@ -463,7 +473,8 @@ impl BeltState {
         sat_i32((self.d as i64 * 15625 + (1 << 13)) >> 14)
     }
 
-    /// The chain's stiffness at carriage position `x` (Q36 m), N/m, and `l1 / L - 1/2` in Q30.
+    /// The chain's stiffness at carriage position `x16` (Q16 m), N/m, and `l1 / L - 1/2` in
+    /// Q30.
     #[inline(always)]
     fn geometry(c: &BeltCoeffs, x16: i32) -> (u32, i32) {
         const MM_Q16: i32 = 66; // 1 mm, rounded up
@@ -479,15 +490,15 @@ impl BeltState {
             p as u64 * c.span_per_ae_l.mant as u64,
             c.span_per_ae_l.shift as u32,
         )
-        .saturating_add(c.gear_compliance_q60);
-        // 2^60 / compliance, N/m.
+        .saturating_add(c.gear_compliance_q56);
+        // 2^56 / compliance, N/m.
         let (m, e) = recip(compliance);
-        let k = if e >= 60 {
-            m >> (e - 60).min(31)
-        } else if e + 15 <= 60 {
+        let k = if e >= 56 {
+            m >> (e - 56).min(31)
+        } else if e + 15 <= 56 {
             u32::MAX
         } else {
-            m << (60 - e)
+            m << (56 - e)
         };
         let ratio = mul32(c.inv_length, l1) - (1 << 29);
         (k, ratio)
@@ -512,7 +523,7 @@ impl BeltState {
 
     /// The slip's part of the bristles' relaxation over the tick `sigma0 |du| / g(u)`, Q24.
     #[inline]
-    fn slide(c: &BeltCoeffs, du: i32) -> u32 {
+    fn slide(c: &BeltCoeffs, du: i32) -> u64 {
         // (u / v_s)² in Q32, capped at 49 (e^-49 is 0 in Q30).
         let r = mul32(c.inv_stribeck, du).unsigned_abs().min(7 << 16) as u64;
         let s = r * r;
@@ -526,8 +537,10 @@ impl BeltState {
             exp2_neg_q30(((s >> 8) * LOG2_E_Q30) >> 22) as i32
         };
         let g = c.mu_kinetic_q30 + ((c.dmu_q30 as i64 * e as i64) >> 30) as i32;
-        let num = mul32(c.sigma0, du).saturating_abs(); // Q30
-        div(num, recip32(g.max(1074) as u32), 24).clamp(0, MAX_LAMBDA_Q24 as i32) as u32
+        // sigma0 |du| in Q30 (up to 2^46, 65536), over g in Q30, to Q24.
+        let num = (mul(c.sigma0, du).unsigned_abs()).min(1 << 46);
+        let (m, e) = recip32(g.max(1074) as u32);
+        shr64(num * m as u64, e - 24).min(MAX_LAMBDA_Q24)
     }
 
     /// One tick to motor position `counts` (unwrapped) with the drive's current in I16F16
@@ -556,17 +569,21 @@ impl BeltState {
                 a0.saturating_add(gain(TRACK_Q32[2])),
             ];
             // The tracked motor's travel this tick.
-            ds = (travel as i32).wrapping_add(e - e0);
+            ds = sat_i32(travel).saturating_add(e - e0);
             // The carriage relative to the tracked motor.
             self.d = self.d.saturating_sub(ds);
         }
         let x = mul(c.m_per_count, counts) + self.track[0] as i64 + self.d as i64;
         let x16 = sat_i32(x >> 20);
         let (k_chain, ratio) = Self::geometry(c, x16);
-        let renew = mul32(c.kappa, ds.saturating_abs()) as u32;
-        let lambda = self.slide.saturating_add(renew).min(MAX_LAMBDA_Q24);
-        // m0 = sigma0 z - sigma1 lambda z (Q30).
-        let lz = sat_i32((lambda as i64 * self.z as i64) >> 24);
+        let renew = mul(c.kappa, ds.saturating_abs()) as u64;
+        let lambda = (self.slide + renew).min(MAX_LAMBDA_Q24);
+        // m0 = sigma0 z - sigma1 lambda z (Q30); lambda z in Q36 within 64 bits.
+        let lz = sat_i32(if lambda < 1 << 30 {
+            (lambda as i64 * self.z as i64) >> 24
+        } else {
+            ((lambda >> 16) as i64 * self.z as i64) >> 8
+        });
         let m0 = sat_i32(mul(c.sigma0, self.z) - mul(c.sigma1_t, lz));
         let rel = self.d.saturating_neg(); // motor less carriage
         let k_chain64 = k_chain as i64;
@@ -590,7 +607,7 @@ impl BeltState {
             let ac = ((a as i64 * ratio as i64) >> 30) as i32; // Q28
             let f_f = (c.preload_q16 as i64 * (a as i64 + ((a as i64 * ac as i64) >> 28))) >> 28;
             // N Q16 per unit of mu.
-            let slope_f = ((c.preload_wrap_q16 as i64 * (ONE_Q28 + 2 * ac as i64)) >> 28) as i32;
+            let slope_f = sat_i32((c.preload_wrap_q16 as i64 * (ONE_Q28 + 2 * ac as i64)) >> 28);
             let rel_v = ds.saturating_sub(du).saturating_sub(self.v);
             let damping = mul(c.damping_t, rel_v);
             let residual = sat_i32(f_chain + damping - f_teeth - f_f);
@@ -609,7 +626,7 @@ impl BeltState {
         self.o = self.o.saturating_add(du);
         // Bristles: z e^-l + du (1 - e^-l) / l.
         self.slide = Self::slide(c, du);
-        let lambda = self.slide.saturating_add(renew).min(MAX_LAMBDA_Q24);
+        let lambda = (self.slide + renew).min(MAX_LAMBDA_Q24);
         self.z = if lambda < 1 << 18 {
             // Below 1/64: e^-l and (1 - e^-l) / l to third order (error below 3 units of
             // Q30), no table and no division.
@@ -620,8 +637,12 @@ impl BeltState {
             let phi = ONE_Q30 as i32 - l / 2 + l2 / 6 - l3 / 24;
             sat_i32(((self.z as i64 * decay as i64) >> 30) + ((du as i64 * phi as i64) >> 30))
         } else {
-            let decay = exp2_neg_q30((lambda as u64 * LOG2_E_Q30) >> 22) as i32; // Q30
-            let phi = div(ONE_Q30 as i32 - decay, recip32(lambda), 24); // Q30
+            let decay = if lambda >= LAMBDA_ZERO_DECAY_Q24 {
+                0
+            } else {
+                exp2_neg_q30((lambda * LOG2_E_Q30) >> 22) as i32 // Q30
+            };
+            let phi = div(ONE_Q30 as i32 - decay, recip(lambda), 24); // Q30
             sat_i32(((self.z as i64 * decay as i64) >> 30) + ((du as i64 * phi as i64) >> 30))
         };
         // The carriage on the chain's force, Coulomb friction implicit.
@@ -730,28 +751,31 @@ mod tests {
 
     proptest! {
         /// Any counts (small steps through the Newton path, wild ones through the jump), any
-        /// current and physics anywhere in the accepted ranges give a defined state.
+        /// current, and physics drawn across the accepted ranges (those `build` accepts) give
+        /// a defined state; in a debug build any overflow would panic here.
         #[test]
         fn any_input_gives_a_defined_state(
             start in any::<i32>(),
             steps in proptest::collection::vec((any::<i16>(), any::<bool>(), any::<i32>()), 1..300),
-            mass in 1e-3f64..1e4,
-            sigma0 in 1.0f64..1e8,
-            gap in 1e-6f64..0.01,
-            preload in 0.1f64..4e3,
-            tooth in 1e2f64..1e9,
-            kappa in 0.0f64..1e6,
-            wrap in 0.1f64..7.0,
+            (mass, sigma0, gap, preload, tooth) in (1e-3f64..1e4, 100.0f64..1e8, 1e-6f64..0.01, 0.1f64..4e3, 1e2f64..1e9),
+            (kappa, wrap, ae, length) in (0.0f64..1e6, 0.1f64..7.0, 1.0f64..1e9, 3e-3f64..100.0),
+            (sigma1, sigma2, damping, accel, mpc) in (0.0f64..1e4, 0.0f64..1e4, 0.0f64..1e5, 0.0f64..1e5, 1e-8f64..1e-4),
+            (guide, bins, rate_hz) in (0.0f64..1e3, 0usize..=MAX_GUIDE_BINS, 500.0f64..20_000.0),
         ) {
-            let mut p = BeltParams::PAPER;
-            p.mass_kg = mass;
-            p.sigma0_per_m = sigma0;
-            p.half_gap_m = gap;
-            p.preload_n = preload;
-            p.tooth_n_per_m = tooth;
-            p.kappa_per_m = kappa;
-            p.wrap_rad = wrap;
-            let c = p.build(5e-4).unwrap();
+            let mut p = BeltParams {
+                mass_kg: mass, sigma0_per_m: sigma0, half_gap_m: gap, preload_n: preload,
+                tooth_n_per_m: tooth, kappa_per_m: kappa, wrap_rad: wrap,
+                axial_rigidity_n: ae, length_m: length, span_offset_m: 0.1 * length,
+                sigma1_s_per_m: sigma1, sigma2_s_per_m: sigma2,
+                span_damping_n_s_per_m: damping, accel_per_a: accel, m_per_count: mpc,
+                guide_n: guide, guide_bins: bins,
+                ..BeltParams::PAPER
+            };
+            for (k, d) in p.guide_delta_n.iter_mut().enumerate() {
+                *d = (k as f64 * 0.7).sin() * guide;
+            }
+            // Physics the formats cannot carry are refused by name; the rest run.
+            let Ok(c) = p.build(1.0 / rate_hz) else { return Ok(()) };
             let mut s = BeltState::new(&c, start);
             let mut counts = start;
             for (delta, wild, amps) in steps {
@@ -760,5 +784,24 @@ mod tests {
                 let _ = (s.offset_um_bits(), s.error_um_bits());
             }
         }
+    }
+
+    /// Zero damping, renewal, viscous friction and acceleration per ampere are physics, not
+    /// errors; realistic soft, short belts are carried.
+    #[test]
+    fn zeros_and_soft_short_belts_build() {
+        let mut p = BeltParams::PAPER;
+        p.sigma1_s_per_m = 0.0;
+        p.sigma2_s_per_m = 0.0;
+        p.kappa_per_m = 0.0;
+        p.span_damping_n_s_per_m = 0.0;
+        p.accel_per_a = 0.0;
+        p.guide_n = 0.0;
+        assert!(p.build(5e-4).is_ok());
+        let mut p = BeltParams::PAPER;
+        p.axial_rigidity_n = 1e4;
+        p.length_m = 0.2;
+        p.span_offset_m = 0.05;
+        assert!(p.build(5e-4).is_ok());
     }
 }
