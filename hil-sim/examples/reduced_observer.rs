@@ -294,14 +294,7 @@ fn main() {
                 &mut |_| {},
             )
             .expect("second run");
-            let n = t.records.len().min(b.records.len());
-            let floor = ((0..n)
-                .map(|i| (t.dx_um(i) - b.dx_um(i)).powi(2))
-                .sum::<f64>()
-                / n.max(1) as f64
-                / 2.0)
-                .sqrt();
-            (best, floor)
+            (best, hil_sim::generalise::floor_um(t, &b))
         })
         .collect();
     print!("best of the other estimators (floor), um:");

@@ -216,6 +216,18 @@ pub fn workloads(plant: &PlantParams, seed: u64) -> Result<Vec<Scenario>, Error>
     Ok(out)
 }
 
+/// The floor of a workload: the RMS of the non-repeatable part of `x_LS - x_PE`, from two runs
+/// of it with different seeds (their difference has twice its variance).
+pub fn floor_um(a: &Trace, b: &Trace) -> f64 {
+    let n = a.records.len().min(b.records.len());
+    ((0..n)
+        .map(|i| (a.dx_um(i) - b.dx_um(i)).powi(2))
+        .sum::<f64>()
+        / n.max(1) as f64
+        / 2.0)
+        .sqrt()
+}
+
 /// Calibrates `plant` (default plan drawn with `plan_seed`) and measures every estimator and
 /// the floor on `scenarios` (those the plant's drive limits refuse are left out).
 pub fn measure(
@@ -248,13 +260,7 @@ pub fn measure(
             .context(|| s.name.clone())
         };
         let (a, b) = (run(1)?, run(2)?);
-        let n = a.records.len().min(b.records.len());
-        let floor_um = ((0..n)
-            .map(|i| (a.dx_um(i) - b.dx_um(i)).powi(2))
-            .sum::<f64>()
-            / n.max(1) as f64
-            / 2.0)
-            .sqrt();
+        let floor_um = floor_um(&a, &b);
         let est = eval::estimates(&a, &coeffs);
         let rms_um = eval::table3(&a, &est)
             .into_iter()

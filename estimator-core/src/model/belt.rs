@@ -458,11 +458,6 @@ impl BeltState {
         }
     }
 
-    /// Mesh offset `P - b`, Q36 m.
-    pub fn offset_q36(&self) -> i32 {
-        self.o
-    }
-
     /// Mesh offset in I16F16 micrometres (`1e6 / 2^20 = 15625 / 2^14` exactly).
     pub fn offset_um_bits(&self) -> i32 {
         sat_i32((self.o as i64 * 15625 + (1 << 13)) >> 14)
