@@ -507,24 +507,32 @@ mod app {
 
     /// USART2: moves received bytes into the queue for `link` (a byte arrives every 21.7 us at
     /// 460800 Bd: nothing slower may run here) and drains the transmit queue on TXE.
-    #[task(binds = USART2, priority = 2, local = [rx, bytes_in], shared = [outbox])]
+    #[task(binds = USART2, priority = 2, local = [rx, bytes_in, held: Option<u8> = None], shared = [outbox])]
     fn usart2(cx: usart2::Context) {
-        let usart2::LocalResources { rx, bytes_in, .. } = cx.local;
+        let usart2::LocalResources {
+            rx, bytes_in, held, ..
+        } = cx.local;
         let mut outbox = cx.shared.outbox;
         let mut queued = false;
         while bytes_in.ready() {
-            match rx.read() {
-                Some(b) => {
-                    let _ = bytes_in.enqueue(b);
-                    queued = true;
-                }
-                None => break,
-            }
+            // The byte held back at the last pause goes first.
+            let Some(b) = held.take().or_else(|| rx.read()) else {
+                break;
+            };
+            let _ = bytes_in.enqueue(b);
+            queued = true;
         }
         if !bytes_in.ready() {
-            // Full: no more bytes until `link` has drained the queue.
+            // Full: no more bytes until `link` has drained the queue. RXNE's interrupt goes off
+            // first, then the waiting byte is held here: reading DR is what drops the line
+            // (QEMU 7.2 keeps it high on RXNEIE = 0 while RXNE is set, and this task would
+            // run again and again, starving `link`). In that order no byte can arrive between
+            // the two with the interrupt still on.
             RX_PAUSED.store(true, Ordering::Relaxed);
             outbox.lock(|o| o.set_rx_interrupt(false));
+            if held.is_none() {
+                *held = rx.read();
+            }
             queued = true;
         }
         if queued {
@@ -686,8 +694,10 @@ mod app {
                 outbox.lock(|o| o.send(frame.seq, &reply));
             }
             if RX_PAUSED.swap(false, Ordering::Relaxed) {
-                // The queue is empty again: take bytes again (and look at once).
+                // The queue is empty again: take bytes again, starting with the held one (the
+                // pend: no new byte may come to raise the interrupt), and look at once.
                 outbox.lock(|o| o.set_rx_interrupt(true));
+                rtic::pend(hardware::LINK_INTERRUPT);
                 continue;
             }
             RX_BELL.wait().await;

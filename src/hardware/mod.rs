@@ -41,6 +41,9 @@ use stm32f4xx_hal::pac;
 
 rtic_monotonics::systick_monotonic!(Mono, 1_000);
 
+/// The link USART's interrupt (the `usart2` task), pended by `link` when it resumes reception.
+pub const LINK_INTERRUPT: pac::Interrupt = pac::Interrupt::USART2;
+
 /// Milliseconds since the monotonic started (the board's defmt timestamps).
 #[cfg(not(feature = "qemu"))]
 pub fn timestamp_ms() -> u32 {

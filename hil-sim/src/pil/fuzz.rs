@@ -12,6 +12,10 @@ use belt_link::testing as gen;
 
 /// Bad frames between two ticks (keeps the error replies flowing back in small batches).
 const FRAMES_PER_TICK: u32 = 10;
+/// The first frames go out in one write (about 3 KB, many times the firmware's 128-byte
+/// receive queue): the queue fills and the receive path must pause and resume without losing
+/// a byte or its wake-up.
+const BURST_FRAMES: u32 = 60;
 
 /// Outcome of [`run`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -55,10 +59,19 @@ pub fn run(opts: &PilOptions, n: u32) -> Result<FuzzReport, PilError> {
     let before = fw.status()?;
     let mut rng = gen::Rng(0x5eed_f00d);
     let mut buf = [0u8; MAX_FRAME + 16];
+    let mut burst = Vec::new();
     let mut ticks = 0u32;
     for i in 0..n {
         let len = gen::bad_frame(&mut rng, &mut buf);
-        fw.send_raw(&buf[..len])?;
+        if i < BURST_FRAMES {
+            burst.extend_from_slice(&buf[..len]);
+            if i + 1 < BURST_FRAMES.min(n) {
+                continue;
+            }
+            fw.send_raw(&std::mem::take(&mut burst))?;
+        } else {
+            fw.send_raw(&buf[..len])?;
+        }
         if (i + 1) % FRAMES_PER_TICK == 0 || i + 1 == n {
             // Each sample frame feeds the firmware's link watchdog: the twin's too.
             host.link_alive();
