@@ -147,6 +147,7 @@ config_fields! {
     Model4BeltSigma2SPerM = "model4.belt.sigma2_s_per_m",
     Model4BeltSpanDampingNSPerM = "model4.belt.span_damping_n_s_per_m",
     Model4BeltSpanOffsetM = "model4.belt.span_offset_m",
+    Model4BeltStepTicks = "model4.belt.step_ticks",
     Model4BeltStribeckMPerS = "model4.belt.stribeck_m_per_s",
     Model4BeltToothNPerM = "model4.belt.tooth_n_per_m",
     Model4BeltWrapRad = "model4.belt.wrap_rad",

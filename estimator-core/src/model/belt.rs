@@ -103,10 +103,11 @@ const MAX_LAMBDA_Q24: u64 = 1 << 46;
 const LAMBDA_ZERO_DECAY_Q24: u64 = 64 << 24;
 /// log2(e) in Q30.
 const LOG2_E_Q30: u64 = 1_549_082_005;
-/// The tracking filter's gains in Q32 (critically damped alpha-beta-gamma, discount 0.95, as
-/// the `f64` observer's): position `1 - t^3`, velocity `1.5 (1 - t)^2 (1 + t)`, acceleration
-/// `2 * 0.5 (1 - t)^3`.
-const TRACK_Q32: [i64; 3] = [612_569_711, 31_406_948, 536_871];
+/// The tracking filter's discount per tick (the `f64` observer's): critically damped
+/// alpha-beta-gamma, gains from `t = 0.95^ticks` for a step of `ticks` ticks.
+const TRACK_DISCOUNT: f64 = 0.95;
+/// Most ticks in one step ([`BeltParams::build_every`]).
+pub const MAX_STEP_TICKS: u32 = 16;
 /// Newton steps per tick.
 pub const NEWTON_STEPS: u32 = 2;
 
@@ -149,6 +150,10 @@ pub struct BeltCoeffs {
     span_offset_q16: i32,
     max_slip_q36: i32,
     jump_q36: i32,
+    /// The tracking filter's gains in Q32 for one step: position `1 - t^3`, velocity
+    /// `1.5 (1 - t)^2 (1 + t)`, acceleration `2 * 0.5 (1 - t)^3`. (In Q31 `i32`s, one `SMULL`
+    /// each, the step measured 14 instructions more.)
+    track_q32: [i64; 3],
 }
 
 impl BeltParams {
@@ -183,7 +188,27 @@ impl BeltParams {
 
     /// Checks every field and converts for a tick of `tick_s` seconds; errors name the field.
     pub fn build(&self, tick_s: f64) -> Result<BeltCoeffs, ConfigError> {
+        self.build_every(tick_s, 1)
+    }
+
+    /// [`BeltParams::build`] for one step every `ticks` ticks (1 to [`MAX_STEP_TICKS`]): the
+    /// caller steps with the ticks' mean current and holds the estimate between steps.
+    pub fn build_every(&self, tick_s: f64, ticks: u32) -> Result<BeltCoeffs, ConfigError> {
         use ConfigField as F;
+        if !(1..=MAX_STEP_TICKS).contains(&ticks) {
+            return Err(ConfigError::OutOfRange(F::Model4BeltStepTicks));
+        }
+        let tick_s = positive_tick(tick_s)? * f64::from(ticks);
+        let theta = (0..ticks).fold(1.0, |t, _| t * TRACK_DISCOUNT);
+        let d = 1.0 - theta;
+        // In [0, 1) for t in (0, 1): adding a half and truncating rounds (no `round` in
+        // `core`).
+        let q32 = |g: f64| (g * (1u64 << 32) as f64 + 0.5) as i64;
+        let track_q32 = [
+            q32(1.0 - theta * theta * theta),
+            q32(1.5 * d * d * (1.0 + theta)),
+            q32(d * d * d),
+        ];
         let in_range = |v: f64, lo: f64, hi: f64, f: F| -> Result<f64, ConfigError> {
             let v = finite(v, f)?;
             if !(lo..=hi).contains(&v) {
@@ -198,7 +223,7 @@ impl BeltParams {
             }
             Ok(v)
         };
-        let t = positive(tick_s, 1.0, F::DriveRateHz)?;
+        let t = positive(tick_s, MAX_STEP_TICKS as f64, F::DriveRateHz)?;
         let mass = positive(self.mass_kg, 1e4, F::Model4BeltMassKg)?;
         let guide = in_range(self.guide_n, 0.0, 1e4, F::Model4BeltGuideN)?;
         let preload = positive(self.preload_n, 4e3, F::Model4BeltPreloadN)?;
@@ -299,8 +324,20 @@ impl BeltParams {
             span_offset_q16: q(offset, 16.0, F::Model4BeltSpanOffsetM)?,
             max_slip_q36: q((10.0 * t).min(MAX_SMALL_M / 2.0), 36.0, F::DriveRateHz)?,
             jump_q36: (1e-3 * M_Q36) as i32,
+            track_q32,
         })
     }
+}
+
+/// The drive's tick, checked before it is multiplied by the ticks of a step.
+fn positive_tick(tick_s: f64) -> Result<f64, ConfigError> {
+    if !tick_s.is_finite() {
+        return Err(ConfigError::NotFinite(ConfigField::DriveRateHz));
+    }
+    if tick_s <= 0.0 || tick_s > 1.0 {
+        return Err(ConfigError::OutOfRange(ConfigField::DriveRateHz));
+    }
+    Ok(tick_s)
 }
 
 /// `v * 2^bits` rounded, if it fits an `i32`.
@@ -557,11 +594,11 @@ impl BeltState {
         } else {
             let r = -(pred as i32);
             let gain = |g: i64| ((g * r as i64 + (1 << 31)) >> 32) as i32;
-            let e = pred as i32 + gain(TRACK_Q32[0]);
+            let e = pred as i32 + gain(c.track_q32[0]);
             self.track = [
                 e,
-                v0.saturating_add(a).saturating_add(gain(TRACK_Q32[1])),
-                a0.saturating_add(gain(TRACK_Q32[2])),
+                v0.saturating_add(a).saturating_add(gain(c.track_q32[1])),
+                a0.saturating_add(gain(c.track_q32[2])),
             ];
             // The tracked motor's travel this tick.
             ds = sat_i32(travel).saturating_add(e - e0);
@@ -668,10 +705,23 @@ mod tests {
 
     #[test]
     fn tracking_gains_are_the_f64_observer_s() {
-        let (t, d) = (0.95f64, 0.05f64);
-        let g = [1.0 - t * t * t, 1.5 * d * d * (1.0 + t), d * d * d];
-        for (q, g) in TRACK_Q32.iter().zip(g) {
-            assert!((*q as f64 / 2f64.powi(32) - g).abs() < 1e-9, "{q} {g}");
+        // The gains of one tick, as first written; then a step of n ticks discounts 0.95^n.
+        let one = BeltParams::PAPER.build(5e-4).unwrap().track_q32;
+        assert_eq!(one, [612_569_711, 31_406_948, 536_871]);
+        for n in [1u32, 2, 3, 7, MAX_STEP_TICKS] {
+            let t = 0.95f64.powi(n as i32);
+            let d = 1.0 - t;
+            let g = [1.0 - t * t * t, 1.5 * d * d * (1.0 + t), d * d * d];
+            let c = BeltParams::PAPER.build_every(5e-4, n).unwrap();
+            for (q, g) in c.track_q32.iter().zip(g) {
+                assert!((*q as f64 / 2f64.powi(32) - g).abs() < 1e-9, "{n}: {q} {g}");
+            }
+        }
+        for n in [0, MAX_STEP_TICKS + 1] {
+            assert_eq!(
+                BeltParams::PAPER.build_every(5e-4, n),
+                Err(ConfigError::OutOfRange(ConfigField::Model4BeltStepTicks))
+            );
         }
         assert!((LOG2_E_Q30 as f64 / 2f64.powi(30) - core::f64::consts::LOG2_E).abs() < 1e-9);
     }
@@ -746,8 +796,8 @@ mod tests {
 
     proptest! {
         /// Any counts (small steps through the Newton path, wild ones through the jump), any
-        /// current, and physics drawn across the accepted ranges (those `build` accepts) give
-        /// a defined state; in a debug build any overflow would panic here.
+        /// current, and physics and step lengths drawn across the accepted ranges (those
+        /// `build_every` accepts) give a defined state; in a debug build any overflow would panic here.
         #[test]
         fn any_input_gives_a_defined_state(
             start in any::<i32>(),
@@ -755,7 +805,7 @@ mod tests {
             (mass, sigma0, gap, preload, tooth) in (1e-3f64..1e4, 100.0f64..1e8, 1e-6f64..0.01, 0.1f64..4e3, 1e2f64..1e9),
             (kappa, wrap, ae, length) in (0.0f64..1e6, 0.1f64..7.0, 1.0f64..1e9, 3e-3f64..100.0),
             (sigma1, sigma2, damping, accel, mpc) in (0.0f64..1e4, 0.0f64..1e4, 0.0f64..1e5, 0.0f64..1e5, 1e-8f64..1e-4),
-            (guide, bins, rate_hz) in (0.0f64..1e3, 0usize..=MAX_GUIDE_BINS, 500.0f64..20_000.0),
+            (guide, bins, rate_hz, every) in (0.0f64..1e3, 0usize..=MAX_GUIDE_BINS, 500.0f64..20_000.0, 1u32..=MAX_STEP_TICKS),
         ) {
             let mut p = BeltParams {
                 mass_kg: mass, sigma0_per_m: sigma0, half_gap_m: gap, preload_n: preload,
@@ -770,7 +820,7 @@ mod tests {
                 *d = (k as f64 * 0.7).sin() * guide;
             }
             // Physics the formats cannot carry are refused by name; the rest run.
-            let Ok(c) = p.build(1.0 / rate_hz) else { return Ok(()) };
+            let Ok(c) = p.build_every(1.0 / rate_hz, every) else { return Ok(()) };
             let mut s = BeltState::new(&c, start);
             let mut counts = start;
             for (delta, wild, amps) in steps {
