@@ -99,19 +99,27 @@ fn closed_loop_vectors(out: &mut String) {
     writeln!(out, "];").unwrap();
 }
 
-/// The fixed-point belt observer's run on the host.
+/// The fixed-point belt observer's runs on the host, a step every 1, 2 and 4 ticks.
 fn belt_vectors(out: &mut String) {
-    let d = estimator_core::vectors::belt_observer(|s, c, counts, current| {
-        s.step(c, counts, current);
-        0
-    });
     writeln!(
         out,
-        "/// `vectors::belt_observer` on the host: (CRC, final offset bits, offset range bits).\n\
-         pub const BELT: (u32, i32, (i32, i32)) = ({}, {}, {:?});",
-        d.crc, d.final_offset_bits, d.offset_range_bits
+        "/// `vectors::belt_observer` on the host per `BELT_EVERY`: (CRC, final offset bits, \
+         offset range bits).\npub const BELT: [(u32, i32, (i32, i32)); 3] = ["
     )
     .unwrap();
+    for every in estimator_core::vectors::BELT_EVERY {
+        let d = estimator_core::vectors::belt_observer(every, |s, c, counts, current| {
+            s.tick(c, counts, current);
+            Default::default()
+        });
+        writeln!(
+            out,
+            "    ({}, {}, {:?}),",
+            d.crc, d.final_offset_bits, d.offset_range_bits
+        )
+        .unwrap();
+    }
+    writeln!(out, "];").unwrap();
 }
 
 /// The paper's parameters as a calibration blob, encoded on the host.

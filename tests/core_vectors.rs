@@ -89,6 +89,7 @@ fn blob_round_trips(good: &[u8]) {
 mod tests {
     use super::vectors;
     use estimator_core::encoder;
+    use estimator_core::model::belt::STEP_PARTS;
     use estimator_core::model::ModelKind;
 
     #[init]
@@ -116,8 +117,10 @@ mod tests {
     }
 
     /// The fixed-point belt observer (`model::belt`, not yet in the drive) through moves out
-    /// and back, bit for bit as on the host. Its cost per step is logged: TIM2 counts
-    /// instructions exactly only under `--icount 0` (see README, "A reduced plant observer").
+    /// and back, bit for bit as on the host's `tick`: a step every tick, run here part by part
+    /// (`begin`, then `advance`), and a step every 2 and 4 ticks spread over them. The cost of
+    /// each part, of the step and of the ticks is logged: TIM2 counts instructions exactly only
+    /// under `--icount 0` (see README, "A reduced plant observer").
     #[test]
     fn belt_observer_matches_the_host() {
         // SAFETY: TIM2 as an instruction counter, as `hardware::qemu` sets it up (PSC = 0,
@@ -131,26 +134,55 @@ mod tests {
             tim2.arr().write(|w| w.bits(0));
         }
         tim2.cr1().write(|w| w.cen().set_bit());
-        let d = vectors::belt_observer(|s, c, counts, current| {
-            cortex_m::interrupt::free(|_| {
-                let t0 = tim2.cnt().read().bits();
-                s.step(c, counts, current);
-                let t1 = tim2.cnt().read().bits();
-                t1.wrapping_sub(t0).wrapping_sub(5)
-            })
-        });
-        let (crc, last, range) = vectors::BELT;
-        defmt::assert_eq!(d.offset_range_bits, range);
-        defmt::assert_eq!(d.final_offset_bits, last);
-        defmt::assert_eq!(d.crc, crc);
-        defmt::info!(
-            "belt observer: {=u32} steps bit-identical, offset {=i32}..{=i32} um/65536; TIM2 per step mean {=u64}/10, max {=u32}",
-            vectors::BELT_TICKS,
-            range.0,
-            range.1,
-            d.measured_sum * 10 / vectors::BELT_TICKS as u64,
-            d.measured_max
-        );
+        for (&every, &(crc, last, range)) in vectors::BELT_EVERY.iter().zip(vectors::BELT.iter()) {
+            let d = vectors::belt_observer(every, |s, c, counts, current| {
+                let mut parts = [0u32; STEP_PARTS as usize];
+                cortex_m::interrupt::free(|_| {
+                    if every > 1 {
+                        let t0 = tim2.cnt().read().bits();
+                        s.tick(c, counts, current);
+                        let t1 = tim2.cnt().read().bits();
+                        parts[0] = t1.wrapping_sub(t0).wrapping_sub(5);
+                        return;
+                    }
+                    let t0 = tim2.cnt().read().bits();
+                    s.begin(c, counts, current);
+                    let t1 = tim2.cnt().read().bits();
+                    parts[0] = t1.wrapping_sub(t0).wrapping_sub(5);
+                    for (k, part) in parts.iter_mut().enumerate().skip(1) {
+                        let t0 = tim2.cnt().read().bits();
+                        let done = s.advance(c);
+                        let t1 = tim2.cnt().read().bits();
+                        *part = t1.wrapping_sub(t0).wrapping_sub(5);
+                        // The last part ends the step.
+                        defmt::assert_eq!(done, k + 1 == STEP_PARTS as usize);
+                    }
+                });
+                parts
+            });
+            defmt::assert_eq!(d.offset_range_bits, range);
+            defmt::assert_eq!(d.final_offset_bits, last);
+            defmt::assert_eq!(d.crc, crc);
+            defmt::info!(
+                "belt observer, a step every {=u32} ticks: {=u32} ticks bit-identical, offset {=i32}..{=i32} um/65536; TIM2 per tick mean {=u64}/10, max {=u32}",
+                every,
+                vectors::BELT_TICKS,
+                range.0,
+                range.1,
+                d.measured_sum * 10 / vectors::BELT_TICKS as u64,
+                d.measured_max
+            );
+            if every == 1 {
+                for k in 0..STEP_PARTS as usize {
+                    defmt::info!(
+                        "belt observer part {=usize}: TIM2 mean {=u64}/10, max {=u32}",
+                        k,
+                        d.part_sum[k] * 10 / vectors::BELT_TICKS as u64,
+                        d.part_max[k]
+                    );
+                }
+            }
+        }
     }
 
     /// Every model through three moves, compared block by block with the host's run.

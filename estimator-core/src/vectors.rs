@@ -123,25 +123,36 @@ pub struct BeltDigest {
     pub final_offset_bits: i32,
     /// Smallest and largest offset over the run (shows the belt crossed the gap).
     pub offset_range_bits: (i32, i32),
-    /// What `measure` returned: sum and largest (instructions per step on the target).
+    /// What `measure` returned: sum and largest of the whole step (instructions on the
+    /// target).
     pub measured_sum: u64,
     /// See [`BeltDigest::measured_sum`].
     pub measured_max: u32,
+    /// The same per part of the step ([`crate::model::belt::BeltState::advance`]).
+    pub part_sum: [u64; crate::model::belt::STEP_PARTS as usize],
+    /// See [`BeltDigest::part_sum`].
+    pub part_max: [u32; crate::model::belt::STEP_PARTS as usize],
 }
 
+/// Step lengths of the belt observer's runs, ticks ([`belt_observer`]).
+pub const BELT_EVERY: [u32; 3] = [1, 2, 4];
+
 /// The fixed-point belt observer (`model::belt`) on the paper rig's physics with a guide
-/// profile through moves out and back (trapezoids, 25 um per tick at most, with the current a drive would draw).
-/// `measure` runs one step and returns its cost (0 on the host).
+/// profile, a step every `every` ticks, through moves out and back (trapezoids, 25 um per tick
+/// at most, with the current a drive would draw). `measure` runs one tick
+/// ([`crate::model::belt::BeltState::tick`] or its equivalent) and returns the cost of each
+/// part, or of the tick in the first (0 on the host).
 #[inline(never)]
 pub fn belt_observer(
+    every: u32,
     mut measure: impl FnMut(
         &mut crate::model::belt::BeltState,
         &crate::model::belt::BeltCoeffs,
         i32,
         i32,
-    ) -> u32,
+    ) -> [u32; crate::model::belt::STEP_PARTS as usize],
 ) -> BeltDigest {
-    use crate::model::belt::{BeltParams, BeltState};
+    use crate::model::belt::{BeltParams, BeltState, STEP_PARTS};
     use belt_link::Crc32;
     // A guide profile of 40 points, 10 mm apart, -0.8..0.8 N.
     let mut p = BeltParams::PAPER;
@@ -149,7 +160,7 @@ pub fn belt_observer(
     for (k, d) in p.guide_delta_n.iter_mut().take(40).enumerate() {
         *d = ((k * 37) % 17) as f64 * 0.1 - 0.8;
     }
-    let Ok(c) = p.build(1.0 / 2000.0) else {
+    let Ok(c) = p.build_every(1.0 / 2000.0, every) else {
         panic!("paper physics refused")
     };
     let mut s = BeltState::new(&c, 0);
@@ -160,6 +171,8 @@ pub fn belt_observer(
         offset_range_bits: (i32::MAX, i32::MIN),
         measured_sum: 0,
         measured_max: 0,
+        part_sum: [0; STEP_PARTS as usize],
+        part_max: [0; STEP_PARTS as usize],
     };
     // Velocity in Q8 counts per tick, acceleration 1/8 count per tick² (~0.27 m/s²).
     let (mut pos_q8, mut vel_q8) = (0i64, 0i64);
@@ -184,7 +197,12 @@ pub fn belt_observer(
         // Current: 0.2 A per 1/8 count per tick², 0.15 A against the motion.
         let current_bits = (accel * 13_107 / 32 + vel_q8.signum() * 9_830) as i32;
         let counts = (pos_q8 >> 8) as i32;
-        let cost = measure(&mut s, &c, counts, current_bits);
+        let parts = measure(&mut s, &c, counts, current_bits);
+        let cost = parts.iter().sum::<u32>();
+        for (k, &part) in parts.iter().enumerate() {
+            digest.part_sum[k] += part as u64;
+            digest.part_max[k] = digest.part_max[k].max(part);
+        }
         digest.measured_sum += cost as u64;
         digest.measured_max = digest.measured_max.max(cost);
         let (o, e) = (s.offset_um_bits(), s.error_um_bits());

@@ -608,25 +608,25 @@ pub fn offsets(run: &FitRun, p: &BeltPhysics) -> Vec<f64> {
         .collect()
 }
 
-/// The drive's fixed-point port over a run: offsets and carriage less motor, um. Physics it
-/// refuses give NaN (a search then scores them as the worst); counts beyond `i32` wrap as the
-/// drive's do.
+/// The drive's fixed-point port over a run, as the drive runs it (`BeltState::tick`: a step
+/// every `decimation` ticks on the ticks' mean current, spread over the ticks that follow, the
+/// offset moving `commit_latency_ticks` after the step begins): offsets and carriage less motor
+/// (as of the last step that ended), um. Physics it refuses give NaN (a search then scores
+/// them as the worst); counts beyond `i32` wrap as the drive's do.
 pub fn port_estimates(run: &FitRun, p: &BeltPhysics) -> (Vec<f64>, Vec<f64>) {
     use estimator_core::model::belt::BeltState;
     let Some(&(c0, _)) = run.inputs.first() else {
         return (Vec::new(), Vec::new());
     };
-    let every = p.decimation.max(1);
-    let Ok(c) = p.core_params().build_every(TICK_S, every) else {
+    let Ok(c) = p.core_params().build_every(TICK_S, p.decimation.max(1)) else {
         return (
             vec![f64::NAN; run.inputs.len()],
             vec![f64::NAN; run.inputs.len()],
         );
     };
     let mut s = BeltState::new(&c, c0 as i32);
-    // A step every `every` ticks on the ticks' mean current (as the drive would: a sum and one
-    // division), the estimate held between.
-    let (mut pending, mut sum) = (0u32, 0i64);
+    let um = |bits: i32| f64::from(bits) / 65536.0;
+    let mut error = um(s.error_um_bits());
     run.inputs
         .iter()
         .map(|&(counts, amps)| {
@@ -634,14 +634,11 @@ pub fn port_estimates(run: &FitRun, p: &BeltPhysics) -> (Vec<f64>, Vec<f64>) {
             let bits = (amps * 65536.0)
                 .round()
                 .clamp(i32::MIN as f64, i32::MAX as f64) as i32;
-            pending += 1;
-            sum += i64::from(bits);
-            if pending == every {
-                s.step(&c, counts as i32, (sum / i64::from(every)) as i32);
-                (pending, sum) = (0, 0);
+            s.tick(&c, counts as i32, bits);
+            if s.step_ended() {
+                error = um(s.error_um_bits());
             }
-            let um = |bits: i32| f64::from(bits) / 65536.0;
-            (um(s.offset_um_bits()), um(s.error_um_bits()))
+            (um(s.offset_um_bits()), error)
         })
         .unzip()
 }
@@ -764,6 +761,7 @@ mod tests {
     use crate::eval;
     use crate::plant::Plant;
     use crate::scenario::Scenario;
+    use estimator_core::model::belt::commit_latency_ticks;
     use estimator_core::model::{ModelKind, ModelParams};
     use proptest::prelude::*;
     use std::f64::consts::TAU;
@@ -888,7 +886,12 @@ mod tests {
                         continue;
                     }
                     p.decimation = every;
-                    let reference = offsets(&run, &p);
+                    // The port's offset moves this many ticks after the step begins: compare
+                    // it with the `f64` observer's of as many ticks before.
+                    let latency = commit_latency_ticks(every) as usize;
+                    let mut reference = offsets(&run, &p);
+                    reference.splice(0..0, std::iter::repeat_n(reference[0], latency));
+                    reference.truncate(run.inputs.len());
                     p.core_params()
                         .build_every(TICK_S, every)
                         .expect("valid physics");

@@ -108,8 +108,38 @@ const LOG2_E_Q30: u64 = 1_549_082_005;
 const TRACK_DISCOUNT: f64 = 0.95;
 /// Most ticks in one step ([`BeltParams::build_every`]).
 pub const MAX_STEP_TICKS: u32 = 16;
-/// Newton steps per tick.
-pub const NEWTON_STEPS: u32 = 2;
+/// Newton steps per step.
+pub const NEWTON_STEPS: u8 = 2;
+/// The parts of a step: [`BeltState::begin`] (the tracking filter), then for
+/// [`BeltState::advance`] the geometry, the Newton steps, the bristles and the carriage.
+pub const STEP_PARTS: u8 = 4 + NEWTON_STEPS;
+const PART_GEOMETRY: u8 = 1;
+/// The last Newton step, which moves the offset.
+pub const PART_COMMIT: u8 = PART_GEOMETRY + NEWTON_STEPS;
+const PART_BRISTLES: u8 = PART_COMMIT + 1;
+const PART_CARRIAGE: u8 = PART_BRISTLES + 1;
+const _: () = assert!(PART_CARRIAGE + 1 == STEP_PARTS);
+
+/// [`BeltState::tick`]'s schedule: for a step every `n` ticks (row `min(n, 6) - 1`), how many
+/// of the step's parts have run by the end of each tick from the one that begins it. Balanced
+/// by their measured cost (README): `begin` about 250 instructions, the geometry 110, each
+/// Newton step 265, the bristles 200, the carriage 145.
+const SCHEDULE: [[u8; 6]; 6] = [
+    [6, 6, 6, 6, 6, 6],
+    [3, 6, 6, 6, 6, 6],
+    [2, 4, 6, 6, 6, 6],
+    [1, 3, 4, 6, 6, 6],
+    [1, 2, 3, 4, 6, 6],
+    [1, 2, 3, 4, 5, 6],
+];
+const _: () = assert!(STEP_PARTS == 6);
+
+/// Ticks from the one that begins a step to the one whose end shows its offset, for a step
+/// every `ticks` ticks ([`BeltState::tick`]).
+pub fn commit_latency_ticks(ticks: u32) -> u32 {
+    let row = &SCHEDULE[(ticks.clamp(1, 6) - 1) as usize];
+    row.iter().position(|&done| done > PART_COMMIT).unwrap_or(0) as u32
+}
 
 /// Limits a machine's physics must keep for the formats above.
 const MAX_LENGTH_M: f64 = 100.0;
@@ -154,6 +184,8 @@ pub struct BeltCoeffs {
     /// `1.5 (1 - t)^2 (1 + t)`, acceleration `2 * 0.5 (1 - t)^3`. (In Q31 `i32`s, one `SMULL`
     /// each, the step measured 14 instructions more.)
     track_q32: [i64; 3],
+    /// Ticks per step ([`BeltState::tick`]), 1 to [`MAX_STEP_TICKS`].
+    every: u8,
 }
 
 impl BeltParams {
@@ -325,6 +357,7 @@ impl BeltParams {
             max_slip_q36: q((10.0 * t).min(MAX_SMALL_M / 2.0), 36.0, F::DriveRateHz)?,
             jump_q36: (1e-3 * M_Q36) as i32,
             track_q32,
+            every: ticks as u8,
         })
     }
 }
@@ -478,6 +511,34 @@ pub struct BeltState {
     /// The last slip, Q36 m per tick, and its part of the bristles' relaxation, Q24.
     du: i32,
     slide: u64,
+    /// A step begun and not yet ended.
+    pending: Pending,
+    /// [`BeltState::tick`]: ticks since the last step began and their current's sum (I16F16
+    /// amperes).
+    ticks: u32,
+    current_sum: i32,
+}
+
+/// What a step's parts pass on ([`BeltState::advance`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+struct Pending {
+    /// The next part; 0: none (the step has ended).
+    next: u8,
+    /// The tracked motor's travel over the step, Q36 m.
+    ds: i32,
+    /// The carriage along the travel, Q16 m.
+    x16: i32,
+    /// The chain's stiffness (N/m) and `l1 / L - 1/2` (Q30) there.
+    k_chain: u32,
+    ratio: i32,
+    /// The renewal's part of the bristles' relaxation, Q24.
+    renew: u64,
+    /// The bristles' friction coefficient before the slip, Q30.
+    m0: i32,
+    /// Motor less carriage, Q36 m.
+    rel: i32,
+    /// The slip being solved for, Q36 m per tick.
+    du: i32,
 }
 
 impl BeltState {
@@ -492,6 +553,47 @@ impl BeltState {
             z: 0,
             du: 0,
             slide: 0,
+            pending: Pending::default(),
+            ticks: 0,
+            current_sum: 0,
+        }
+    }
+
+    /// One tick of the drive: a step begins every [`BeltParams::build_every`] ticks, on this
+    /// tick's counts and the mean current of the ticks since the last, and its parts run over
+    /// the ticks that follow ([`SCHEDULE`]); the offset moves [`commit_latency_ticks`] after
+    /// the step begins. The same inputs give the same state as [`BeltState::step`] on each
+    /// step's counts and mean current.
+    pub fn tick(&mut self, c: &BeltCoeffs, counts: i32, current_bits: i32) {
+        let every = u32::from(c.every.clamp(1, MAX_STEP_TICKS as u8));
+        self.ticks += 1;
+        // Saturates only beyond 2^31 / 16 bits (2,048 A) a tick; `SDIV`, not a 64-bit call.
+        self.current_sum = self.current_sum.saturating_add(current_bits);
+        let since = if self.ticks >= every {
+            let mean = self.current_sum / every as i32;
+            self.begin(c, counts, mean);
+            (self.ticks, self.current_sum) = (0, 0);
+            0
+        } else {
+            self.ticks
+        };
+        let row = &SCHEDULE[(every.min(6) - 1) as usize];
+        let want = row[(since as usize).min(row.len() - 1)];
+        while self.parts_done() < want {
+            self.advance(c);
+        }
+    }
+
+    /// No step is part-way (the error is the last step's, not a part of one).
+    pub fn step_ended(&self) -> bool {
+        self.pending.next == 0
+    }
+
+    /// Parts of the last step that have run (all of them once it has ended).
+    fn parts_done(&self) -> u8 {
+        match self.pending.next {
+            0 => STEP_PARTS,
+            n => n,
         }
     }
 
@@ -575,9 +677,21 @@ impl BeltState {
         shr64(num * m as u64, e - 24).min(MAX_LAMBDA_Q24)
     }
 
-    /// One tick to motor position `counts` (unwrapped) with the drive's current in I16F16
-    /// amperes.
+    /// One step to motor position `counts` (unwrapped) with the drive's current in I16F16
+    /// amperes: [`BeltState::begin`] and every part of [`BeltState::advance`] at once.
     pub fn step(&mut self, c: &BeltCoeffs, counts: i32, current_bits: i32) {
+        self.begin(c, counts, current_bits);
+        while !self.advance(c) {}
+    }
+
+    /// Starts a step (finishing one still pending first) and runs its first part, the
+    /// tracking filter: the inputs are taken here, so a step spread over ticks by
+    /// [`BeltState::advance`] ends in the same state as [`BeltState::step`]. Until it ends, the
+    /// offset is the last step's (it moves at part [`PART_COMMIT`]) and the error is partial.
+    pub fn begin(&mut self, c: &BeltCoeffs, counts: i32, current_bits: i32) {
+        if self.pending.next != 0 {
+            while !self.advance(c) {}
+        }
         // Tracking filter, per-tick units, relative to the counts: the prediction less this
         // tick's counts is the last position less the travel of the counts since.
         let travel = mul(c.m_per_count, counts.wrapping_sub(self.counts));
@@ -606,8 +720,6 @@ impl BeltState {
             self.d = self.d.saturating_sub(ds);
         }
         let x = mul(c.m_per_count, counts) + self.track[0] as i64 + self.d as i64;
-        let x16 = sat_i32(x >> 20);
-        let (k_chain, ratio) = Self::geometry(c, x16);
         let renew = mul(c.kappa, ds.saturating_abs()) as u64;
         let lambda = (self.slide + renew).min(MAX_LAMBDA_Q24);
         // m0 = sigma0 z - sigma1 lambda z (Q30); lambda z in Q36 within 64 bits.
@@ -616,68 +728,120 @@ impl BeltState {
         } else {
             ((lambda >> 16) as i64 * self.z as i64) >> 8
         });
-        let m0 = sat_i32(mul(c.sigma0, self.z) - mul(c.sigma1_t, lz));
-        let rel = self.d.saturating_neg(); // motor less carriage
-        let k_chain64 = k_chain as i64;
-        let mut du = self.du;
-        for _ in 0..NEWTON_STEPS {
-            let o = self.o.saturating_add(du);
-            let q = dead_zone(rel.saturating_sub(o), c.gear_half_q36);
-            let f_chain = (k_chain64 * q as i64) >> 20;
-            let k_c = if q == 0 { 0 } else { k_chain as u64 };
-            let teeth = dead_zone(o, c.half_gap_q36);
-            let f_teeth = mul(c.tooth, teeth);
-            let k_t = if teeth == 0 {
-                0
-            } else {
-                c.tooth_n_per_m as u64
-            };
-            let mu = m0
-                .saturating_add(mul32(c.m1_t, du))
-                .clamp(-(ONE_Q30 as i32), ONE_Q30 as i32);
-            let a = ((c.wrap_q28 as i64 * mu as i64) >> 30) as i32; // Q28
-            let ac = ((a as i64 * ratio as i64) >> 30) as i32; // Q28
-            let f_f = (c.preload_q16 as i64 * (a as i64 + ((a as i64 * ac as i64) >> 28))) >> 28;
-            // N Q16 per unit of mu.
-            let slope_f = sat_i32((c.preload_wrap_q16 as i64 * (ONE_Q28 + 2 * ac as i64)) >> 28);
-            let rel_v = ds.saturating_sub(du).saturating_sub(self.v);
-            let damping = mul(c.damping_t, rel_v);
-            let residual = sat_i32(f_chain + damping - f_teeth - f_f);
-            // N/m; the capstan's through mu's slope in du (Q30 per Q36, Q16 -> Q10 N/m).
-            let slope =
-                k_c + k_t + (mul(c.m1_t, slope_f).max(0) as u64 >> 10) + c.damping_t_n_per_m as u64;
-            if slope > 0 {
-                // N Q16 / (N/m) = m Q16; Q36 wanted.
-                let step = div(residual, recip32(slope.min(u32::MAX as u64) as u32), 20);
-                du = du
-                    .saturating_add(step)
-                    .clamp(-c.max_slip_q36, c.max_slip_q36);
+        self.pending = Pending {
+            next: PART_GEOMETRY,
+            ds,
+            x16: sat_i32(x >> 20),
+            k_chain: 0,
+            ratio: 0,
+            renew,
+            m0: sat_i32(mul(c.sigma0, self.z) - mul(c.sigma1_t, lz)),
+            // Motor less carriage.
+            rel: self.d.saturating_neg(),
+            du: self.du,
+        };
+    }
+
+    /// Runs the pending step's next part; `true` once none is left (the step has ended). The
+    /// parts after [`BeltState::begin`]: the geometry, each Newton step (the last commits the
+    /// slip), the bristles, the carriage: [`STEP_PARTS`] in all.
+    pub fn advance(&mut self, c: &BeltCoeffs) -> bool {
+        let p = &mut self.pending;
+        match p.next {
+            0 => return true,
+            PART_GEOMETRY => (p.k_chain, p.ratio) = Self::geometry(c, p.x16),
+            PART_BRISTLES => {
+                // z e^-l + du (1 - e^-l) / l.
+                self.slide = Self::slide(c, p.du);
+                let lambda = (self.slide + p.renew).min(MAX_LAMBDA_Q24);
+                self.z = Self::bristles(self.z, p.du, lambda);
+            }
+            PART_CARRIAGE => {
+                p.next = 0;
+                let p = *p;
+                self.carriage(c, p.k_chain as i64, p.rel, p.ds, p.du, p.x16);
+                return true;
+            }
+            _ => {
+                // A Newton step; the last commits the slip.
+                p.du = Self::newton(c, p, self.o, self.v);
+                if p.next == PART_COMMIT {
+                    self.du = p.du;
+                    self.o = self.o.saturating_add(p.du);
+                }
             }
         }
-        self.du = du;
-        self.o = self.o.saturating_add(du);
-        // Bristles: z e^-l + du (1 - e^-l) / l.
-        self.slide = Self::slide(c, du);
-        let lambda = (self.slide + renew).min(MAX_LAMBDA_Q24);
-        self.z = if lambda < 1 << 18 {
+        p.next += 1;
+        false
+    }
+
+    /// One Newton step of the belt's force balance at the pulley from slip `p.du`.
+    #[inline(always)]
+    fn newton(c: &BeltCoeffs, p: &Pending, o: i32, v: i32) -> i32 {
+        let (k_chain, ratio, rel, ds, m0) = (p.k_chain, p.ratio, p.rel, p.ds, p.m0);
+        let k_chain64 = k_chain as i64;
+        let du = p.du;
+        let o = o.saturating_add(du);
+        let q = dead_zone(rel.saturating_sub(o), c.gear_half_q36);
+        let f_chain = (k_chain64 * q as i64) >> 20;
+        let k_c = if q == 0 { 0 } else { k_chain as u64 };
+        let teeth = dead_zone(o, c.half_gap_q36);
+        let f_teeth = mul(c.tooth, teeth);
+        let k_t = if teeth == 0 {
+            0
+        } else {
+            c.tooth_n_per_m as u64
+        };
+        let mu = m0
+            .saturating_add(mul32(c.m1_t, du))
+            .clamp(-(ONE_Q30 as i32), ONE_Q30 as i32);
+        let a = ((c.wrap_q28 as i64 * mu as i64) >> 30) as i32; // Q28
+        let ac = ((a as i64 * ratio as i64) >> 30) as i32; // Q28
+        let f_f = (c.preload_q16 as i64 * (a as i64 + ((a as i64 * ac as i64) >> 28))) >> 28;
+        // N Q16 per unit of mu.
+        let slope_f = sat_i32((c.preload_wrap_q16 as i64 * (ONE_Q28 + 2 * ac as i64)) >> 28);
+        let rel_v = ds.saturating_sub(du).saturating_sub(v);
+        let damping = mul(c.damping_t, rel_v);
+        let residual = sat_i32(f_chain + damping - f_teeth - f_f);
+        // N/m; the capstan's through mu's slope in du (Q30 per Q36, Q16 -> Q10 N/m).
+        let slope =
+            k_c + k_t + (mul(c.m1_t, slope_f).max(0) as u64 >> 10) + c.damping_t_n_per_m as u64;
+        if slope == 0 {
+            return du;
+        }
+        // N Q16 / (N/m) = m Q16; Q36 wanted.
+        let step = div(residual, recip32(slope.min(u32::MAX as u64) as u32), 20);
+        du.saturating_add(step)
+            .clamp(-c.max_slip_q36, c.max_slip_q36)
+    }
+
+    /// The bristles relaxed over the step at rate `lambda` (Q24): `z e^-l + du (1 - e^-l) / l`.
+    #[inline(always)]
+    fn bristles(z: i32, du: i32, lambda: u64) -> i32 {
+        let (decay, phi) = if lambda < 1 << 18 {
             // Below 1/64: e^-l and (1 - e^-l) / l to third order (error below 3 units of
             // Q30), no table and no division.
             let l = (lambda << 6) as i32; // Q30, < 2^24
             let l2 = ((l as i64 * l as i64) >> 30) as i32;
             let l3 = ((l2 as i64 * l as i64) >> 30) as i32;
-            let decay = ONE_Q30 as i32 - l + l2 / 2 - l3 / 6;
-            let phi = ONE_Q30 as i32 - l / 2 + l2 / 6 - l3 / 24;
-            sat_i32(((self.z as i64 * decay as i64) >> 30) + ((du as i64 * phi as i64) >> 30))
+            (
+                ONE_Q30 as i32 - l + l2 / 2 - l3 / 6,
+                ONE_Q30 as i32 - l / 2 + l2 / 6 - l3 / 24,
+            )
         } else {
             let decay = if lambda >= LAMBDA_ZERO_DECAY_Q24 {
                 0
             } else {
                 exp2_neg_q30((lambda * LOG2_E_Q30) >> 22) as i32 // Q30
             };
-            let phi = div(ONE_Q30 as i32 - decay, recip(lambda), 24); // Q30
-            sat_i32(((self.z as i64 * decay as i64) >> 30) + ((du as i64 * phi as i64) >> 30))
+            (decay, div(ONE_Q30 as i32 - decay, recip(lambda), 24)) // Q30
         };
-        // The carriage on the chain's force, Coulomb friction implicit.
+        sat_i32(((z as i64 * decay as i64) >> 30) + ((du as i64 * phi as i64) >> 30))
+    }
+
+    /// The carriage on the chain's force, Coulomb friction implicit.
+    #[inline(always)]
+    fn carriage(&mut self, c: &BeltCoeffs, k_chain64: i64, rel: i32, ds: i32, du: i32, x16: i32) {
         let q = dead_zone(rel.saturating_sub(self.o), c.gear_half_q36);
         let rel_v = ds.saturating_sub(du).saturating_sub(self.v);
         let f = sat_i32(((k_chain64 * q as i64) >> 20) + mul(c.damping_t, rel_v));
@@ -828,6 +992,57 @@ mod tests {
                 s.step(&c, counts, amps);
                 let _ = (s.offset_um_bits(), s.error_um_bits());
             }
+        }
+    }
+
+    /// A step spread over ticks ends where [`BeltState::step`] does on the step's counts and
+    /// mean current; its offset moves [`commit_latency_ticks`] after the step begins, and no
+    /// earlier.
+    #[test]
+    fn ticks_spread_the_step_and_end_where_it_does() {
+        for every in 1..=MAX_STEP_TICKS {
+            let c = BeltParams::PAPER.build_every(5e-4, every).unwrap();
+            let latency = commit_latency_ticks(every);
+            assert!(latency < every.max(1), "{every}: {latency}");
+            let (mut ticked, mut whole) = (BeltState::new(&c, 0), BeltState::new(&c, 0));
+            let (mut before, mut sum) = (whole, 0i64);
+            let mut since_begin = None;
+            let mut counts = 0i32;
+            let mut moved = false;
+            for t in 0..3000i32 {
+                // Out and back at up to 47 counts a tick with the current of the motion.
+                let v = ((t % 1200) - 600).signum() * (47 - ((t % 600) - 300).abs() / 8).max(0);
+                counts += v;
+                let bits = v * 2000 + (t % 7) * 300;
+                sum += i64::from(bits);
+                ticked.tick(&c, counts, bits);
+                if (t + 1) % every as i32 == 0 {
+                    before = whole;
+                    whole.step(&c, counts, (sum / i64::from(every)) as i32);
+                    sum = 0;
+                    since_begin = Some(0);
+                } else if let Some(k) = since_begin.as_mut() {
+                    *k += 1;
+                }
+                let Some(k) = since_begin else {
+                    continue;
+                };
+                let want = if k >= latency { &whole } else { &before };
+                assert_eq!(
+                    ticked.offset_um_bits(),
+                    want.offset_um_bits(),
+                    "{every} tick {t}"
+                );
+                moved |= before.offset_um_bits() != whole.offset_um_bits();
+                if k + 1 == every {
+                    assert_eq!(ticked.error_um_bits(), whole.error_um_bits(), "{every} {t}");
+                    assert_eq!(
+                        (ticked.o, ticked.z, ticked.d, ticked.v),
+                        (whole.o, whole.z, whole.d, whole.v)
+                    );
+                }
+            }
+            assert!(moved, "{every}: the offset never moved");
         }
     }
 
