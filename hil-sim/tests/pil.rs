@@ -12,6 +12,15 @@ use hil_sim::pil::PilOptions;
 use hil_sim::plant::PlantParams;
 use hil_sim::scenario::Scenario;
 
+/// The paper rig calibrated by its default plan, made once for the tests that share it.
+fn paper_calibration() -> &'static hil_sim::calibrate::Calibration {
+    static CAL: std::sync::OnceLock<hil_sim::calibrate::Calibration> = std::sync::OnceLock::new();
+    CAL.get_or_init(|| {
+        eval::calibrate_plant(&PlantParams::paper_rig(), &mut |_, _| {})
+            .expect("the paper rig calibrates")
+    })
+}
+
 /// The firmware under test: `BELT_DRIVE_ELF`, or the `cargo fw-qemu` output.
 fn elf() -> std::path::PathBuf {
     let elf = std::env::var_os("BELT_DRIVE_ELF")
@@ -30,7 +39,7 @@ fn elf() -> std::path::PathBuf {
 fn fig18_pil_is_bit_identical_to_the_host() {
     let elf = elf();
     let plant = PlantParams::paper_rig();
-    let cal = eval::calibrate_plant(&plant, &mut |_, _| {}).unwrap();
+    let cal = paper_calibration();
     let scenario = Scenario::load("fig18").unwrap();
     let pil = assert_pil_matches_host(elf, &plant, &cal.params, &scenario, ModelKind::Table, 3);
     eprintln!(
@@ -73,7 +82,7 @@ fn assert_pil_matches_host(
 fn placement_pil_matches_the_host() {
     let elf = elf();
     let plant = PlantParams::paper_rig();
-    let cal = eval::calibrate_plant(&plant, &mut |_, _| {}).unwrap();
+    let cal = paper_calibration();
     let moves = [
         (150.0, 80.0, 2000.0),
         (100.0, 60.0, 1500.0),
@@ -122,7 +131,7 @@ fn placement_pil_matches_the_host() {
 fn positioning_json_pil_matches_the_host() {
     let elf = elf();
     let plant = PlantParams::paper_rig();
-    let cal = eval::calibrate_plant(&plant, &mut |_, _| {}).unwrap();
+    let cal = paper_calibration();
     let scenario = Scenario::from_toml_str(
         r#"
 name = "placement-pil"

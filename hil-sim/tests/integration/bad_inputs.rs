@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 use proptest::prelude::*;
 use proptest::test_runner::{Config, RngAlgorithm, TestRng, TestRunner};
 
-const PLANT: &str = include_str!("../presets/paper-rig.toml");
+const PLANT: &str = include_str!("../../presets/paper-rig.toml");
 /// A short scenario (about 0.5 s simulated) with a reversal and a retarget.
 const SCENARIO: &str = "name = \"short\"
 start_mm = 100.0

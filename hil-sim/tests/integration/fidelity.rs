@@ -6,7 +6,7 @@
 //! own trajectory and PID live in `estimator-core` and are not used here, so these tests judge
 //! the plant alone.
 //!
-//! Every test prints its figures: `cargo test -p hil-sim --release --test fidelity -- --nocapture`.
+//! Every test prints its figures: `cargo test -p hil-sim --release --test integration fidelity -- --nocapture`.
 //! Speed is a benchmark, not a test: `cargo bench -p hil-sim --bench sim_speed`.
 
 use hil_sim::PlantParams;

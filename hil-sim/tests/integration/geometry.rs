@@ -44,8 +44,8 @@ fn another_geometry_calibrates_and_estimates_in_micrometres() {
 fn a_calibration_for_another_geometry_is_refused_naming_both() {
     let dir = std::env::temp_dir().join(format!("belt-drive-geometry-{}", std::process::id()));
     let paper = PlantParams::paper_rig();
-    let cal = eval::calibrate_plant(&paper, &mut |_, _| {}).unwrap();
-    hil_sim::calfile::save(&dir, &cal, &paper.rig()).unwrap();
+    let cal = crate::paper_calibration();
+    hil_sim::calfile::save(&dir, cal, &paper.rig()).unwrap();
     let e = match hil_sim::calfile::load(&dir, &other_rig().rig()) {
         Err(e) => e,
         Ok(_) => panic!("a paper-rig calibration loaded on another geometry"),

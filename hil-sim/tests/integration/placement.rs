@@ -2,7 +2,6 @@
 //! sides, at several speeds; the arrival error is read on the linear scale.
 
 use estimator_core::model::ModelKind;
-use hil_sim::eval;
 use hil_sim::placement::{arrival_errors_in_process, Move};
 use hil_sim::plant::PlantParams;
 
@@ -13,7 +12,7 @@ fn rms(v: &[f64]) -> f64 {
 #[test]
 fn models_place_the_carriage_where_the_motor_alone_does_not() {
     let plant = PlantParams::paper_rig();
-    let cal = eval::calibrate_plant(&plant, &mut |_, _| {}).unwrap();
+    let cal = crate::paper_calibration();
     // Long and short strokes, both directions, over the travel.
     let moves: Vec<Move> = vec![
         (200.0, 60.0, 1500.0),

@@ -39,10 +39,10 @@ fn evaluate(
 #[test]
 fn table3_ordering_holds_on_unseen_scenarios() {
     let plant = PlantParams::paper_rig();
-    let cal = eval::calibrate_plant(&plant, &mut |_, _| {}).unwrap();
+    let cal = crate::paper_calibration();
     for name in ["fig18", "zigzag", "accelerations"] {
         assert!(!eval::CALIBRATION_SCENARIOS.contains(&name));
-        let t = evaluate(&cal, &plant, name, 7);
+        let t = evaluate(cal, &plant, name, 7);
         let r = |n| rms(&t, n);
         eprintln!(
             "{name}: none {:.1} model1 {:.1} model2 {:.1} model3 {:.1} backlash {:.1} bidir_table {:.1}",
