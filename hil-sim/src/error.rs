@@ -101,6 +101,10 @@ pub enum Error {
         /// The plant's geometry.
         has: Rig,
     },
+    /// A plant of the generalisation table that was never measured (one before it failed; not
+    /// reached in practice: that failure is returned first).
+    #[error("{0}: not measured")]
+    NotMeasured(String),
     /// QEMU ended with a status other than success.
     #[error("PIL: QEMU exited with status {0}")]
     QemuExit(i32),

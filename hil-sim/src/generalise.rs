@@ -287,6 +287,80 @@ pub fn measure(
     })
 }
 
+/// [`measure`] of every `(plant, scenarios)` pair, on every core at once: each plant's
+/// calibration and runs are its own (their own seeds), so the tables, in the pairs' order, and
+/// the first error in that order are what one core would give. Progress names the plant; a
+/// stage's fraction is shown only as the stage begins (two plants' stages interleave).
+pub fn measure_all(
+    jobs: &[(PlantParams, Vec<Scenario>)],
+    plan_seed: u64,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Vec<PlantTable>, Error> {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::sync::{mpsc, Mutex};
+    let workers = std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .min(jobs.len());
+    if workers <= 1 {
+        return jobs
+            .iter()
+            .map(|(p, w)| {
+                let name = p.name().to_string();
+                measure(p, w, plan_seed, &mut |s, f| {
+                    progress(&format!("{name}: {s}"), f)
+                })
+            })
+            .collect();
+    }
+    let next = AtomicUsize::new(0);
+    let done: Vec<Mutex<Option<Result<PlantTable, Error>>>> =
+        jobs.iter().map(|_| Mutex::new(None)).collect();
+    let (tx, rx) = mpsc::channel::<String>();
+    std::thread::scope(|scope| {
+        for _ in 0..workers {
+            let tx = tx.clone();
+            let (next, done) = (&next, &done);
+            scope.spawn(move || loop {
+                let k = next.fetch_add(1, Ordering::Relaxed);
+                let Some((plant, scenarios)) = jobs.get(k) else {
+                    break;
+                };
+                let name = plant.name().to_string();
+                let mut stage = String::new();
+                let r = measure(plant, scenarios, plan_seed, &mut |s, _| {
+                    if s != stage {
+                        stage = s.to_string();
+                        // The receiver outlives every worker; a failed send loses progress only.
+                        let _ = tx.send(format!("{name}: {s}"));
+                    }
+                });
+                let failed = r.is_err();
+                if let Ok(mut slot) = done[k].lock() {
+                    *slot = Some(r);
+                }
+                if failed {
+                    // Later plants are not needed; earlier ones finish (an error of theirs
+                    // comes first).
+                    next.store(jobs.len(), Ordering::Relaxed);
+                }
+            });
+        }
+        drop(tx);
+        for stage in rx {
+            progress(&stage, 0.0);
+        }
+    });
+    let mut tables = Vec::with_capacity(jobs.len());
+    for (slot, (plant, _)) in done.into_iter().zip(jobs) {
+        match slot.into_inner().ok().flatten() {
+            Some(r) => tables.push(r?),
+            // Not run: only after a plant before it failed, whose error came first.
+            None => return Err(Error::NotMeasured(plant.name().to_string())),
+        }
+    }
+    Ok(tables)
+}
+
 /// `path` with the plan seed before its extension (`gen.png`, 7 -> `gen-plan7.png`): one
 /// picture per draw of `hil-sim generalise --plot`.
 pub fn seeded_path(path: &std::path::Path, plan_seed: u64) -> std::path::PathBuf {

@@ -756,15 +756,15 @@ fn main() -> ExitCode {
             plants.extend((1..=drawn).map(generalise::drawn_plant));
             let mut progress = Progress::new();
             let mut draws = Vec::new();
+            let mut jobs = Vec::new();
+            for p in plants {
+                let w = generalise::workloads(&p, seed)?;
+                jobs.push((p, w));
+            }
             for &plan in &plan_seed {
-                let mut tables = Vec::new();
-                for p in &plants {
-                    let name = p.name().to_string();
-                    let w = generalise::workloads(p, seed)?;
-                    tables.push(generalise::measure(p, &w, plan, &mut |s, f| {
-                        progress.stage(&format!("plan {plan}: {name}: {s}"), f)
-                    })?);
-                }
+                let tables = generalise::measure_all(&jobs, plan, &mut |s, f| {
+                    progress.stage(&format!("plan {plan}: {s}"), f)
+                })?;
                 draws.push((plan, tables));
             }
             progress.finish();

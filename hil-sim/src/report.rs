@@ -333,17 +333,15 @@ pub fn write(
     }
     // Generalisation: the paper rig and the variants, each calibrated by its own plan, on every
     // preset and a generated workload of every class (held out of calibration).
-    let mut tables = Vec::new();
+    let mut jobs = Vec::new();
     for p in crate::generalise::plants()? {
-        let label = format!("generalisation: {}", p.name());
         let w = crate::generalise::workloads(&p, crate::generalise::TABLE_SEED)?;
-        tables.push(crate::generalise::measure(
-            &p,
-            &w,
-            crate::eval::CALIBRATION_PLAN_SEED,
-            &mut |_, f| progress.stage(&label, f),
-        )?);
+        jobs.push((p, w));
     }
+    let tables =
+        crate::generalise::measure_all(&jobs, crate::eval::CALIBRATION_PLAN_SEED, &mut |s, f| {
+            progress.stage(&format!("generalisation: {s}"), f)
+        })?;
     md += "\n## Generalisation (every estimator, held-out workloads, five plants)\n\n";
     md += "RMS of e in um; floor: RMS of the tick-by-tick difference of x_LS - x_PE between two \
            noise seeds, / sqrt 2. Each plant is calibrated by its own default plan; generated \

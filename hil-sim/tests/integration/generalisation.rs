@@ -29,28 +29,28 @@ fn model4_is_best_over_held_out_workloads() {
 fn assert_model4_best_held_out(plants: impl IntoIterator<Item = hil_sim::PlantParams>) {
     let mut report = String::new();
     let mut failed = Vec::new();
-    for plant in plants {
-        let generated: Vec<_> = generalise::workloads(&plant, HELD_OUT_SEED)
-            .unwrap()
-            .into_iter()
-            .filter(|s| s.name.ends_with(&format!("-{HELD_OUT_SEED}")))
-            .collect();
-        assert_eq!(generated.len(), 6, "{}", plant.name());
-        let t = generalise::measure(
-            &plant,
-            &generated,
-            eval::CALIBRATION_PLAN_SEED,
-            &mut |_, _| {},
-        )
-        .unwrap();
+    let jobs: Vec<_> = plants
+        .into_iter()
+        .map(|plant| {
+            let generated: Vec<_> = generalise::workloads(&plant, HELD_OUT_SEED)
+                .unwrap()
+                .into_iter()
+                .filter(|s| s.name.ends_with(&format!("-{HELD_OUT_SEED}")))
+                .collect();
+            assert_eq!(generated.len(), 6, "{}", plant.name());
+            (plant, generated)
+        })
+        .collect();
+    let tables = generalise::measure_all(&jobs, eval::CALIBRATION_PLAN_SEED, &mut |_, _| {});
+    for (t, (plant, _)) in tables.unwrap().iter().zip(&jobs) {
         assert_eq!(t.rows.len(), 6, "{}: a workload was refused", plant.name());
-        let m4 = held_out(&t, "model4");
+        let m4 = held_out(t, "model4");
         report += &format!("{} {:?}: model4 {m4:.1} um", t.plant, plant.rig());
         for e in hil_sim::eval::ESTIMATORS {
             if *e == "model4" {
                 continue;
             }
-            let other = held_out(&t, e);
+            let other = held_out(t, e);
             report += &format!(", {e} {other:.1}");
             if other <= m4 {
                 failed.push(format!("{}: {e} {other:.1} <= model4 {m4:.1}", t.plant));
