@@ -12,14 +12,8 @@ use hil_sim::pil::PilOptions;
 use hil_sim::plant::PlantParams;
 use hil_sim::scenario::Scenario;
 
-/// The paper rig calibrated by its default plan, made once for the tests that share it.
-fn paper_calibration() -> &'static hil_sim::calibrate::Calibration {
-    static CAL: std::sync::OnceLock<hil_sim::calibrate::Calibration> = std::sync::OnceLock::new();
-    CAL.get_or_init(|| {
-        eval::calibrate_plant(&PlantParams::paper_rig(), &mut |_, _| {})
-            .expect("the paper rig calibrates")
-    })
-}
+mod common;
+use common::paper_calibration;
 
 /// The firmware under test: `BELT_DRIVE_ELF`, or the `cargo fw-qemu` output.
 fn elf() -> std::path::PathBuf {

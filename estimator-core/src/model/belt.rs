@@ -120,10 +120,10 @@ const PART_BRISTLES: u8 = PART_COMMIT + 1;
 const PART_CARRIAGE: u8 = PART_BRISTLES + 1;
 const _: () = assert!(PART_CARRIAGE + 1 == STEP_PARTS);
 
-/// [`BeltState::tick`]'s schedule: for a step every `n` ticks (row `min(n, 6) - 1`), how many
-/// of the step's parts have run by the end of each tick from the one that begins it. Balanced
-/// by their measured cost (README): `begin` about 250 instructions, the geometry 110, each
-/// Newton step 265, the bristles 200, the carriage 145.
+/// [`BeltState::tick`]'s schedule: for a step every `n` ticks ([`schedule`]), how many of the
+/// step's parts have run by the end of each tick from the one that begins it. Balanced by
+/// their cost measured on the Cortex-M4 (README): `begin` 266 instructions, the geometry 114,
+/// each Newton step 266-270, the bristles 204, the carriage 147 at most.
 const SCHEDULE: [[u8; 6]; 6] = [
     [6, 6, 6, 6, 6, 6],
     [3, 6, 6, 6, 6, 6],
@@ -137,8 +137,15 @@ const _: () = assert!(STEP_PARTS == 6);
 /// Ticks from the one that begins a step to the one whose end shows its offset, for a step
 /// every `ticks` ticks ([`BeltState::tick`]).
 pub fn commit_latency_ticks(ticks: u32) -> u32 {
-    let row = &SCHEDULE[(ticks.clamp(1, 6) - 1) as usize];
-    row.iter().position(|&done| done > PART_COMMIT).unwrap_or(0) as u32
+    schedule(ticks)
+        .iter()
+        .position(|&done| done > PART_COMMIT)
+        .unwrap_or(0) as u32
+}
+
+/// [`SCHEDULE`]'s row for a step every `ticks` ticks (beyond 6, one part a tick).
+fn schedule(ticks: u32) -> &'static [u8; 6] {
+    &SCHEDULE[(ticks.clamp(1, 6) - 1) as usize]
 }
 
 /// Limits a machine's physics must keep for the formats above.
@@ -577,7 +584,7 @@ impl BeltState {
         } else {
             self.ticks
         };
-        let row = &SCHEDULE[(every.min(6) - 1) as usize];
+        let row = schedule(every);
         let want = row[(since as usize).min(row.len() - 1)];
         while self.parts_done() < want {
             self.advance(c);
