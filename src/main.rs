@@ -585,7 +585,8 @@ mod app {
                     }
                     Some(Ok(f)) => f,
                 };
-                // `handle` also feeds the core's link watchdog (`Drive::link_alive`).
+                // `handle` also feeds the core's link watchdog (`Drive::link_alive`), on every
+                // frame but a PIL sample.
                 let (effect, event) = drive.lock(|d| endpoint.handle(&frame.msg, d));
                 log_event(&event);
                 let reply = match effect {

@@ -294,7 +294,7 @@ fn run_scenario(
         go(link, here, to)?;
         here = to;
     }
-    link.pump(Duration::from_millis(300))?;
+    ops::dwell(link, Duration::from_millis(300))?;
 
     link.start_recording(1)?;
     let mut samples = Vec::new();
@@ -303,7 +303,7 @@ fn run_scenario(
         if begin != s.start_mm {
             // Recorded: the way down to the start is part of the data the fit sees.
             go(link, begin, s.start_mm)?;
-            link.pump(Duration::from_millis(300))?;
+            ops::dwell(link, Duration::from_millis(300))?;
         }
         for (i, m) in s.moves.iter().enumerate() {
             progress.stage(&label, i as f64 / s.moves.len() as f64);
@@ -520,6 +520,14 @@ pub fn run(link: &mut Link, opts: &Options, progress: &mut Progress) -> Result<O
         traces.push(t);
     }
 
+    // The fit takes seconds to minutes on the host, silent on the link: the drive rests
+    // disabled meanwhile (still homed), not enabled until its link watchdog trips. The upload
+    // needs it disabled too: the drive stages the image in flash, whose erase stalls its CPU.
+    link.command(Command::Disable)?;
+    progress.println(
+        "beltctl: disabled the drive for the fit and the upload (the drive stages the calibration \
+         in flash); enable it to move again",
+    );
     let mut cal = hil_sim::calibrate::calibrate(&traces, &rig, &mut |s, f| progress.stage(s, f))?;
     // What the moves covered: calibration.toml keeps it, `hil-sim` warns by it.
     let coverage = hil_sim::coverage::Coverage::of(&plan.scenarios);
@@ -549,13 +557,6 @@ pub fn run(link: &mut Link, opts: &Options, progress: &mut Progress) -> Result<O
     let image = estimator_core::image::of_params(&cal.params, &rig)
         .map_err(|e| ToolError::Drive(format!("calibration image: {e}")))?;
     let blob = &image[..];
-    // The drive stages the image in flash, whose erase stalls its CPU: it takes a transfer
-    // only while disabled (the carriage stays homed).
-    link.command(Command::Disable)?;
-    progress.println(
-        "beltctl: disabled the drive to upload the calibration (the drive stages it in flash); \
-         enable it to move again",
-    );
     progress.stage("upload calibration", 0.0);
     upload(link, blob)?;
     progress.stage("verify calibration", 0.5);
@@ -569,7 +570,7 @@ pub fn run(link: &mut Link, opts: &Options, progress: &mut Progress) -> Result<O
     progress.finish();
     link.command(Command::SelectModel(opts.model))?;
     let saved_crc = if opts.save {
-        // Disabled since the upload: the drive saves only while disabled.
+        // Disabled since the fit: the drive saves only while disabled.
         Some(save(link)?.1)
     } else {
         None
@@ -828,7 +829,7 @@ mod tests {
             .map(|w| w[1] - w[0])
             .max()
             .unwrap_or_default();
-        assert!(gap < Duration::from_millis(400), "{gap:?}");
+        assert!(gap < Duration::from_millis(300), "{gap:?}");
         assert!(begin.elapsed() > Duration::from_millis(1200));
     }
 

@@ -14,6 +14,11 @@ use crate::status::{fault_names, scale_um};
 /// How often a waiting command polls the status (it also feeds the drive's link watchdog).
 pub const POLL: Duration = Duration::from_millis(50);
 
+/// The longest the host stays silent while the drive may be enabled: a fifth of the drive's
+/// default link timeout (0.5 s), so that a host stalled by its scheduler, or a virtual drive
+/// run faster than real time, still keeps the watchdog fed.
+pub const KEEPALIVE: Duration = Duration::from_millis(100);
+
 /// Polls the status every [`POLL`] until `done` holds, a fault latches, or `timeout` passes
 /// (then the drive is told to stop). The first poll comes after one period, so that a command
 /// just sent has reached the drive's state.
@@ -94,7 +99,7 @@ pub fn within_travel(path: &str, s: &Scenario, (d0, d1): (f64, f64)) -> Result<(
     }
 }
 
-/// Rests for `d`, polling the status now and then (the drive's link watchdog).
+/// Rests for `d`, polling the status every [`KEEPALIVE`] (the drive's link watchdog).
 pub fn dwell(link: &mut Link, d: Duration) -> Result<(), ToolError> {
     let end = crate::link::later(d);
     loop {
@@ -102,7 +107,7 @@ pub fn dwell(link: &mut Link, d: Duration) -> Result<(), ToolError> {
         if left.is_zero() {
             return Ok(());
         }
-        link.pump(left.min(POLL * 4))?;
+        link.pump(left.min(KEEPALIVE))?;
         link.status()?;
     }
 }

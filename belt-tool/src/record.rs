@@ -13,9 +13,6 @@ use crate::link::{Link, RecordingStats, TickSample};
 /// The CSV header.
 pub const CSV_HEADER: &str = "tick,motor_counts,scale_counts,setpoint_counts,current_ma";
 
-/// How often the recording host sends a status request: it keeps the drive's link watchdog fed.
-const KEEPALIVE: Duration = Duration::from_millis(200);
-
 /// Writes samples as CSV rows.
 pub fn write_rows(w: &mut impl Write, samples: &[TickSample]) -> std::io::Result<()> {
     for s in samples {
@@ -105,7 +102,7 @@ fn stream(
     let result: Result<(), ToolError> = (|| {
         while start.elapsed().as_secs_f64() < seconds {
             let left = Duration::from_secs_f64(seconds).saturating_sub(start.elapsed());
-            link.pump(KEEPALIVE.min(left))?;
+            link.pump(crate::ops::KEEPALIVE.min(left))?;
             link.status()?;
             let batch = link.take_samples();
             *written += batch.len() as u64;

@@ -455,8 +455,12 @@ impl<B: Staging> Endpoint<B> {
     /// still do (send a reply, run a tick, ...) comes back as an [`Effect`], and anything worth
     /// logging as an [`Event`].
     pub fn handle(&mut self, req: &Request, drive: &mut Drive) -> (Effect, Event) {
-        // Any valid frame keeps the link watchdog fed.
-        drive.link_alive();
+        // Any valid frame from the host keeps the link watchdog fed. A PIL sample does not: it
+        // is the simulated machine's sensors, and a virtual drive fed by its own plant could
+        // not show a host that went silent.
+        if !matches!(req, Request::Sample { .. }) {
+            drive.link_alive();
+        }
         let k = req.kind();
         let ack = Effect::Reply(Reply::Ack { of: k });
         let refuse = |reason: LinkError, detail: u8| {
@@ -711,6 +715,7 @@ mod tests {
     // ---- the endpoint, against the real drive ----
 
     use crate::drive::{DriveConfig, Output as DriveOutput};
+    use crate::fault::Faults;
     use belt_link::{crc32, CHUNK_MAX};
 
     fn drive() -> Drive {
@@ -749,6 +754,49 @@ mod tests {
         let reply = answer(&out, 42);
         assert_eq!(output_of(&reply), Some((out, 42)));
         assert_eq!(output_of(&Reply::Ack { of: 1 }), None::<(DriveOutput, u32)>);
+    }
+
+    #[test]
+    fn a_host_s_frames_feed_the_link_watchdog_and_pil_samples_do_not() {
+        let mut d = drive();
+        let mut ep = Endpoint::new();
+        for c in [
+            Command::Home {
+                position_um: 0,
+                scale_um: 0,
+            },
+            Command::Enable,
+        ] {
+            assert!(matches!(
+                ep.handle_inline(&Request::Command(c), &mut d).0,
+                Effect::Reply(Reply::Ack { .. })
+            ));
+        }
+        let n = d.monitor().link_timeout_ticks();
+        assert!(n > 1);
+        // The firmware's tick: the sample arrives as a frame, then the control runs on it.
+        let tick = |ep: &mut Endpoint, d: &mut Drive| {
+            let sample = Request::Sample {
+                motor_counter: 0,
+                scale_counter: 0,
+            };
+            match ep.handle_inline(&sample, d).0 {
+                Effect::Tick(s) => d.step(s).telemetry.faults,
+                other => panic!("a sample runs a tick, not {other:?}"),
+            }
+        };
+        for _ in 0..n - 1 {
+            assert!(tick(&mut ep, &mut d).is_clear());
+        }
+        // A status request is the host's: the count starts again.
+        assert!(matches!(
+            ep.handle_inline(&Request::Status, &mut d).0,
+            Effect::Status
+        ));
+        for _ in 0..n - 1 {
+            assert!(tick(&mut ep, &mut d).is_clear());
+        }
+        assert_eq!(tick(&mut ep, &mut d), Faults(Faults::LINK_TIMEOUT));
     }
 
     #[test]

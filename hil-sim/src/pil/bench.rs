@@ -8,6 +8,7 @@ use estimator_core::drive::{Command, Drive, DriveConfig, Output, Sample};
 use estimator_core::model::{ModelKind, ModelParams};
 
 use super::{PilController, PilError, PilOptions, StepCounts};
+use crate::run::KEEPALIVE_TICKS;
 use crate::{Plant, PlantParams};
 
 /// One move of a bench run: target (mm), speed (mm/s), acceleration (mm/s^2).
@@ -70,8 +71,11 @@ impl Lockstep {
             motor_counter: self.plant.motor_counter(),
             scale_counter: self.plant.scale_counter(),
         };
-        // The firmware's sample frame feeds its link watchdog: so does the twin's.
-        self.host.link_alive();
+        // A host keeps both link watchdogs fed, as a run's does.
+        if self.ticks.is_multiple_of(KEEPALIVE_TICKS) {
+            self.host.link_alive();
+            self.fw.status()?;
+        }
         let a = self.host.step(s);
         let b = self.fw.step_sample(s)?;
         if a != b && self.first_mismatch.is_none() {

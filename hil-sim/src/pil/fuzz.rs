@@ -7,6 +7,7 @@ use belt_link::MAX_FRAME;
 use estimator_core::drive::{Command, Drive, DriveConfig, Sample};
 
 use super::{PilController, PilError, PilOptions};
+use crate::run::KEEPALIVE_TICKS;
 
 use belt_link::testing as gen;
 
@@ -61,6 +62,7 @@ pub fn run(opts: &PilOptions, n: u32) -> Result<FuzzReport, PilError> {
     let mut buf = [0u8; MAX_FRAME + 16];
     let mut burst = Vec::new();
     let mut ticks = 0u32;
+    let mut keepalives = 0u32;
     for i in 0..n {
         let len = gen::bad_frame(&mut rng, &mut buf);
         if i < BURST_FRAMES {
@@ -73,8 +75,12 @@ pub fn run(opts: &PilOptions, n: u32) -> Result<FuzzReport, PilError> {
             fw.send_raw(&buf[..len])?;
         }
         if (i + 1) % FRAMES_PER_TICK == 0 || i + 1 == n {
-            // Each sample frame feeds the firmware's link watchdog: the twin's too.
-            host.link_alive();
+            // A host keeps both link watchdogs fed, as a run's does.
+            if u64::from(ticks).is_multiple_of(KEEPALIVE_TICKS) {
+                host.link_alive();
+                fw.status()?;
+                keepalives += 1;
+            }
             let a = host.step(rest);
             let b = fw.step_sample(rest)?;
             unmoved &= a == b && !b.telemetry.moving;
@@ -82,8 +88,9 @@ pub fn run(opts: &PilOptions, n: u32) -> Result<FuzzReport, PilError> {
         }
     }
     let after = fw.status()?;
-    // Our own accepted frames since `before`: one sample per tick and this status request.
-    let ours = ticks + 1;
+    // Our own accepted frames since `before`: one sample per tick, the keepalives and this
+    // status request.
+    let ours = ticks + keepalives + 1;
     let exit_status = fw.shutdown(0)?;
     Ok(FuzzReport {
         frames_bad: after.frames_bad - before.frames_bad,

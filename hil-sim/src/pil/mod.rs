@@ -732,6 +732,12 @@ impl Controller for PilController {
     fn step(&mut self, sample: Sample) -> Result<Output, ControlError> {
         Ok(self.step_sample(sample)?)
     }
+    /// A status request: the firmware's samples do not feed its link watchdog, a host's
+    /// frames do.
+    fn keepalive(&mut self) -> Result<(), ControlError> {
+        self.status()?;
+        Ok(())
+    }
 }
 
 #[cfg(test)]
