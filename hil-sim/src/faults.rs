@@ -14,7 +14,7 @@ use estimator_core::rig::Rig;
 use crate::controller::{ControlError, Controller, InProcess};
 use crate::drive_setup::drive_config;
 use crate::plant::{Plant, PlantParams};
-use crate::run::{home_and_enable, RunError, KEEPALIVE_TICKS};
+use crate::run::{home_and_enable, keepalive_ticks, RunError};
 use crate::scenario::{Scenario, PRESETS};
 
 /// What goes wrong.
@@ -233,7 +233,7 @@ pub fn run_class(
     loop {
         let active = tick >= strike;
         if !(active && injection == Injection::LinkSilence)
-            && (tick as u64).is_multiple_of(KEEPALIVE_TICKS)
+            && (tick as u64).is_multiple_of(keepalive_ticks(dt))
         {
             controller.keepalive()?;
         }

@@ -13,7 +13,7 @@ use estimator_core::rig::Rig;
 use crate::controller::{Controller, InProcess};
 use crate::drive_setup::drive_config;
 use crate::plant::{Plant, PlantParams};
-use crate::run::{home_and_enable, sample, KEEPALIVE_TICKS};
+use crate::run::{home_and_enable, keepalive_ticks, sample};
 
 /// One move to rest: carriage target (mm), speed (mm/s), acceleration (mm/s^2).
 pub type Move = (f64, f64, f64);
@@ -48,7 +48,7 @@ pub fn arrival_errors(
         let mut rest_ticks = 0u64;
         let settle = (SETTLE_S / dt) as u64;
         loop {
-            if tick.is_multiple_of(KEEPALIVE_TICKS) {
+            if tick.is_multiple_of(keepalive_ticks(dt)) {
                 controller.keepalive()?;
             }
             let out = controller.step(sample(&plant))?;

@@ -147,8 +147,21 @@ impl From<ControlError> for RunError {
     }
 }
 
-/// Ticks between two keep-alives of the simulated host (100 ms at 2 kHz).
-pub const KEEPALIVE_TICKS: u64 = 200;
+/// How often the simulated host polls its drive, seconds: a fifth of the drive's default link
+/// timeout (0.5 s), as `beltctl` does.
+pub const KEEPALIVE_S: f64 = 0.1;
+
+/// Ticks between two keep-alives of the simulated host at a tick of `dt_s` seconds (200 at
+/// 2 kHz); at least one. In time, not ticks: at 250 Hz, 200 ticks would be 0.8 s of silence.
+pub fn keepalive_ticks(dt_s: f64) -> u64 {
+    let n = (KEEPALIVE_S / dt_s).round();
+    // NaN (a NaN tick) compares false, as does anything below one.
+    if n >= 1.0 {
+        n.min(u32::MAX as f64) as u64
+    } else {
+        1
+    }
+}
 
 /// Rough upper bound of a scenario's duration, for the time-out: twice the estimate, 5 s, a few
 /// ticks a move (a move of no length still takes them), and the first move's way from where
@@ -205,6 +218,7 @@ pub fn run(
         .and_then(|_| scenario.check_against(&crate::drive_setup::drive_limits(*rig), plant_params))
         .map_err(RunError::Scenario)?;
     let dt = 1.0 / cfg.rate_hz;
+    let keepalive = keepalive_ticks(dt);
     let mut plant = Plant::new(plant_params, scenario.start_mm, cfg.seed)
         .map_err(|e| RunError::Plant(Box::new(e)))?;
     home_and_enable(controller, &plant, rig)?;
@@ -249,7 +263,7 @@ pub fn run(
         }
 
         // A host polls its drive: the link watchdog stays fed (every 100 ms).
-        if tick.is_multiple_of(KEEPALIVE_TICKS) {
+        if tick.is_multiple_of(keepalive) {
             controller.keepalive()?;
         }
         let out = controller.step(sample(&plant))?;
@@ -307,4 +321,31 @@ pub fn run(
         records,
         move_starts,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_simulated_host_polls_every_100_ms_at_any_control_rate() {
+        assert_eq!(keepalive_ticks(1.0 / 2000.0), 200);
+        // Every rate the drive takes (100 Hz to 100 kHz): a poll at least every 100 ms plus
+        // half a tick, far inside the 0.5 s link timeout.
+        for rate_hz in [100.0, 250.0, 333.0, 1000.0, 7777.0, 100_000.0] {
+            let dt = 1.0 / rate_hz;
+            let silence_s = keepalive_ticks(dt) as f64 * dt;
+            assert!(
+                silence_s <= KEEPALIVE_S + dt / 2.0,
+                "{rate_hz} Hz: {silence_s} s"
+            );
+            assert!(
+                silence_s >= KEEPALIVE_S - dt / 2.0,
+                "{rate_hz} Hz: {silence_s} s"
+            );
+        }
+        for dt in [1.0, f64::INFINITY, f64::NAN, 0.0, -1.0] {
+            assert!(keepalive_ticks(dt) >= 1, "{dt}");
+        }
+    }
 }

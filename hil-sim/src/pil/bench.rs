@@ -8,7 +8,7 @@ use estimator_core::drive::{Command, Drive, DriveConfig, Output, Sample};
 use estimator_core::model::{ModelKind, ModelParams};
 
 use super::{PilController, PilError, PilOptions, StepCounts};
-use crate::run::KEEPALIVE_TICKS;
+use crate::run::keepalive_ticks;
 use crate::{Plant, PlantParams};
 
 /// One move of a bench run: target (mm), speed (mm/s), acceleration (mm/s^2).
@@ -72,7 +72,7 @@ impl Lockstep {
             scale_counter: self.plant.scale_counter(),
         };
         // A host keeps both link watchdogs fed, as a run's does.
-        if self.ticks.is_multiple_of(KEEPALIVE_TICKS) {
+        if self.ticks.is_multiple_of(keepalive_ticks(self.dt)) {
             self.host.link_alive();
             self.fw.status()?;
         }

@@ -7,7 +7,7 @@ use belt_link::MAX_FRAME;
 use estimator_core::drive::{Command, Drive, DriveConfig, Sample};
 
 use super::{PilController, PilError, PilOptions};
-use crate::run::KEEPALIVE_TICKS;
+use crate::run::keepalive_ticks;
 
 use belt_link::testing as gen;
 
@@ -82,7 +82,7 @@ pub fn run(opts: &PilOptions, n: u32) -> Result<FuzzReport, PilError> {
             // A host keeps both link watchdogs fed, as a run's does: here, right after an
             // answer, no bad frame is in flight. (Sent after a tick's bad frames, one status
             // request in one CI run got no reply within 10 s; not reproduced since.)
-            if u64::from(ticks).is_multiple_of(KEEPALIVE_TICKS) {
+            if u64::from(ticks).is_multiple_of(keepalive_ticks(1.0 / cfg.settings.rate_hz)) {
                 host.link_alive();
                 fw.status()?;
                 keepalives += 1;
