@@ -28,11 +28,9 @@ pub trait Controller {
     fn command(&mut self, cmd: Command) -> Result<(), ControlError>;
     /// Runs one control tick on `sample`.
     fn step(&mut self, sample: Sample) -> Result<Output, ControlError>;
-    /// What a host does periodically to show it is alive (feeds the drive's link watchdog).
-    /// Under PIL every sample frame already does, so the default does nothing.
-    fn keepalive(&mut self) -> Result<(), ControlError> {
-        Ok(())
-    }
+    /// What a host does periodically to show it is alive (feeds the drive's link watchdog;
+    /// the samples do not).
+    fn keepalive(&mut self) -> Result<(), ControlError>;
     /// Reports `n` control ticks that ran late (fault injection); only where the runner owns
     /// the tick timing.
     fn missed_ticks(&mut self, _n: u32) -> Result<(), ControlError> {

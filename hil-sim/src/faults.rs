@@ -210,6 +210,7 @@ pub fn run_class(
     seed: u64,
 ) -> Result<ClassResult, Error> {
     let dt = 1.0 / 2000.0;
+    let keepalive = keepalive_ticks(dt);
     let params = injection.plant(base);
     let mut plant = Plant::new(&params, START_MM, seed)?;
     let mut sensors = Sensors {
@@ -233,7 +234,7 @@ pub fn run_class(
     loop {
         let active = tick >= strike;
         if !(active && injection == Injection::LinkSilence)
-            && (tick as u64).is_multiple_of(keepalive_ticks(dt))
+            && (tick as u64).is_multiple_of(keepalive)
         {
             controller.keepalive()?;
         }

@@ -32,6 +32,7 @@ pub fn arrival_errors(
     seed: u64,
 ) -> Result<Vec<f64>, Error> {
     let dt = 1.0 / 2000.0;
+    let keepalive = keepalive_ticks(dt);
     let mut plant = Plant::new(plant_params, start_mm, seed)?;
     home_and_enable(controller, &plant, rig)?;
     controller.command(Command::SelectModel(model))?;
@@ -48,7 +49,7 @@ pub fn arrival_errors(
         let mut rest_ticks = 0u64;
         let settle = (SETTLE_S / dt) as u64;
         loop {
-            if tick.is_multiple_of(keepalive_ticks(dt)) {
+            if tick.is_multiple_of(keepalive) {
                 controller.keepalive()?;
             }
             let out = controller.step(sample(&plant))?;

@@ -60,6 +60,8 @@ struct Lockstep {
     fw: PilController,
     plant: Plant,
     dt: f64,
+    /// Ticks between two of the host's keep-alives ([`keepalive_ticks`]).
+    keepalive: u64,
     ticks: u64,
     first_mismatch: Option<u64>,
 }
@@ -72,7 +74,7 @@ impl Lockstep {
             scale_counter: self.plant.scale_counter(),
         };
         // A host keeps both link watchdogs fed, as a run's does.
-        if self.ticks.is_multiple_of(keepalive_ticks(self.dt)) {
+        if self.ticks.is_multiple_of(self.keepalive) {
             self.host.link_alive();
             self.fw.status()?;
         }
@@ -122,6 +124,7 @@ pub fn run_model(opts: &PilOptions, model: ModelKind) -> Result<RunReport, PilEr
         fw,
         plant,
         dt: 1.0 / cfg.settings.rate_hz,
+        keepalive: keepalive_ticks(1.0 / cfg.settings.rate_hz),
         ticks: 0,
         first_mismatch: None,
     };

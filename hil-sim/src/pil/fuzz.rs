@@ -63,6 +63,7 @@ pub fn run(opts: &PilOptions, n: u32) -> Result<FuzzReport, PilError> {
     let mut burst = Vec::new();
     let mut ticks = 0u32;
     let mut keepalives = 0u32;
+    let keepalive = keepalive_ticks(1.0 / cfg.settings.rate_hz);
     for i in 0..n {
         let len = gen::bad_frame(&mut rng, &mut buf);
         if i < BURST_FRAMES {
@@ -82,7 +83,7 @@ pub fn run(opts: &PilOptions, n: u32) -> Result<FuzzReport, PilError> {
             // A host keeps both link watchdogs fed, as a run's does: here, right after an
             // answer, no bad frame is in flight. (Sent after a tick's bad frames, one status
             // request in one CI run got no reply within 10 s; not reproduced since.)
-            if u64::from(ticks).is_multiple_of(keepalive_ticks(1.0 / cfg.settings.rate_hz)) {
+            if u64::from(ticks).is_multiple_of(keepalive) {
                 host.link_alive();
                 fw.status()?;
                 keepalives += 1;
