@@ -99,12 +99,13 @@ fn closed_loop_vectors(out: &mut String) {
     writeln!(out, "];").unwrap();
 }
 
-/// The fixed-point belt observer's runs on the host, a step every 1, 2 and 4 ticks.
+/// The fixed-point belt observer's runs on the host, a step every `BELT_EVERY` ticks.
 fn belt_vectors(out: &mut String) {
     writeln!(
         out,
         "/// `vectors::belt_observer` on the host per `BELT_EVERY`: (CRC, final offset bits, \
-         offset range bits).\npub const BELT: [(u32, i32, (i32, i32)); 3] = ["
+         offset range bits).\npub const BELT: [(u32, i32, (i32, i32)); {}] = [",
+        estimator_core::vectors::BELT_EVERY.len()
     )
     .unwrap();
     for every in estimator_core::vectors::BELT_EVERY {

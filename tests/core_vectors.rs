@@ -118,7 +118,7 @@ mod tests {
 
     /// The fixed-point belt observer (`model::belt`, not yet in the drive) through moves out
     /// and back, bit for bit as on the host's `tick`: a step every tick, run here part by part
-    /// (`begin`, then `advance`), and a step every 2 and 4 ticks spread over them. The cost of
+    /// (`begin`, then `advance`), and a step every 2, 4 and 6 ticks spread over them. The cost of
     /// each part, of the step and of the ticks is logged: TIM2 counts instructions exactly only
     /// under `--icount 0` (see README, "A reduced plant observer").
     #[test]

@@ -135,7 +135,7 @@ pub struct BeltDigest {
 }
 
 /// Step lengths of the belt observer's runs, ticks ([`belt_observer`]).
-pub const BELT_EVERY: [u32; 3] = [1, 2, 4];
+pub const BELT_EVERY: [u32; 4] = [1, 2, 4, 6];
 
 /// The fixed-point belt observer (`model::belt`) on the paper rig's physics with a guide
 /// profile, a step every `every` ticks, through moves out and back (trapezoids, 25 um per tick

@@ -26,7 +26,8 @@
 //! `RO_DRIVE_PORT=1` runs the drive's fixed-point port (`estimator_core::model::belt`:
 //! Taylor capstan, guide profile in 64 points) in place of the `f64` observer.
 //! `RO_DECIMATE=N` steps the observer once per N ticks (the port as the drive runs it, its step
-//! spread over the ticks that follow: `BeltState::tick`).
+//! spread over the ticks that follow: `BeltState::tick`; the `f64` observer the same way), its
+//! offset carried by the counts between steps.
 //! Each row also counts the runs where it is below the best of the other estimators (Models
 //! 1-3 and the baselines, as `hil-sim generalise` measures them) and within 4x of the floor.
 //! `RO_DROP=plays,current` leaves those of Model 4's terms out of the fits (not of the

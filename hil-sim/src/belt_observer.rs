@@ -301,6 +301,22 @@ pub struct BeltObserver {
     pending: u32,
     current_sum: f64,
     last: BeltEstimate,
+    /// The last step's counts, and whether it met a jump.
+    step_counts: i64,
+    jumped: bool,
+    /// A step computed and not yet shown: the drive's port shows a step's offset
+    /// `commit_latency_ticks` after it begins, and this observer does the same.
+    queued: Option<Queued>,
+    /// The shown step's counts at its begin, slip per count (um) and most carried (um).
+    ahead: (i64, f64, f64),
+}
+
+/// A step waiting for its ticks ([`BeltObserver::step`]).
+#[derive(Clone, Copy, Debug)]
+struct Queued {
+    estimate: BeltEstimate,
+    ahead: (i64, f64, f64),
+    ticks_left: u32,
 }
 
 /// What one step tells.
@@ -332,6 +348,10 @@ impl BeltObserver {
                 offset_um: p.belt.half_gap_m * 1e6,
                 error_um: -(p.belt.half_gap_m + p.belt.gear_half_m) * 1e6,
             },
+            step_counts: counts,
+            jumped: false,
+            queued: None,
+            ahead: (counts, 0.0, 0.0),
             p,
         }
     }
@@ -343,7 +363,10 @@ impl BeltObserver {
     }
 
     /// One tick to motor position `counts` with the drive's current `current_a`. A
-    /// non-finite current counts as 0.
+    /// non-finite current counts as 0. With a step every `decimation` ticks, as the drive's
+    /// port runs it (`BeltState::tick`): a step on the ticks' mean current, shown
+    /// `commit_latency_ticks` after it begins, its offset carried from there by its slip per
+    /// count over the counts since it began (at most twice its slip).
     pub fn step(&mut self, counts: i64, current_a: f64) -> BeltEstimate {
         let current_a = if current_a.is_finite() {
             current_a
@@ -352,14 +375,40 @@ impl BeltObserver {
         };
         self.pending += 1;
         self.current_sum += current_a;
-        if self.pending < self.p.decimation {
-            return self.last;
+        if self.pending >= self.p.decimation {
+            let n = self.pending;
+            let current_a = self.current_sum / f64::from(n);
+            (self.pending, self.current_sum) = (0, 0.0);
+            let before_um = self.o * 1e6;
+            let estimate = self.update(counts, current_a, n);
+            let du_um = estimate.offset_um - before_um;
+            let dc = counts - self.step_counts;
+            self.step_counts = counts;
+            let per_count = if self.jumped || dc == 0 {
+                0.0
+            } else {
+                du_um / dc as f64
+            };
+            self.queued = Some(Queued {
+                estimate,
+                ahead: (counts, per_count, 2.0 * du_um.abs()),
+                ticks_left: estimator_core::model::belt::commit_latency_ticks(n),
+            });
         }
-        let n = self.pending;
-        let current_a = self.current_sum / f64::from(n);
-        (self.pending, self.current_sum) = (0, 0.0);
-        self.last = self.update(counts, current_a, n);
-        self.last
+        if let Some(q) = self.queued.as_mut() {
+            if q.ticks_left == 0 {
+                (self.last, self.ahead) = (q.estimate, q.ahead);
+                self.queued = None;
+            } else {
+                q.ticks_left -= 1;
+            }
+        }
+        let (from, per_count, most) = self.ahead;
+        let ahead = (per_count * (counts - from) as f64).clamp(-most, most);
+        BeltEstimate {
+            offset_um: self.last.offset_um + ahead,
+            error_um: self.last.error_um,
+        }
     }
 
     /// One step of `n` ticks.
@@ -387,6 +436,7 @@ impl BeltObserver {
         // moves with it: the jump is no travel of the pulley under the belt.
         // NaN counts as a jump.
         let jump = r.abs().partial_cmp(&1e-3) != Some(std::cmp::Ordering::Less);
+        self.jumped = jump;
         if jump && self.tracking {
             self.x += raw - self.pm_prev;
             self.pm_prev = raw;
@@ -610,7 +660,8 @@ pub fn offsets(run: &FitRun, p: &BeltPhysics) -> Vec<f64> {
 
 /// The drive's fixed-point port over a run, as the drive runs it (`BeltState::tick`: a step
 /// every `decimation` ticks on the ticks' mean current, spread over the ticks that follow, the
-/// offset moving `commit_latency_ticks` after the step begins): offsets and carriage less motor
+/// offset moving `commit_latency_ticks` after the step begins and carried by the counts from
+/// there, as [`BeltObserver::step`] does): offsets and carriage less motor
 /// (as of the last step that ended), um. Physics it refuses give NaN (a search then scores
 /// them as the worst); counts beyond `i32` wrap as the drive's do.
 pub fn port_estimates(run: &FitRun, p: &BeltPhysics) -> (Vec<f64>, Vec<f64>) {
@@ -761,7 +812,6 @@ mod tests {
     use crate::eval;
     use crate::plant::Plant;
     use crate::scenario::Scenario;
-    use estimator_core::model::belt::commit_latency_ticks;
     use estimator_core::model::{ModelKind, ModelParams};
     use proptest::prelude::*;
     use std::f64::consts::TAU;
@@ -880,18 +930,17 @@ mod tests {
                     );
                 }
                 p.guide_profile = Some(resampled);
-                // Every tick, and every 2nd tick on fig18 (the drive's cheaper rate).
+                // Every tick, and every 2nd tick on fig18 (the drive's cheaper rate). At every
+                // 4th the two part on a few machines: on drawn machine 1, 12.3 um RMS, the
+                // port 15.6 from the plant and the `f64` observer 18.4 (README).
                 for every in [1, 2] {
                     if every > 1 && scenario != "fig18" {
                         continue;
                     }
                     p.decimation = every;
-                    // The port's offset moves this many ticks after the step begins: compare
-                    // it with the `f64` observer's of as many ticks before.
-                    let latency = commit_latency_ticks(every) as usize;
-                    let mut reference = offsets(&run, &p);
-                    reference.splice(0..0, std::iter::repeat_n(reference[0], latency));
-                    reference.truncate(run.inputs.len());
+                    // Both show a step `commit_latency_ticks` after it begins, carried by
+                    // the counts from there.
+                    let reference = offsets(&run, &p);
                     p.core_params()
                         .build_every(TICK_S, every)
                         .expect("valid physics");
