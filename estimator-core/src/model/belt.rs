@@ -32,7 +32,7 @@
 //!
 //! Against the `f64` observer on the same inputs: within 0.3 um (hil-sim's
 //! `the_fixed_point_port_follows_the_f64_observer`); bit-identical on the Cortex-M4
-//! (`tests/core_vectors.rs`); about 1,170 instructions a step in parts, 228 a tick at a step
+//! (`tests/core_vectors.rs`); about 1,220 instructions a step in parts, 237 a tick at a step
 //! every 6 ticks (README).
 
 use super::convert::finite;
@@ -129,13 +129,14 @@ const _: () = assert!(PART_CARRIAGE + 1 == STEP_PARTS);
 
 /// [`BeltState::tick`]'s schedule: for a step every `n` ticks ([`schedule`]), how many of the
 /// step's parts have run by the end of each tick from the one that begins it. Balanced by
-/// their cost measured on the Cortex-M4 (README): `begin` 237 instructions, the geometry 111,
-/// the Newton steps 242 and 267 (the last commits), the bristles 196, the carriage 137 at most.
+/// their cost measured on the Cortex-M4 (README): `begin` 241 instructions, the geometry 165
+/// (with the bristles' relaxation), the Newton steps 259 and 284 (the last commits), the
+/// bristles 162, the carriage 138 at most.
 const SCHEDULE: [[u8; 6]; 6] = [
     [6, 6, 6, 6, 6, 6],
     [3, 6, 6, 6, 6, 6],
     [2, 4, 6, 6, 6, 6],
-    [1, 3, 4, 6, 6, 6],
+    [2, 3, 4, 6, 6, 6],
     [1, 2, 3, 4, 6, 6],
     [1, 2, 3, 4, 5, 6],
 ];
@@ -176,6 +177,10 @@ pub struct BeltCoeffs {
     inv_length: Gain,
     mu_kinetic_q30: i32,
     dmu_q30: i32,
+    /// `sigma0` and `sigma1 / T` as friction coefficient (Q30) per slip (Q36 m), times 2^8:
+    /// the bristles' growth over the step in the balance ([`BeltState::advance`]).
+    sigma0_q8: i32,
+    sigma1_t_q8: i32,
     wrap_q28: i32,
     preload_q16: i32,
     preload_wrap_q16: i32,
@@ -352,6 +357,8 @@ impl BeltParams {
             // l1 in Q16 m to l1 / L in Q30.
             inv_length: scale((1u64 << 14) as f64 / length, F::Model4BeltLengthM)?,
             mu_kinetic_q30: q(mu_k, 30.0, F::Model4BeltMuKinetic)?,
+            sigma0_q8: q(sigma0 * q30_per_q36, 8.0, F::Model4BeltSigma0PerM)?,
+            sigma1_t_q8: q(sigma1 / t * q30_per_q36, 8.0, F::Model4BeltSigma1SPerM)?,
             dmu_q30: q(mu_s - mu_k, 30.0, F::Model4BeltMuStatic)?,
             wrap_q28: q(wrap, 28.0, F::Model4BeltWrapRad)?,
             preload_q16: q(preload, 16.0, F::Model4BeltPreloadN)?,
@@ -569,10 +576,15 @@ struct Pending {
     /// The chain's stiffness (N/m) and `l1 / L - 1/2` (Q30) there.
     k_chain: u32,
     ratio: i32,
-    /// The renewal's part of the bristles' relaxation, Q24.
-    renew: u64,
-    /// The bristles' friction coefficient before the slip, Q30.
+    /// The bristles' relaxation over the step at the rate it begins with, Q24; then, from the
+    /// geometry part on, its decay `e^-l` and `(1 - e^-l) / l`, Q30.
+    lambda: u64,
+    decay: i32,
+    phi: i32,
+    /// The bristles' friction coefficient at the step's end with no slip, Q30, and its growth
+    /// per slip (Q30 per Q36 m, times 2^8) beside the damping's.
     m0: i32,
+    kz_q8: i32,
     /// Motor less carriage, Q36 m.
     rel: i32,
     /// The slip being solved for, Q36 m per tick.
@@ -786,6 +798,8 @@ impl BeltState {
         }
         let x = mul(c.m_per_count, counts) + self.track[0] as i64 + self.d as i64;
         let renew = mul(c.kappa, ds.saturating_abs()) as u64;
+        // The relaxation rate of the last slip and this step's renewal: the bristles relax at
+        // it over the whole step (the balance and the bristles' update agree on it).
         let lambda = (self.slide + renew).min(MAX_LAMBDA_Q24);
         // m0 = sigma0 z - sigma1 lambda z (Q30); lambda z in Q36 within 64 bits.
         let lz = sat_i32(if lambda < 1 << 30 {
@@ -800,7 +814,10 @@ impl BeltState {
             x16: sat_i32(x >> 20),
             k_chain: 0,
             ratio: 0,
-            renew,
+            lambda,
+            decay: 0,
+            phi: 0,
+            kz_q8: 0,
             m0: sat_i32(mul(c.sigma0, self.z) - mul(c.sigma1_t, lz)),
             // Motor less carriage.
             rel: self.d.saturating_neg(),
@@ -815,12 +832,27 @@ impl BeltState {
         let p = &mut self.pending;
         match p.next {
             0 => return true,
-            PART_GEOMETRY => (p.k_chain, p.ratio) = Self::geometry(c, p.x16),
+            PART_GEOMETRY => {
+                (p.k_chain, p.ratio) = Self::geometry(c, p.x16);
+                // The bristles at the step's end, linear in the slip: `z e + du phi`. So the
+                // balance's friction is `m0 e + (sigma0 phi - sigma1 / T (1 - e)) du` beside
+                // the damping's (`sigma1 lambda phi = (1 - e) / T` keeps it bounded at any
+                // rate). A step of several ticks needs it: with `z` held at its start, a step
+                // every 6th tick left the plant's offset 45 um RMS away on fig18, 5.5 with it
+                // (`f64`, the plant's physics; README).
+                (p.decay, p.phi) = Self::relax(p.lambda);
+                p.m0 = ((p.m0 as i64 * p.decay as i64) >> 30) as i32;
+                let grow = (c.sigma0_q8 as i64 * p.phi as i64) >> 30;
+                let damp = (c.sigma1_t_q8 as i64 * (ONE_Q30 as i64 - p.decay as i64)) >> 30;
+                p.kz_q8 = sat_i32(grow - damp);
+            }
             PART_BRISTLES => {
-                // z e^-l + du (1 - e^-l) / l.
+                // z e^-l + du (1 - e^-l) / l, at the rate the step began with; the slip's part
+                // of the next step's rate from this one's slip.
                 self.slide = Self::slide(c, p.du);
-                let lambda = (self.slide + p.renew).min(MAX_LAMBDA_Q24);
-                self.z = Self::bristles(self.z, p.du, lambda);
+                self.z = sat_i32(
+                    ((self.z as i64 * p.decay as i64) >> 30) + ((p.du as i64 * p.phi as i64) >> 30),
+                );
             }
             PART_CARRIAGE => {
                 p.next = 0;
@@ -852,7 +884,8 @@ impl BeltState {
     /// One Newton step of the belt's force balance at the pulley from slip `p.du`.
     #[inline(always)]
     fn newton(c: &BeltCoeffs, p: &Pending, o: i32, v: i32) -> i32 {
-        let (k_chain, ratio, rel, ds, m0) = (p.k_chain, p.ratio, p.rel, p.ds, p.m0);
+        let (k_chain, ratio, rel, ds, m0, kz_q8) =
+            (p.k_chain, p.ratio, p.rel, p.ds, p.m0, p.kz_q8 as i64);
         let k_chain64 = k_chain as i64;
         let du = p.du;
         let o = o.saturating_add(du);
@@ -867,7 +900,7 @@ impl BeltState {
             c.tooth_n_per_m as u64
         };
         let mu = m0
-            .saturating_add(mul32(c.m1_t, du))
+            .saturating_add(sat_i32(mul(c.m1_t, du) + ((kz_q8 * du as i64) >> 8)))
             .clamp(-(ONE_Q30 as i32), ONE_Q30 as i32);
         let a = ((c.wrap_q28 as i64 * mu as i64) >> 30) as i32; // Q28
         let ac = ((a as i64 * ratio as i64) >> 30) as i32; // Q28
@@ -878,8 +911,8 @@ impl BeltState {
         let damping = mul(c.damping_t, rel_v);
         let residual = sat_i32(f_chain + damping - f_teeth - f_f);
         // N/m; the capstan's through mu's slope in du (Q30 per Q36, Q16 -> Q10 N/m).
-        let slope =
-            k_c + k_t + (mul(c.m1_t, slope_f).max(0) as u64 >> 10) + c.damping_t_n_per_m as u64;
+        let friction = (mul(c.m1_t, slope_f) + ((kz_q8 * slope_f as i64) >> 8)).max(0);
+        let slope = k_c + k_t + (friction as u64 >> 10) + c.damping_t_n_per_m as u64;
         if slope == 0 {
             return du;
         }
@@ -891,9 +924,10 @@ impl BeltState {
             .max(c.max_slip_q36.saturating_neg())
     }
 
-    /// The bristles relaxed over the step at rate `lambda` (Q24): `z e^-l + du (1 - e^-l) / l`.
+    /// The bristles' relaxation over the step at rate `lambda` (Q24): `e^-l` and
+    /// `(1 - e^-l) / l`, Q30.
     #[inline(always)]
-    fn bristles(z: i32, du: i32, lambda: u64) -> i32 {
+    fn relax(lambda: u64) -> (i32, i32) {
         let (decay, phi) = if lambda < 1 << 18 {
             // Below 1/64: e^-l and (1 - e^-l) / l to third order (error below 3 units of
             // Q30), no table and no division.
@@ -912,7 +946,7 @@ impl BeltState {
             };
             (decay, div(ONE_Q30 as i32 - decay, recip(lambda), 24)) // Q30
         };
-        sat_i32(((z as i64 * decay as i64) >> 30) + ((du as i64 * phi as i64) >> 30))
+        (decay, phi)
     }
 
     /// The carriage on the chain's force, Coulomb friction implicit.
