@@ -32,7 +32,7 @@
 //!
 //! Against the `f64` observer on the same inputs: within 0.3 um (hil-sim's
 //! `the_fixed_point_port_follows_the_f64_observer`); bit-identical on the Cortex-M4
-//! (`tests/core_vectors.rs`); about 1,220 instructions a step in parts, 237 a tick at a step
+//! (`tests/core_vectors.rs`); about 1,210 instructions a step in parts, 234 a tick at a step
 //! every 6 ticks (README).
 
 use super::convert::finite;
@@ -129,8 +129,8 @@ const _: () = assert!(PART_CARRIAGE + 1 == STEP_PARTS);
 
 /// [`BeltState::tick`]'s schedule: for a step every `n` ticks ([`schedule`]), how many of the
 /// step's parts have run by the end of each tick from the one that begins it. Balanced by
-/// their cost measured on the Cortex-M4 (README): `begin` 241 instructions, the geometry 165
-/// (with the bristles' relaxation), the Newton steps 259 and 284 (the last commits), the
+/// their cost measured on the Cortex-M4 (README): `begin` 241 instructions, the geometry 160
+/// (with the bristles' relaxation), the Newton steps 259 and 274 (the last commits), the
 /// bristles 162, the carriage 138 at most.
 const SCHEDULE: [[u8; 6]; 6] = [
     [6, 6, 6, 6, 6, 6],
@@ -551,11 +551,10 @@ pub struct BeltState {
     /// The latest counts ([`BeltState::tick`] or [`BeltState::begin`]), to which
     /// [`BeltState::offset_um_bits`] carries the committed step's slip.
     now_counts: i32,
-    /// The committed step's counts at its begin, its slip per count (Q36 m) and the most the
-    /// carried slip may add (twice the step's), Q36 m.
+    /// The committed step's counts at its begin and its slip per count (Q36 m); the carried
+    /// slip is at most twice the step's (`du`).
     ahead_counts: i32,
     ahead_per_count: i32,
-    ahead_max: i32,
     /// [`BeltState::tick`]: ticks since the last step began and their current's sum (I16F16
     /// amperes).
     ticks: u32,
@@ -581,8 +580,9 @@ struct Pending {
     lambda: u64,
     decay: i32,
     phi: i32,
-    /// The bristles' friction coefficient at the step's end with no slip, Q30, and its growth
-    /// per slip (Q30 per Q36 m, times 2^8) beside the damping's.
+    /// The bristles' friction coefficient with no slip, Q30: at the step's start from `begin`,
+    /// at its end from the geometry part on; and its growth per slip there (Q30 per Q36 m,
+    /// times 2^8) beside the damping's.
     m0: i32,
     kz_q8: i32,
     /// Motor less carriage, Q36 m.
@@ -607,7 +607,6 @@ impl BeltState {
             now_counts: counts,
             ahead_counts: counts,
             ahead_per_count: 0,
-            ahead_max: 0,
             ticks: 0,
             current_sum: 0,
         }
@@ -660,11 +659,11 @@ impl BeltState {
     /// tick nothing is carried.
     pub fn offset_um_bits(&self) -> i32 {
         let since = self.now_counts.wrapping_sub(self.ahead_counts);
-        let ahead = self.ahead_per_count as i64 * since as i64;
-        // `min` then `max`: `ahead_max` is never negative, and no panic path if it were.
-        let ahead = ahead
-            .min(self.ahead_max as i64)
-            .max(-(self.ahead_max as i64)) as i32;
+        let most = 2 * (self.du as i64).abs();
+        // `min` then `max`, not `clamp`: no panic path.
+        let ahead = (self.ahead_per_count as i64 * since as i64)
+            .min(most)
+            .max(-most) as i32;
         to_um_bits(self.o.saturating_add(ahead))
     }
 
@@ -692,11 +691,9 @@ impl BeltState {
         let l2 = (c.length_q16 - l1).max(MM_Q16);
         // l1 l2 < 2^46 in Q32 m²; Q18 fits a u32.
         let p = ((l1 as u64 * l2 as u64) >> 14) as u32;
-        let compliance = shr64(
-            p as u64 * c.span_per_ae_l.mant as u64,
-            c.span_per_ae_l.shift as u32,
-        )
-        .saturating_add(c.gear_compliance_q56);
+        // A `Gain` (non-negative mantissa, shift within 31) on an unsigned length product.
+        let compliance = ((p as u64 * c.span_per_ae_l.mant as u64) >> (c.span_per_ae_l.shift & 31))
+            .saturating_add(c.gear_compliance_q56);
         // 2^56 / compliance, N/m.
         let (m, e) = recip(compliance);
         let k = if e >= 56 {
@@ -873,7 +870,6 @@ impl BeltState {
                     let dc = p.dcounts;
                     self.ahead_per_count = if dc == 0 { 0 } else { p.du.wrapping_div(dc) };
                     self.ahead_counts = self.counts;
-                    self.ahead_max = p.du.saturating_abs().saturating_mul(2);
                 }
             }
         }
