@@ -523,8 +523,8 @@ mod app {
             queued = true;
         }
         if !bytes_in.ready() {
-            // Full: no more bytes until `link` has drained the queue. RXNE's interrupt goes off
-            // first, then the waiting byte is held here: reading DR is what drops the line
+            // Full: RXNE's interrupt stays off until `link` has drained the queue (on the
+            // board a TXE run may still take bytes when there is room). It goes off first, then the waiting byte is held here: reading DR is what drops the line
             // (QEMU 7.2 keeps it high on RXNEIE = 0 while RXNE is set, and this task would
             // run again and again, starving `link`). In that order no byte can arrive between
             // the two with the interrupt still on.
@@ -694,12 +694,17 @@ mod app {
                 };
                 outbox.lock(|o| o.send(frame.seq, &reply));
             }
-            if RX_PAUSED.swap(false, Ordering::Relaxed) {
-                // The queue is empty again: take bytes again, starting with the held one (the
-                // pend: no new byte may come to raise the interrupt), and look at once.
+            // `usart2` may have filled the queue and paused after the last `dequeue`.
+            // Resumed then, it finds the queue full and a byte held, so it cannot read DR;
+            // QEMU 7.2 keeps the line high with RXNEIE off while RXNE is set, and it ran
+            // forever (a livelock the PIL fuzz caught). So the receiver is resumed only on an
+            // empty queue; otherwise the bell, rung with those bytes, sends `link` round again.
+            if RX_PAUSED.load(Ordering::Relaxed) && !bytes_out.ready() {
+                RX_PAUSED.store(false, Ordering::Relaxed);
+                // Take bytes again, starting with the held one (the pend: no new byte may come
+                // to raise the interrupt); `usart2` runs at once and rings for what it queues.
                 outbox.lock(|o| o.set_rx_interrupt(true));
                 rtic::pend(hardware::LINK_INTERRUPT);
-                continue;
             }
             RX_BELL.wait().await;
         }

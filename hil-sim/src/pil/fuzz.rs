@@ -77,12 +77,31 @@ pub fn run(opts: &PilOptions, n: u32) -> Result<FuzzReport, PilError> {
         }
         if (i + 1) % FRAMES_PER_TICK == 0 || i + 1 == n {
             let a = host.step(rest);
-            let b = fw.step_sample(rest)?;
+            let b = match fw.step_sample(rest) {
+                Ok(b) => b,
+                Err(e) => {
+                    // Whether the firmware still answers at all tells a hang from a lost
+                    // frame.
+                    let then = match fw.status() {
+                        Ok(st) => format!(
+                            "answered: tick {}, frames ok {}, bad {}",
+                            st.tick, st.frames_ok, st.frames_bad
+                        ),
+                        Err(e2) => format!("{e2} either: the firmware hangs"),
+                    };
+                    crate::errln!(
+                        "PIL fuzz: tick {} after {} bad frames got no answer; a status request \
+                         then: {then}",
+                        ticks + 1,
+                        i + 1
+                    );
+                    return Err(e);
+                }
+            };
             unmoved &= a == b && !b.telemetry.moving;
             ticks += 1;
             // A host keeps both link watchdogs fed, as a run's does: here, right after an
-            // answer, no bad frame is in flight. (Sent after a tick's bad frames, one status
-            // request in one CI run got no reply within 10 s; not reproduced since.)
+            // answer, no bad frame is in flight.
             if u64::from(ticks).is_multiple_of(keepalive) {
                 host.link_alive();
                 fw.status()?;

@@ -143,7 +143,7 @@ pub fn run(
     // Acks to a configuration the host applied: the plant must then tick at the new rate.
     let mut watch = Receiver::new();
     let mut rate_changed = false;
-    let started = Instant::now();
+    let mut pace = Pace::new(Instant::now());
     let mut plant_s = 0.0;
     let mut ticks = 0u64;
     let mut buf = [0u8; 1024];
@@ -213,11 +213,8 @@ pub fn run(
         }
         // Pace plant time to the wall clock.
         if opts.speed > 0.0 && ticks.is_multiple_of(20) {
-            // `speed` is at least 0.01 (main.rs), so this stays far inside `Duration`.
-            let due = Duration::from_secs_f64(plant_s / opts.speed);
-            let now = started.elapsed();
-            if due > now {
-                std::thread::sleep(due - now);
+            if let Some(d) = pace.wait(plant_s, opts.speed, Instant::now()) {
+                std::thread::sleep(d);
             }
         }
     };
@@ -237,9 +234,64 @@ pub fn run(
     }
 }
 
+/// How far plant time may fall behind the wall clock (times `speed`) before the pacing lets
+/// it go.
+const MAX_LAG: Duration = Duration::from_millis(20);
+
+/// Paces plant time to the wall clock, never ahead of it and never sprinting to catch up: a
+/// virtual drive that fell behind (its machine busy) and then ran its ticks back to back would
+/// pass the drive's time faster than the host's, so that a host keeping the drive's link
+/// watchdog fed in wall time would miss it (a commissioning run under extra load failed so, a
+/// `link_timeout` while recording). Behind by more than [`MAX_LAG`], the pace starts again
+/// from where the plant is.
+struct Pace {
+    origin: Instant,
+    plant_at_origin_s: f64,
+}
+
+impl Pace {
+    fn new(now: Instant) -> Pace {
+        Pace {
+            origin: now,
+            plant_at_origin_s: 0.0,
+        }
+    }
+
+    /// How long to sleep at plant time `plant_s` (`speed` > 0: plant time per wall time).
+    fn wait(&mut self, plant_s: f64, speed: f64, now: Instant) -> Option<Duration> {
+        // `speed` is at least 0.01 (main.rs), so this stays far inside `Duration`.
+        let due = Duration::try_from_secs_f64((plant_s - self.plant_at_origin_s) / speed)
+            .unwrap_or(Duration::ZERO);
+        let elapsed = now.saturating_duration_since(self.origin);
+        if due > elapsed {
+            Some(due - elapsed)
+        } else {
+            if elapsed - due > MAX_LAG {
+                (self.origin, self.plant_at_origin_s) = (now, plant_s);
+            }
+            None
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Plant time keeps to the wall clock, and after a stall it does not run ahead to catch
+    /// up: the next 0.1 s of plant time at twice real time still takes 50 ms.
+    #[test]
+    fn the_pace_sleeps_to_the_clock_and_never_sprints_after_a_stall() {
+        let t0 = Instant::now();
+        let mut p = Pace::new(t0);
+        let ms = Duration::from_millis;
+        assert_eq!(p.wait(0.1, 2.0, t0), Some(ms(50)));
+        assert_eq!(p.wait(0.1, 2.0, t0 + ms(60)), None); // 10 ms behind: kept
+        assert_eq!(p.wait(0.2, 2.0, t0 + ms(60)), Some(ms(40)));
+        // A stall of a second: let go, then paced from there.
+        assert_eq!(p.wait(0.3, 2.0, t0 + ms(1100)), None);
+        assert_eq!(p.wait(0.4, 2.0, t0 + ms(1100)), Some(ms(50)));
+    }
 
     #[test]
     fn host_frames_are_cut_at_delimiters_and_junk_is_bounded() {
