@@ -524,10 +524,11 @@ mod app {
         }
         if !bytes_in.ready() {
             // Full: RXNE's interrupt stays off until `link` has drained the queue (on the
-            // board a TXE run may still take bytes when there is room). It goes off first, then the waiting byte is held here: reading DR is what drops the line
-            // (QEMU 7.2 keeps it high on RXNEIE = 0 while RXNE is set, and this task would
-            // run again and again, starving `link`). In that order no byte can arrive between
-            // the two with the interrupt still on.
+            // board a TXE run may still take bytes when there is room). It goes off first,
+            // then the waiting byte is held here: reading DR is what drops the line (QEMU 7.2
+            // keeps it high on RXNEIE = 0 while RXNE is set, and this task would run again and
+            // again, starving `link`). In that order no byte can arrive between the two with
+            // the interrupt still on.
             RX_PAUSED.store(true, Ordering::Relaxed);
             outbox.lock(|o| o.set_rx_interrupt(false));
             if held.is_none() {

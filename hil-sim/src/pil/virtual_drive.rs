@@ -241,9 +241,9 @@ const MAX_LAG: Duration = Duration::from_millis(20);
 /// Paces plant time to the wall clock, never ahead of it and never sprinting to catch up: a
 /// virtual drive that fell behind (its machine busy) and then ran its ticks back to back would
 /// pass the drive's time faster than the host's, so that a host keeping the drive's link
-/// watchdog fed in wall time would miss it (a commissioning run under extra load failed so, a
-/// `link_timeout` while recording). Behind by more than [`MAX_LAG`], the pace starts again
-/// from where the plant is.
+/// watchdog fed in wall time could miss it (one cause of a commissioning run's `link_timeout`
+/// under extra load, not the only one: README). Behind by more than [`MAX_LAG`], the pace
+/// starts again from where the plant is.
 struct Pace {
     origin: Instant,
     plant_at_origin_s: f64,
