@@ -2,12 +2,12 @@
 //! `hil-sim calibrate` writes it (`calibration.bin`). The drive loads the image built from it
 //! on the host ([`crate::image::from_blob`]): the coefficients, with no `f64` on the drive.
 //!
-//! Layout (little-endian), version 5 (version 4 weighted Model 2 in Model 4 and had ten plays
-//! and no slip observer; version 3 weighted Model 1, not Model 2, and had no low-passed current;
+//! Layout (little-endian), version 6 (version 5 had no belt observer; version 4 weighted Model
+//! 2 in Model 4 and had ten plays and no slip observer; version 3 weighted Model 1, not Model 2, and had no low-passed current;
 //! version 2 recorded only counts/mm and had no Model 4; version 1 had no baselines):
 //! ```text
 //! 0   magic "BDCB"
-//! 4   version u16 (= 5)          6  reserved u16 (= 0)
+//! 4   version u16 (= 6)          6  reserved u16 (= 0)
 //! 8   payload length u32        12  CRC-32 (IEEE) of bytes 0..12 followed by the payload
 //! 16  payload:
 //!     geometry        encoder lines u32, pulley teeth u32, gear ratio f64, belt pitch mm f64:
@@ -27,13 +27,19 @@
 //!                     pitch um I20F12, sin, cos um I16F16, turn um I24F8, sin, cos um,
 //!                     um/A I16F16, low-passed um/A I16F16,
 //!                     slip observer: load um reverse, forward I16F16, um/A reverse, forward
-//!                     I16F16, creep per mm I8F24, limit um, half gap um, weight I16F16
+//!                     I16F16, creep per mm I8F24, limit um, half gap um, weight I16F16,
+//!                     belt observer: present u32 (0: none, the rest absent), tick s f64,
+//!                     ticks a step u32, weight I16F16, rest reverse, forward um I16F16,
+//!                     half travel mm f64, 21 physics f64 (SI, `BeltParams`'
+//!                     order), guide points u32, guide start m, step m f64, points x N f64
 //! ```
 //! Slopes are I16F16 um per mm, errors I16F16 um, Model 2 rates I8F24 per mm. Decoding checks
 //! every length and count before reading and never panics; a blob that fails any check is
 //! refused with the reason and changes nothing.
 
+use crate::model::belt::{BeltParams, MAX_GUIDE_BINS};
 use crate::model::operator::{N_KNOTS, N_OPS};
+use crate::model::BeltTerm;
 use crate::model::{
     BacklashParams, BandParams, BidirParams, BidirSource, Model1Params, Model2Params, Model3Params,
     Model3Source, Model4Params, ModelParams, TransitionParams, MAX_BAND_POINTS, MAX_BIDIR_ROWS,
@@ -49,15 +55,20 @@ use belt_link::Crc32;
 /// First four bytes of every blob.
 pub const MAGIC: [u8; 4] = *b"BDCB";
 /// The version this code writes and reads.
-pub const VERSION: u16 = 5;
+pub const VERSION: u16 = 6;
 const HEADER: usize = 16;
 const BAND_BYTES: usize = 4 + 8 * MAX_BAND_POINTS;
 const TRANSITION_BYTES: usize = 12 + 2 * MAX_TRANSITION_D * MAX_TRANSITION_G0;
 const BIDIR_BYTES: usize = 12 + 8 * MAX_BIDIR_ROWS;
-/// Size of Model 4's section (the last): 3 words per play, 5 for the band line and the knot
-/// grid, the knots, 8 for the two harmonics, the current and its low pass, 8 for the slip
-/// observer.
-pub const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 8);
+/// Largest size of Model 4's section (the last): 3 words per play, 5 for the band line and the
+/// knot grid, the knots, 8 for the two harmonics, the current and its low pass, 8 for the slip
+/// observer, and the belt observer with a full guide profile.
+pub const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 8) + BELT_BYTES;
+/// Size of Model 4's section without a belt observer (its presence word only).
+pub const MODEL4_NO_BELT_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 8) + 4;
+/// Model 4's belt observer: presence, tick, step and weight, 21 physics and the guide
+/// profile's count, start, step and points.
+const BELT_BYTES: usize = 4 + 8 + 4 + 4 + 8 + 8 + 8 * 21 + 4 + 16 + 8 * MAX_GUIDE_BINS;
 const RIG_BYTES: usize = 24;
 /// Largest blob: header, rig and dead band, Models 1 and 2, two full bands, two full tables,
 /// backlash and a full bidirectional table.
@@ -632,7 +643,108 @@ fn write_model4(w: &mut Writer<'_>, m4: &Model4Params) -> Result<(), BlobError> 
     w.fixed(sl.limit_um, Q16, ConfigField::Model4SlipLimitUm)?;
     w.fixed(sl.half_gap_um, Q16, ConfigField::Model4SlipHalfGapUm)?;
     w.fixed(sl.weight, Q16, ConfigField::Model4SlipWeight)?;
+    write_belt(w, m4.belt.as_ref())
+}
+
+/// [`BeltParams`]'s 21 scalars, in the blob's order.
+fn belt_scalars(p: &mut BeltParams) -> [&mut f64; 21] {
+    [
+        &mut p.mass_kg,
+        &mut p.guide_n,
+        &mut p.preload_n,
+        &mut p.axial_rigidity_n,
+        &mut p.length_m,
+        &mut p.span_offset_m,
+        &mut p.wrap_rad,
+        &mut p.sigma0_per_m,
+        &mut p.sigma1_s_per_m,
+        &mut p.sigma2_s_per_m,
+        &mut p.mu_static,
+        &mut p.mu_kinetic,
+        &mut p.stribeck_m_per_s,
+        &mut p.kappa_per_m,
+        &mut p.half_gap_m,
+        &mut p.tooth_n_per_m,
+        &mut p.gear_half_m,
+        &mut p.gear_n_per_m,
+        &mut p.span_damping_n_s_per_m,
+        &mut p.accel_per_a,
+        &mut p.m_per_count,
+    ]
+}
+
+/// Model 4's belt observer: a presence word, then its physics as `f64` (the identification's
+/// values exactly; the image's builder checks them) and its weight in Q16.
+fn write_belt(w: &mut Writer<'_>, belt: Option<&BeltTerm>) -> Result<(), BlobError> {
+    let Some(b) = belt else {
+        w.u32(0);
+        return Ok(());
+    };
+    if b.physics.guide_bins > MAX_GUIDE_BINS {
+        return Err(BlobError::Invalid(ConfigError::TableSize(
+            ConfigField::Model4BeltGuideProfileN,
+        )));
+    }
+    w.u32(1);
+    w.u64(b.tick_s.to_bits());
+    w.u32(b.step_ticks);
+    w.fixed(b.weight, Q16, ConfigField::Model4BeltWeight)?;
+    w.fixed(b.rest_um[0], Q16, ConfigField::Model4BeltRestUm)?;
+    w.fixed(b.rest_um[1], Q16, ConfigField::Model4BeltRestUm)?;
+    w.u64(b.half_travel_mm.to_bits());
+    let mut p = b.physics;
+    for v in belt_scalars(&mut p) {
+        w.u64(v.to_bits());
+    }
+    w.u32(p.guide_bins as u32);
+    w.u64(p.guide_start_m.to_bits());
+    w.u64(p.guide_step_m.to_bits());
+    for v in &p.guide_delta_n[..p.guide_bins] {
+        w.u64(v.to_bits());
+    }
     Ok(())
+}
+
+fn read_belt(r: &mut Reader<'_>) -> Result<Option<BeltTerm>, BlobError> {
+    match r.u32()? {
+        0 => return Ok(None),
+        1 => {}
+        _ => {
+            return Err(BlobError::Invalid(ConfigError::OutOfRange(
+                ConfigField::Model4BeltStepTicks,
+            )))
+        }
+    }
+    let f64_ = |r: &mut Reader<'_>| -> Result<f64, BlobError> { Ok(f64::from_bits(r.u64()?)) };
+    let tick_s = f64_(r)?;
+    let step_ticks = r.u32()?;
+    let weight = r.fixed(Q16)?;
+    let rest_um = [r.fixed(Q16)?, r.fixed(Q16)?];
+    let half_travel_mm = f64_(r)?;
+    let mut physics = BeltParams::PAPER;
+    for v in belt_scalars(&mut physics) {
+        *v = f64_(r)?;
+    }
+    let bins = r.u32()? as usize;
+    if bins > MAX_GUIDE_BINS {
+        return Err(BlobError::Invalid(ConfigError::TableSize(
+            ConfigField::Model4BeltGuideProfileN,
+        )));
+    }
+    physics.guide_bins = bins;
+    physics.guide_start_m = f64_(r)?;
+    physics.guide_step_m = f64_(r)?;
+    for v in physics.guide_delta_n[..bins].iter_mut() {
+        *v = f64_(r)?;
+    }
+    Ok(Some(BeltTerm {
+        physics,
+        tick_s,
+        step_ticks,
+        weight,
+        rest_um,
+        half_travel_mm,
+    }))
 }
 
 fn read_model4(r: &mut Reader<'_>) -> Result<Model4Params, BlobError> {
@@ -667,6 +779,7 @@ fn read_model4(r: &mut Reader<'_>) -> Result<Model4Params, BlobError> {
     sl.limit_um = r.fixed(Q16)?;
     sl.half_gap_um = r.fixed(Q16)?;
     sl.weight = r.fixed(Q16)?;
+    model4.belt = read_belt(r)?;
     Ok(model4)
 }
 

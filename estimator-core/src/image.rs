@@ -5,11 +5,11 @@
 //! (`calibration.bin`, parameters for people and tools); [`from_blob`] turns it into the image a
 //! drive loads over the link, stores, and boots from.
 //!
-//! Layout (little-endian), version 5 (version 4 weighted Model 2 in Model 4 and had ten plays
-//! and no slip observer; earlier versions weighted Model 1 and had no low-passed current):
+//! Layout (little-endian), version 6 (version 5 had no belt observer; version 4 weighted Model
+//! 2 in Model 4 and had ten plays and no slip observer; earlier versions weighted Model 1 and had no low-passed current):
 //! ```text
 //! 0   magic "BDCI"
-//! 4   version u16 (= 5)          6  reserved u16 (= 0)
+//! 4   version u16 (= 6)          6  reserved u16 (= 0)
 //! 8   payload length u32        12  CRC-32 (IEEE) of bytes 0..12 followed by the payload
 //! 16  payload:
 //!     geometry        as in the blob (must match the drive's exactly)
@@ -30,7 +30,13 @@
 //!                     sin, cos I16F16, turn rate u32, sin, cos, um/A, low-passed um/A I16F16,
 //!                     slip observer: load reverse, forward, per A reverse, forward I16F16 um,
 //!                     kappa per count Q32 u32, um per count I16F16 u32, limit, half gap I16F16
-//!                     um, weight Q16
+//!                     um, weight Q16,
+//!                     belt observer: present u32 (0: none, the rest absent), weight Q16,
+//!                     rest reverse, forward I16F16 um, approach per count (as Model 2's rates),
+//!                     13 factors (mantissa i32, shift u32), 7 friction and force words i32,
+//!                     tooth and damping stiffness u32, gear compliance Q56 u64, guide
+//!                     friction Q16, guide points u32, guide start Q16 m, 6 lengths i32,
+//!                     guide points x Q16 N, tracking gains 3 x Q32 u64, ticks a step u32
 //!     closing         Models 1, 2, 3: forward, reverse I16F16 mm, -1 = never   6 x i32
 //!                     (host diagnostics: the drive skips them)
 //! ```
@@ -45,9 +51,11 @@ use crate::ConfigField;
 use fixed::types::{I13F3, I16F16, I1F31, U11F5};
 
 use crate::blob::{check_header_from, BlobError};
+use crate::model::belt::{BeltCoeffs, Gain, GAIN_MAX_SHIFT, MAX_GUIDE_BINS, MAX_STEP_TICKS};
 use crate::model::fixmath::{Recip, Scale, MAX_SHIFT};
 use crate::model::operator::{N_KNOTS, N_OPS};
 use crate::model::slip::{self, SlipCoeffs};
+use crate::model::BeltTermCoeffs;
 use crate::model::LinearBand;
 use crate::model::{
     BacklashCoeffs, BandCoeffs, BidirCoeffs, Model1Coeffs, Model2Coeffs, Model3Coeffs,
@@ -62,13 +70,16 @@ use belt_link::bytes::Fields;
 /// First four bytes of every image.
 pub const MAGIC: [u8; 4] = *b"BDCI";
 /// The version this code writes and reads.
-pub const VERSION: u16 = 5;
+pub const VERSION: u16 = 6;
 const HEADER: usize = 16;
 const RIG_BYTES: usize = 24;
 const BAND_BYTES: usize = 12 + 4 * MAX_BAND_POINTS;
 const TRANSITION_BYTES: usize = 12 + 2 * MAX_TRANSITION_D * MAX_TRANSITION_G0;
 const BIDIR_BYTES: usize = 12 + 4 * MAX_BIDIR_ROWS;
-const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 9);
+const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 9) + BELT_BYTES;
+/// Model 4's belt observer: presence and weight, 13 factors, 21 words, the guide profile, the
+/// tracking gains and the step.
+const BELT_BYTES: usize = 8 + 16 + 13 * 8 + 4 * 21 + 4 * MAX_GUIDE_BINS + 3 * 8 + 4;
 /// Largest image: every table full.
 pub const MAX_BYTES: usize = HEADER
     + RIG_BYTES
@@ -384,6 +395,7 @@ fn read_model4(r: &mut Stream) -> Result<Model4Coeffs, BlobError> {
     let current_um_per_a = um(r, ANY, ConfigField::Model4CurrentUmPerA)?;
     let current_lp_um_per_a = um(r, ANY, ConfigField::Model4CurrentLpUmPerA)?;
     let slip = read_slip(r)?;
+    let belt = read_belt(r)?;
     Ok(Model4Coeffs {
         widths_counts,
         weight_q24,
@@ -400,7 +412,183 @@ fn read_model4(r: &mut Stream) -> Result<Model4Coeffs, BlobError> {
         current_um_per_a,
         current_lp_um_per_a,
         slip,
+        belt,
     })
+}
+
+/// The belt observer's factors in the image's order, each named by the field it comes from.
+const BELT_GAINS: [ConfigField; 13] = {
+    use ConfigField as F;
+    [
+        F::Model4BeltMPerCount,
+        F::Model4BeltAccelPerA,
+        F::Model4BeltSigma0PerM,
+        F::Model4BeltSigma1SPerM,
+        F::Model4BeltSigma2SPerM,
+        F::Model4BeltStribeckMPerS,
+        F::Model4BeltKappaPerM,
+        F::Model4BeltSpanDampingNSPerM,
+        F::Model4BeltMassKg,
+        F::Model4BeltToothNPerM,
+        F::Model4BeltAxialRigidityN,
+        F::Model4BeltLengthM,
+        F::Model4BeltGuideProfileStepM,
+    ]
+};
+
+/// Its friction and force words with the ranges the builder makes: the kinetic coefficient
+/// and the static one's excess (Q30, at most 1), `sigma0` and `sigma1 / T` as coefficient per
+/// slip (Q8), the wrap (Q28 rad, up to 7), the preload and preload times wrap (Q16 N).
+const BELT_WORDS: [(i32, i32, ConfigField); 7] = {
+    use ConfigField as F;
+    [
+        (1, 1 << 30, F::Model4BeltMuKinetic),
+        (0, 1 << 30, F::Model4BeltMuStatic),
+        (0, i32::MAX, F::Model4BeltSigma0PerM),
+        (0, i32::MAX, F::Model4BeltSigma1SPerM),
+        (1, 7 << 28, F::Model4BeltWrapRad),
+        (1, 4000 << 16, F::Model4BeltPreloadN),
+        (1, i32::MAX, F::Model4BeltPreloadN),
+    ]
+};
+
+/// 10 mm in Q36 m, rounded up.
+const BELT_SMALL_Q36: i32 = 687_194_768;
+
+/// Its lengths: half the tooth gap and the gear's half backlash (Q36 m, up to 10 mm), the belt
+/// (Q16 m, 3 mm to 100 m), the span from the pulley at 0 (within the belt), the largest slip a
+/// step and the tracking filter's jump (Q36 m).
+const BELT_LENGTHS: [(i32, i32, ConfigField); 6] = {
+    use ConfigField as F;
+    [
+        (1, BELT_SMALL_Q36, F::Model4BeltHalfGapM),
+        (0, BELT_SMALL_Q36, F::Model4BeltGearHalfM),
+        (196, 100 << 16, F::Model4BeltLengthM),
+        (0, 100 << 16, F::Model4BeltSpanOffsetM),
+        (0, BELT_SMALL_Q36, F::DriveRateHz),
+        (1, BELT_SMALL_Q36, F::Model4BeltMPerCount),
+    ]
+};
+
+/// A factor: a non-negative mantissa, a shift of 1 to 31.
+fn read_gain(r: &mut Stream, f: ConfigField) -> Result<Gain, BlobError> {
+    let mant = r.i32()?;
+    let shift = r.u32()?;
+    if mant < 0 || !(1..=u32::from(GAIN_MAX_SHIFT)).contains(&shift) {
+        return Err(out_of_range(f));
+    }
+    Ok(Gain {
+        mant,
+        shift: shift as u8,
+    })
+}
+
+/// Model 4's belt observer, if the image has one: each field within what
+/// [`crate::model::belt::BeltParams::build_every`] makes (the step is total on any value; these
+/// keep it the physics it was built from).
+fn read_belt(r: &mut Stream) -> Result<Option<BeltTermCoeffs>, BlobError> {
+    use ConfigField as F;
+    match r.u32()? {
+        0 => return Ok(None),
+        1 => {}
+        _ => return Err(out_of_range(F::Model4BeltStepTicks)),
+    }
+    let weight_q16 = i32_in(r, -(8 << 16), 8 << 16, F::Model4BeltWeight)?;
+    let rest_bits = [
+        um(r, ANY, F::Model4BeltRestUm)?.to_bits(),
+        um(r, ANY, F::Model4BeltRestUm)?.to_bits(),
+    ];
+    let approach = read_scale(r, F::Model4BeltHalfTravelMm)?;
+    let mut g = [Gain { mant: 0, shift: 1 }; BELT_GAINS.len()];
+    for (g, &f) in g.iter_mut().zip(&BELT_GAINS) {
+        *g = read_gain(r, f)?;
+    }
+    let mut w = [0i32; BELT_WORDS.len()];
+    for (w, &(lo, hi, f)) in w.iter_mut().zip(&BELT_WORDS) {
+        *w = i32_in(r, lo, hi, f)?;
+    }
+    // The static coefficient's excess over the kinetic one keeps their sum within 1 (and a
+    // unit of rounding).
+    if w[1] > (1 << 30) - w[0] + 1 {
+        return Err(out_of_range(F::Model4BeltMuStatic));
+    }
+    let tooth_n_per_m = r.u32()?;
+    let damping_t_n_per_m = r.u32()?;
+    let gear_compliance_q56 = r.u64()?;
+    let guide_q16 = i32_in(r, 0, 10_000 << 16, F::Model4BeltGuideN)?;
+    let guide_bins = r.u32()?;
+    if guide_bins as usize > MAX_GUIDE_BINS {
+        return Err(BlobError::Invalid(ConfigError::TableSize(
+            F::Model4BeltGuideProfileN,
+        )));
+    }
+    let guide_start_q16 = r.i32()?;
+    let mut l = [0i32; BELT_LENGTHS.len()];
+    for (l, &(lo, hi, f)) in l.iter_mut().zip(&BELT_LENGTHS) {
+        *l = i32_in(r, lo, hi, f)?;
+    }
+    // The span from the pulley within the belt.
+    if l[3] > l[2] {
+        return Err(out_of_range(F::Model4BeltSpanOffsetM));
+    }
+    let mut guide_delta_q16 = [0i32; MAX_GUIDE_BINS];
+    for d in guide_delta_q16.iter_mut().take(guide_bins as usize) {
+        *d = i32_in(r, -(10_000 << 16), 10_000 << 16, F::Model4BeltGuideProfileN)?;
+    }
+    let mut track_q32 = [0i64; 3];
+    for t in track_q32.iter_mut() {
+        let v = r.u64()?;
+        if v > 1 << 32 {
+            return Err(out_of_range(F::Model4BeltStepTicks));
+        }
+        *t = v as i64;
+    }
+    let every = r.u32()?;
+    if !(1..=MAX_STEP_TICKS).contains(&every) {
+        return Err(out_of_range(F::Model4BeltStepTicks));
+    }
+    Ok(Some(BeltTermCoeffs {
+        c: BeltCoeffs {
+            m_per_count: g[0],
+            accel: g[1],
+            sigma0: g[2],
+            sigma1_t: g[3],
+            m1_t: g[4],
+            inv_stribeck: g[5],
+            kappa: g[6],
+            damping_t: g[7],
+            tt_per_m: g[8],
+            tooth: g[9],
+            span_per_ae_l: g[10],
+            inv_length: g[11],
+            guide_per_step: g[12],
+            mu_kinetic_q30: w[0],
+            dmu_q30: w[1],
+            sigma0_q8: w[2],
+            sigma1_t_q8: w[3],
+            wrap_q28: w[4],
+            preload_q16: w[5],
+            preload_wrap_q16: w[6],
+            tooth_n_per_m,
+            damping_t_n_per_m,
+            gear_compliance_q56,
+            guide_q16,
+            guide_delta_q16,
+            guide_bins,
+            guide_start_q16,
+            half_gap_q36: l[0],
+            gear_half_q36: l[1],
+            length_q16: l[2],
+            span_offset_q16: l[3],
+            max_slip_q36: l[4],
+            jump_q36: l[5],
+            track_q32,
+            every: every as u8,
+        },
+        weight_q16,
+        rest_bits,
+        approach,
+    }))
 }
 
 /// An `i32` in `lo..=hi`, or a refusal naming `field`.
@@ -638,6 +826,73 @@ mod write {
         w.i32(sl.limit_bits);
         w.i32(sl.half_gap_bits);
         w.i32(sl.weight_q16);
+        belt(w, m.belt.as_ref());
+    }
+
+    /// In [`read_belt`]'s order.
+    fn belt(w: &mut Writer, b: Option<&BeltTermCoeffs>) {
+        let Some(b) = b else {
+            w.u32(0);
+            return;
+        };
+        w.u32(1);
+        w.i32(b.weight_q16);
+        w.i32(b.rest_bits[0]);
+        w.i32(b.rest_bits[1]);
+        scale(w, &b.approach);
+        let c = &b.c;
+        for g in [
+            c.m_per_count,
+            c.accel,
+            c.sigma0,
+            c.sigma1_t,
+            c.m1_t,
+            c.inv_stribeck,
+            c.kappa,
+            c.damping_t,
+            c.tt_per_m,
+            c.tooth,
+            c.span_per_ae_l,
+            c.inv_length,
+            c.guide_per_step,
+        ] {
+            w.i32(g.mant);
+            w.u32(u32::from(g.shift));
+        }
+        for v in [
+            c.mu_kinetic_q30,
+            c.dmu_q30,
+            c.sigma0_q8,
+            c.sigma1_t_q8,
+            c.wrap_q28,
+            c.preload_q16,
+            c.preload_wrap_q16,
+        ] {
+            w.i32(v);
+        }
+        w.u32(c.tooth_n_per_m);
+        w.u32(c.damping_t_n_per_m);
+        w.u64(c.gear_compliance_q56);
+        w.i32(c.guide_q16);
+        w.u32(c.guide_bins);
+        w.i32(c.guide_start_q16);
+        for v in [
+            c.half_gap_q36,
+            c.gear_half_q36,
+            c.length_q16,
+            c.span_offset_q16,
+            c.max_slip_q36,
+            c.jump_q36,
+        ] {
+            w.i32(v);
+        }
+        for d in c.guide_delta_q16.iter().take(c.guide_bins as usize) {
+            w.i32(*d);
+        }
+        for t in c.track_q32 {
+            w.u64(t as u64);
+        }
+        w.u32(u32::from(c.every));
     }
 
     /// Writes coefficients built for `rig` into `buf`; returns the image's length.

@@ -7,6 +7,7 @@
 //! values of the *quantised* coefficients converted back to `f64`, so that only the arithmetic is
 //! compared, not the quantisation of calibration data.
 
+use crate::model::belt::{BeltCoeffs, BeltState};
 use crate::model::operator::{N_KNOTS, N_OPS};
 use crate::model::slip::{self, SlipCoeffs};
 use crate::model::{BandCoeffs, Direction, ModelKind, ModelParams, TransitionCoeffs};
@@ -120,6 +121,9 @@ pub struct Reference {
     /// Model 4's low-passed current, I16F16 bits (restarted with the plays).
     current_lp_bits: i32,
     slip: RefSlip,
+    /// Model 4's belt observer, where the calibration has one: the drive's fixed-point port is
+    /// its definition (hil-sim holds it to the `f64` observer within 0.3 um).
+    belt: Option<(BeltCoeffs, BeltState)>,
 }
 
 /// Model 4's quantised coefficients as `f64` (um, counts).
@@ -144,7 +148,8 @@ struct RefModel4 {
 /// Model 4's terms at one tick before their weights (see [`crate::model::operator`]).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Model4Terms {
-    /// The slip observer's mesh offset `g`, um.
+    /// The mesh offset, um: the belt observer's where the calibration has one, else the slip
+    /// observer's `g`.
     pub slip_um: f64,
     /// Each play's output `x - p`, counts.
     pub plays_counts: [f64; N_OPS],
@@ -318,7 +323,7 @@ impl RefModel4 {
             ],
             current_um_per_a: c.current_um_per_a.to_num(),
             current_lp_um_per_a: c.current_lp_um_per_a.to_num(),
-            slip_weight: c.slip.weight_q16 as f64 / 65536.0,
+            slip_weight: c.belt.map_or(c.slip.weight_q16, |b| b.weight_q16) as f64 / 65536.0,
         }
     }
 }
@@ -363,6 +368,7 @@ impl Reference {
             plays_valid: false,
             current_lp_bits: 0,
             slip: RefSlip::new(&c.model4().slip),
+            belt: c.model4().belt.map(|b| (b.c, BeltState::ZERO)),
         })
     }
 
@@ -477,11 +483,24 @@ impl Reference {
         } else {
             bits
         };
-        if self.plays_valid {
-            self.slip.step(forward, x, current_a);
-        } else {
-            self.slip.start(forward, x, current_a);
-        }
+        let belt_offset_um = match &mut self.belt {
+            Some((c, s)) => {
+                if self.plays_valid {
+                    s.tick(c, x, bits);
+                } else {
+                    *s = BeltState::start(c, x, forward);
+                }
+                Some(s.offset_um_bits() as f64 / 65536.0)
+            }
+            None => {
+                if self.plays_valid {
+                    self.slip.step(forward, x, current_a);
+                } else {
+                    self.slip.start(forward, x, current_a);
+                }
+                None
+            }
+        };
         if !self.plays_valid {
             for (p, w) in self.plays.iter_mut().zip(&m.widths) {
                 *p = match self.dir {
@@ -518,7 +537,7 @@ impl Reference {
             let a = turns as f64 / (1u64 << 32) as f64 * core::f64::consts::TAU;
             *h = [a.sin(), a.cos()];
         }
-        t.slip_um = self.slip.offset_um();
+        t.slip_um = belt_offset_um.unwrap_or_else(|| self.slip.offset_um());
         t
     }
 

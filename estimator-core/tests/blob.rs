@@ -1,6 +1,8 @@
 //! The calibration blob: round trip, and every way a blob can be wrong is refused with a reason.
 
-use estimator_core::blob::{crc32, decode, encode, BlobError, MAX_BYTES, MODEL4_BYTES};
+use estimator_core::blob::{
+    crc32, decode, encode, BlobError, MAX_BYTES, MODEL4_NO_BELT_BYTES as MODEL4_BYTES,
+};
 use estimator_core::drive::{Command, Drive, DriveConfig, Sample};
 use estimator_core::model::{ModelKind, ModelParams};
 use estimator_core::rig::Rig;
@@ -156,9 +158,11 @@ fn drive_loads_good_images_and_refuses_bad_ones_unchanged() {
     bad[30] ^= 1;
     assert_eq!(d.load_calibration(&bad), Err(BlobError::BadChecksum));
     assert_eq!(d.models(), &before);
-    // Well signed, a bad value in the last section: refused before anything is read in.
+    // Well signed, a bad value in the last section: refused before anything is read in (the
+    // slip observer's weight, before the belt observer's presence word and the closing
+    // distances).
     let mut bad = good.clone();
-    let at = bad.len() - 24 - 4;
+    let at = bad.len() - 24 - 4 - 4;
     bad[at..at + 4].copy_from_slice(&(9i32 << 16).to_le_bytes());
     resign(&mut bad);
     assert!(

@@ -3,7 +3,9 @@
 
 use estimator_core::blob::{self, crc32, BlobError};
 use estimator_core::image::{self, MAX_BYTES};
+use estimator_core::model::belt::BeltParams;
 use estimator_core::model::operator::{N_KNOTS, N_OPS};
+use estimator_core::model::BeltTerm;
 use estimator_core::model::Direction::{Forward, Reverse};
 use estimator_core::model::{estimate_with_current, ModelKind, ModelParams, ModelState};
 use estimator_core::rig::Rig;
@@ -28,8 +30,22 @@ fn params() -> ModelParams {
         weight: -0.75,
     };
     p.backlash.backlash_um = 120.0;
+    let mut physics = BeltParams::PAPER;
+    physics.guide_bins = GUIDE_BINS;
+    physics.guide_delta_n[3] = 0.75;
+    p.model4.belt = Some(BeltTerm {
+        physics,
+        tick_s: 1.0 / 2000.0,
+        step_ticks: 6,
+        weight: -0.875,
+        rest_um: [-131.5, 140.25],
+        half_travel_mm: 12.5,
+    });
     p
 }
+
+/// The belt observer's guide profile in the test's parameters.
+const GUIDE_BINS: usize = 30;
 
 fn paper_image() -> Vec<u8> {
     image::of_params(&params(), &Rig::PAPER).unwrap()
@@ -47,8 +63,8 @@ const MODEL1: usize = 16 + 24 + 4;
 const MODEL2: usize = MODEL1 + 24;
 const MODEL3: usize = MODEL2 + 40;
 /// Model 4's section: widths and two weight sets, five words, the knots, eight words, the slip
-/// observer's nine.
-const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 9);
+/// observer's nine, then the belt observer's (236 bytes and its guide points).
+const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 9) + 236 + 4 * GUIDE_BINS;
 
 #[test]
 fn coefficients_arrive_exactly_and_re_encode_to_the_same_bytes() {
@@ -223,6 +239,11 @@ fn every_section_is_checked() {
     );
     let pitch_rate = model4 + 4 * (3 * N_OPS + 5 + N_KNOTS);
     let slip = pitch_rate + 4 * 8;
+    // The belt observer's section, its factors, words and lengths.
+    let belt = slip + 4 * 9;
+    let gains = belt + 24;
+    let words = gains + 8 * 13;
+    let lengths = words + 28 + 28;
     assert_refusals(&[
         (
             transition,
@@ -263,6 +284,64 @@ fn every_section_is_checked() {
             slip + 32,
             &((8i32 << 16) + 1).to_le_bytes(),
             "model4.slip.weight",
+        ),
+        // The belt observer: its presence word, weight, a factor's shift and sign, the
+        // friction coefficients beyond 1, the guide profile's length, the span from the pulley
+        // beyond the belt, a length, a tracking gain and the step.
+        (belt, &2u32.to_le_bytes(), "model4.belt.step_ticks"),
+        (
+            belt + 4,
+            &((8i32 << 16) + 1).to_le_bytes(),
+            "model4.belt.weight",
+        ),
+        (
+            belt + 20,
+            &64u16.to_le_bytes(),
+            "model4.belt.half_travel_mm",
+        ),
+        (gains + 4, &0u32.to_le_bytes(), "model4.belt.m_per_count"),
+        (
+            gains + 8 * 12,
+            &(-1i32).to_le_bytes(),
+            "model4.belt.guide_profile_step_m",
+        ),
+        (
+            gains + 8 * 12 + 4,
+            &32u32.to_le_bytes(),
+            "model4.belt.guide_profile_step_m",
+        ),
+        (words, &0i32.to_le_bytes(), "model4.belt.mu_kinetic"),
+        (
+            words + 4,
+            &(1i32 << 30).to_le_bytes(),
+            "model4.belt.mu_static",
+        ),
+        (
+            words + 16,
+            &(8i32 << 28).to_le_bytes(),
+            "model4.belt.wrap_rad",
+        ),
+        (
+            words + 28 + 20,
+            &65u32.to_le_bytes(),
+            "model4.belt.guide_profile_n",
+        ),
+        (lengths, &0i32.to_le_bytes(), "model4.belt.half_gap_m"),
+        (lengths + 8, &100i32.to_le_bytes(), "model4.belt.length_m"),
+        (
+            lengths + 12,
+            &(50i32 << 16).to_le_bytes(),
+            "model4.belt.span_offset_m",
+        ),
+        (
+            lengths + 24 + 4 * GUIDE_BINS,
+            &u64::MAX.to_le_bytes(),
+            "model4.belt.step_ticks",
+        ),
+        (
+            lengths + 48 + 4 * GUIDE_BINS,
+            &17u32.to_le_bytes(),
+            "model4.belt.step_ticks",
         ),
     ]);
 }

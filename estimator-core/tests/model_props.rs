@@ -8,7 +8,9 @@
 use std::cell::Cell;
 
 use estimator_core::fixed::types::I16F16;
+use estimator_core::model::belt::{BeltParams, MAX_GUIDE_BINS};
 use estimator_core::model::slip::SlipParams;
+use estimator_core::model::BeltTerm;
 use estimator_core::model::{
     estimate, estimate_with_current, BacklashParams, BandParams, BidirParams, Model1Params,
     Model2Params, Model3Params, Model4Params, ModelKind, ModelParams, ModelState, TransitionParams,
@@ -256,10 +258,10 @@ fn model4(cpm: f64) -> impl Strategy<Value = Model4Params> {
             -30.0f64..30.0,
             -30.0f64..30.0,
         ),
-        (-40.0f64..40.0, -40.0f64..40.0, slip()),
+        (-40.0f64..40.0, -40.0f64..40.0, slip(), belt(cpm)),
     )
         .prop_map(
-            move |(plays, (xr, off, slope), (ks, step, knots), h, (cur, cur_lp, slip))| {
+            move |(plays, (xr, off, slope), (ks, step, knots), h, (cur, cur_lp, slip, belt))| {
                 let range_mm = ACCURATE_RANGE_COUNTS as f64 / cpm;
                 let mut m = Model4Params::zero(h.0, h.0 * h.3 as f64);
                 for (j, (scale, w, f)) in plays.into_iter().enumerate() {
@@ -283,9 +285,48 @@ fn model4(cpm: f64) -> impl Strategy<Value = Model4Params> {
                 m.current_um_per_a = cur;
                 m.current_lp_um_per_a = cur_lp;
                 m.slip = slip;
+                m.belt = belt;
                 m
             },
         )
+}
+
+/// Model 4's belt observer in half the cases: the paper rig's physics with its mass, preload,
+/// gap, friction and renewal scaled by up to 2 either way, a guide profile, a step of 1 to 16
+/// ticks, any weight within the format and a prediction of rest.
+fn belt(cpm: f64) -> impl Strategy<Value = Option<BeltTerm>> {
+    let term = (
+        prop::array::uniform5(-1.0f64..1.0),
+        0usize..=MAX_GUIDE_BINS,
+        1u32..=16,
+        -1.5f64..1.5,
+        prop::array::uniform2(-200.0f64..200.0),
+        0.01f64..100.0,
+    )
+        .prop_map(move |(scale, bins, step_ticks, weight, rest_um, half)| {
+            let f = |k: usize| 2f64.powf(scale[k]);
+            let mut physics = BeltParams::PAPER;
+            physics.mass_kg *= f(0);
+            physics.preload_n *= f(1);
+            physics.half_gap_m *= f(2);
+            physics.mu_kinetic *= f(3).min(2.0);
+            physics.mu_static = physics.mu_kinetic * 1.3;
+            physics.kappa_per_m *= f(4);
+            physics.m_per_count = 1e-3 / cpm;
+            physics.guide_bins = bins;
+            for (k, d) in physics.guide_delta_n.iter_mut().enumerate() {
+                *d = (k as f64).sin();
+            }
+            BeltTerm {
+                physics,
+                tick_s: 1.0 / 2000.0,
+                step_ticks,
+                weight,
+                rest_um,
+                half_travel_mm: half.max(2.0 / cpm),
+            }
+        });
+    prop_oneof![Just(None), term.prop_map(Some)]
 }
 
 /// A random valid parameter set and rig.

@@ -744,6 +744,23 @@ pub fn identify(
     evaluations: usize,
     rounds: usize,
 ) -> Option<Identified> {
+    identify_with(runs, starts, params, evaluations, rounds, &mut |_| {})
+}
+
+/// [`identify`], calling `progress` with the share of the search's evaluation budget spent
+/// (each start's round and each further round count `evaluations`; rounds that gain nothing end
+/// it early, so the share may stop short of 1).
+pub fn identify_with(
+    runs: &[FitRun],
+    starts: &[BeltPhysics],
+    params: &[Param],
+    evaluations: usize,
+    rounds: usize,
+    progress: &mut dyn FnMut(f64),
+) -> Option<Identified> {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let budget = ((starts.len() + rounds) * evaluations).max(1) as f64;
+    let spent = AtomicUsize::new(0);
     let (fixed, rows) = fixed_terms(runs);
     if rows == 0 {
         return None;
@@ -756,6 +773,7 @@ pub fn identify(
         p
     };
     let value = |p: &BeltPhysics| {
+        spent.fetch_add(1, Ordering::Relaxed);
         let cols: Vec<Vec<f64>> = runs.iter().map(|r| offsets(r, p)).collect();
         let all = runs.iter().zip(&cols).flat_map(|(r, col)| {
             r.terms
@@ -770,13 +788,18 @@ pub fn identify(
         }
     };
     let step = vec![0.2; params.len()];
-    let search = |found: &mut Identified| -> bool {
+    // `tick` after each evaluation: the caller's thread reports the progress of all.
+    let search = |found: &mut Identified, tick: &mut dyn FnMut()| -> bool {
         if params.is_empty() || evaluations == 0 {
             return false;
         }
         let from = found.physics.clone();
         let m = nelder_mead(
-            |x| value(&at(&from, x)),
+            |x| {
+                let v = value(&at(&from, x));
+                tick();
+                v
+            },
             &vec![0.0; params.len()],
             &step,
             1e-9,
@@ -789,25 +812,43 @@ pub fn identify(
         }
         better
     };
-    let mut best: Option<Identified> = None;
-    for start in starts {
+    let from_start = |start: &BeltPhysics, tick: &mut dyn FnMut()| {
         let start_rms_um = value(start);
         let mut found = Identified {
             physics: start.clone(),
             start_rms_um,
             fit_rms_um: start_rms_um,
         };
-        search(&mut found);
-        if best
-            .as_ref()
-            .is_none_or(|b| found.fit_rms_um < b.fit_rms_um)
-        {
-            best = Some(found);
+        search(&mut found, tick);
+        found
+    };
+    let mut report = || progress((spent.load(Ordering::Relaxed) as f64 / budget).min(1.0));
+    // Each start on a thread of its own (the first on this one): the starts are independent,
+    // and the best is taken in their order, so the result is what one thread gives.
+    let found: Vec<Identified> = std::thread::scope(|scope| {
+        let others: Vec<_> = starts
+            .iter()
+            .skip(1)
+            .map(|s| scope.spawn(|| from_start(s, &mut || {})))
+            .collect();
+        let mut found: Vec<Identified> = starts
+            .first()
+            .map(|s| from_start(s, &mut report))
+            .into_iter()
+            .collect();
+        // A start whose thread panicked (it cannot: the search is total) is left out.
+        found.extend(others.into_iter().filter_map(|h| h.join().ok()));
+        found
+    });
+    let mut best: Option<Identified> = None;
+    for f in found {
+        if best.as_ref().is_none_or(|b| f.fit_rms_um < b.fit_rms_um) {
+            best = Some(f);
         }
     }
     let mut best = best?;
     for _ in 0..rounds {
-        if !search(&mut best) {
+        if !search(&mut best, &mut report) {
             break;
         }
     }

@@ -284,6 +284,47 @@ fn models_of(p: &ModelParams) -> Models {
             slip.insert("load_um".into(), floats(&sl.load_um));
             slip.insert("um_per_a".into(), floats(&sl.um_per_a));
             t.insert("slip".into(), toml::Value::Table(slip));
+            // The belt observer in the slip observer's place, where the calibration has one:
+            // its identified physics (SI), the step and the weight.
+            if let Some(b) = &m.belt {
+                let p = &b.physics;
+                let mut belt = table(&[
+                    ("tick_s", b.tick_s),
+                    ("step_ticks", f64::from(b.step_ticks)),
+                    ("weight", b.weight),
+                    ("half_travel_mm", b.half_travel_mm),
+                    ("mass_kg", p.mass_kg),
+                    ("guide_n", p.guide_n),
+                    ("preload_n", p.preload_n),
+                    ("axial_rigidity_n", p.axial_rigidity_n),
+                    ("length_m", p.length_m),
+                    ("span_offset_m", p.span_offset_m),
+                    ("wrap_rad", p.wrap_rad),
+                    ("sigma0_per_m", p.sigma0_per_m),
+                    ("sigma1_s_per_m", p.sigma1_s_per_m),
+                    ("sigma2_s_per_m", p.sigma2_s_per_m),
+                    ("mu_static", p.mu_static),
+                    ("mu_kinetic", p.mu_kinetic),
+                    ("stribeck_m_per_s", p.stribeck_m_per_s),
+                    ("kappa_per_m", p.kappa_per_m),
+                    ("half_gap_m", p.half_gap_m),
+                    ("tooth_n_per_m", p.tooth_n_per_m),
+                    ("gear_half_m", p.gear_half_m),
+                    ("gear_n_per_m", p.gear_n_per_m),
+                    ("span_damping_n_s_per_m", p.span_damping_n_s_per_m),
+                    ("accel_per_a", p.accel_per_a),
+                    ("m_per_count", p.m_per_count),
+                    ("guide_profile_start_m", p.guide_start_m),
+                    ("guide_profile_step_m", p.guide_step_m),
+                ]);
+                belt.insert("rest_um".into(), floats(&b.rest_um));
+                let guide = p.guide_delta_n[..p.guide_bins.min(p.guide_delta_n.len())]
+                    .iter()
+                    .map(|&v| toml::Value::Float(v))
+                    .collect();
+                belt.insert("guide_profile_n".into(), toml::Value::Array(guide));
+                t.insert("belt".into(), toml::Value::Table(belt));
+            }
             t
         },
         backlash: table(&[

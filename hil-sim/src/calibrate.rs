@@ -17,14 +17,15 @@ use estimator_core::blob::{self, BlobError};
 use estimator_core::model::operator::{N_KNOTS, N_OPS};
 use estimator_core::model::slip::{SlipParams, MAX_SLIP_UM};
 use estimator_core::model::{
-    BandParams, Model1Params, Model2Params, Model3Params, Model4Params, ModelKind, ModelParams,
-    TransitionParams, MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
+    BandParams, BeltTerm, Model1Params, Model2Params, Model3Params, Model4Params, ModelKind,
+    ModelParams, TransitionParams, MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
 };
 use estimator_core::reference::{Model4Terms, RefSlip, Reference};
 use estimator_core::rig::Rig;
 use estimator_core::ConfigError;
 
 use crate::baseline::{Backlash, BidirTable};
+use crate::belt_observer::{self, BeltPhysics, FitRun, Param};
 use crate::fit::nelder_mead;
 use crate::run::Trace;
 use crate::tables::{fit_gap_table, strokes, GapSample};
@@ -410,6 +411,19 @@ pub fn calibrate(
     rig: &Rig,
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Calibration, CalibrationError> {
+    calibrate_with(traces, rig, None, progress)
+}
+
+/// [`calibrate`], and where `belt` gives the machine's configured geometry and motor (with
+/// default physics for the rest), Model 4 with the belt observer: its physics identified on the
+/// recordings ([`belt_observer::identify_with`]), kept in place of the slip observer when it
+/// fits the recordings better.
+pub fn calibrate_with(
+    traces: &[Trace],
+    rig: &Rig,
+    belt: Option<&BeltPhysics>,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Calibration, CalibrationError> {
     let runs: Vec<Prepared> = traces
         .iter()
         .filter(|t| !t.records.is_empty())
@@ -503,7 +517,7 @@ pub fn calibrate(
     }
     params.model3 = model3(&params.model1, &runs, rig, deadband, best.1)?;
     progress("Model 4", 0.0);
-    params.model4 = model4(&runs, rig, &params, progress)?;
+    params.model4 = model4(&runs, rig, &params, belt, progress)?;
     params.backlash = Backlash::calibrate(traces)
         .ok_or(CalibrationError::NoApproachedSamples)?
         .to_params();
@@ -560,6 +574,7 @@ fn model4(
     runs: &[Prepared],
     rig: &Rig,
     base: &ModelParams,
+    belt: Option<&BeltPhysics>,
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Model4Params, CalibrationError> {
     let (lo, hi) = travel_span_mm(runs, rig)?;
@@ -644,9 +659,21 @@ fn model4(
     );
     m.slip = slip_params(&best.x);
     let mut m = blob::quantise_model4(&m).map_err(CalibrationError::Rejected)?;
-    let (v, _) = offsets(&m.slip)
+    let (mut v, slip_sse) = offsets(&m.slip)
         .and_then(|g| solve(&g))
         .ok_or(CalibrationError::Singular { fit: "Model 4" })?;
+    if let Some(start) = belt {
+        let split: Vec<usize> = runs.iter().map(|r| r.x_counts.len()).collect();
+        if let Some((term, bv, sse)) = belt_term(
+            runs, &split, &cols, &y, start, &m, base, rig, &solve, progress,
+        )? {
+            // Kept only where it fits the recordings better than the slip observer.
+            if sse < slip_sse {
+                m.belt = Some(term);
+                v = bv;
+            }
+        }
+    }
     for j in 0..N_OPS {
         m.play_um_per_mm[j] = v[2 * j];
         m.play_forward_um_per_mm[j] = v[2 * j + 1];
@@ -661,8 +688,212 @@ fn model4(
     m.current_um_per_a = v[NB - 2];
     m.current_lp_um_per_a = v[NB - 1];
     // The blob holds |w| < 8 (Q16); a fit at the bound is clamped, not refused.
-    m.slip.weight = v[NB].clamp(-7.99, 7.99);
-    Ok(m)
+    let weight = v[NB].clamp(-7.99, 7.99);
+    match &mut m.belt {
+        // The slip observer is not run beside the belt observer.
+        Some(b) => {
+            b.weight = weight;
+            m.slip.weight = 0.0;
+        }
+        None => m.slip.weight = weight,
+    }
+    blob::quantise_model4(&m).map_err(CalibrationError::Rejected)
+}
+
+/// Model 4's joint least squares with an offset column: the weights and the residual sum.
+type Solve<'a> = dyn Fn(&[f64]) -> Option<(Vec<f64>, f64)> + 'a;
+
+/// Ticks per step of Model 4's belt observer: its cost within the tick's budget (README: about
+/// 234 instructions a tick at a step every 6 ticks, 338 at every 4th) at the accuracy measured.
+pub const BELT_STEP_TICKS: u32 = 6;
+/// The identification's search: carriage-mass starts (the fit has local minima in the mass),
+/// evaluations a round and further rounds (README, "A reduced plant observer").
+const BELT_MASS_STARTS: [f64; 4] = [0.5, 1.0, 2.0, 4.0];
+const BELT_EVALS: usize = 250;
+const BELT_ROUNDS: usize = 2;
+
+/// Model 4's belt observer on these recordings: the guide's friction along the travel, the
+/// physics identified from `start`, and the weights refitted with its offset exactly as the
+/// drive computes it (the blob's physics through [`Reference::model4_step`]). `None` where the
+/// identification or the fit find nothing.
+#[allow(clippy::too_many_arguments)]
+fn belt_term(
+    runs: &[Prepared],
+    split: &[usize],
+    cols: &[[f64; NB]],
+    y: &[f64],
+    start: &BeltPhysics,
+    m: &Model4Params,
+    base: &ModelParams,
+    rig: &Rig,
+    solve: &Solve,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Option<(BeltTerm, Vec<f64>, f64)>, CalibrationError> {
+    let mut fit_runs = Vec::with_capacity(runs.len());
+    let mut at = 0;
+    for (r, &n) in runs.iter().zip(split) {
+        fit_runs.push(FitRun {
+            inputs: r
+                .x_counts
+                .iter()
+                .zip(&r.current_a)
+                .map(|(&x, &a)| (i64::from(x), a))
+                .collect(),
+            terms: cols[at..at + n].iter().map(|c| c.to_vec()).collect(),
+            dx_um: y[at..at + n].to_vec(),
+        });
+        at += n;
+    }
+    let mut physics = start.clone();
+    physics.drive_port = true;
+    physics.capstan_taylor = true;
+    physics.decimation = BELT_STEP_TICKS;
+    physics.guide_profile = belt_observer::guide_profile(&fit_runs, &physics);
+    let starts: Vec<BeltPhysics> = BELT_MASS_STARTS
+        .iter()
+        .map(|&f| {
+            let mut p = physics.clone();
+            p.scale(Param::Mass, f);
+            p
+        })
+        .collect();
+    let fields: Vec<Param> = Param::ALL.iter().map(|(p, _)| *p).collect();
+    let Some(found) = belt_observer::identify_with(
+        &fit_runs,
+        &starts,
+        &fields,
+        BELT_EVALS,
+        BELT_ROUNDS,
+        &mut |f| progress("Model 4 belt observer", f),
+    ) else {
+        return Ok(None);
+    };
+    let mut term = BeltTerm {
+        physics: found.physics.core_params(),
+        tick_s: belt_observer::TICK_S,
+        step_ticks: BELT_STEP_TICKS,
+        weight: 0.0,
+        rest_um: [0.0; 2],
+        half_travel_mm: 10.0,
+    };
+    // Physics the drive's builder refuses are not a calibration (the search keeps to them).
+    if term.build(rig.counts_per_mm()).is_err() {
+        return Ok(None);
+    }
+    let mut probe_m4 = m.clone();
+    probe_m4.belt = Some(term);
+    let probe = ModelParams {
+        model4: blob::quantise_model4(&probe_m4).map_err(CalibrationError::Rejected)?,
+        ..quantised(base, rig).map_err(CalibrationError::Rejected)?
+    };
+    let mut offset = Vec::with_capacity(y.len());
+    for r in runs {
+        let Some(&x0) = r.x_counts.first() else {
+            continue;
+        };
+        let mut model4 = Reference::new(&probe, rig, x0).map_err(CalibrationError::Features)?;
+        for (&x, &a) in r.x_counts.iter().zip(&r.current_a) {
+            offset.push(model4.model4_step(x, a).1.slip_um);
+        }
+    }
+    if let Some((rest_um, half_travel_mm)) = rest_of(runs, &offset, rig.counts_per_mm()) {
+        term.rest_um = rest_um;
+        term.half_travel_mm = half_travel_mm;
+    }
+    Ok(solve(&offset).map(|(v, sse)| (term, v, sse)))
+}
+
+/// Ticks the motor must stand (within 2 counts) before and after a sample for it to be at rest:
+/// 20 ms at 2 kHz.
+const REST_TICKS: usize = 40;
+
+/// The placement's model of the belt observer's rest ([`BeltTerm::rest_um`],
+/// [`BeltTerm::half_travel_mm`]) from its own offsets along the recordings: between two rests
+/// with one-way travel `L` between them, the offset goes from `o0` to `r_d + (o0 - r_d)
+/// 2^(-L / H)`. `H` by a search over 1 um to 1 m, `r_d` per direction by least squares for each.
+/// `None` without a pair of rests each way.
+fn rest_of(runs: &[Prepared], offset_um: &[f64], counts_per_mm: f64) -> Option<([f64; 2], f64)> {
+    // (one-way travel in mm, forward, offset at the first rest, at the second).
+    let mut pairs: Vec<(f64, bool, f64, f64)> = Vec::new();
+    let mut at = 0;
+    for r in runs {
+        let x = &r.x_counts;
+        let o = &offset_um[at..at + x.len()];
+        at += x.len();
+        let still = |k: usize| {
+            k >= REST_TICKS
+                && k + REST_TICKS < x.len()
+                && x[k - REST_TICKS..=k + REST_TICKS]
+                    .iter()
+                    .all(|&v| (i64::from(v) - i64::from(x[k])).abs() <= 2)
+        };
+        // The last tick of each rest, then the pair with the next rest when the way between
+        // is one-way.
+        let mut last: Option<usize> = None;
+        let mut k = 0;
+        while k < x.len() {
+            if !still(k) {
+                k += 1;
+                continue;
+            }
+            let mut end = k;
+            while end + 1 < x.len() && still(end + 1) {
+                end += 1;
+            }
+            if let Some(p) = last {
+                let way = &x[p..=k];
+                let d = i64::from(x[k]) - i64::from(x[p]);
+                let (lo, hi) = way
+                    .iter()
+                    .fold((i32::MAX, i32::MIN), |(l, h), &v| (l.min(v), h.max(v)));
+                let one_way = d != 0 && i64::from(hi) - i64::from(lo) <= d.abs() + 4;
+                if one_way {
+                    pairs.push((d.abs() as f64 / counts_per_mm, d > 0, o[p], o[end]));
+                }
+            }
+            last = Some(end);
+            k = end + 1;
+        }
+    }
+    if !(pairs.iter().any(|p| p.1) && pairs.iter().any(|p| !p.1)) {
+        return None;
+    }
+    let fit = |h: f64| -> ([f64; 2], f64) {
+        let mut rest = [0.0; 2];
+        for (dir, r) in rest.iter_mut().enumerate() {
+            let (mut num, mut den) = (0.0, 0.0);
+            for &(l, _, o0, o1) in pairs.iter().filter(|p| p.1 == (dir == 1)) {
+                let e = (-l / h).exp2();
+                num += (1.0 - e) * (o1 - o0 * e);
+                den += (1.0 - e) * (1.0 - e);
+            }
+            *r = if den > 0.0 { num / den } else { 0.0 };
+        }
+        let sse = pairs
+            .iter()
+            .map(|&(l, fwd, o0, o1)| {
+                let e = (-l / h).exp2();
+                let r = rest[fwd as usize];
+                (o1 - (r + (o0 - r) * e)).powi(2)
+            })
+            .sum();
+        (rest, sse)
+    };
+    // 1 um (two counts at least) to 1 m of travel, 8 a decade.
+    let (rest, h, _) = (0..=48)
+        .map(|i| (1e-3 * 10f64.powf(i as f64 / 8.0)).max(2.0 / counts_per_mm))
+        .map(|h| {
+            let (r, sse) = fit(h);
+            (r, h, sse)
+        })
+        .fold(([0.0; 2], 1.0, f64::INFINITY), |best, c| {
+            if c.2 < best.2 {
+                c
+            } else {
+                best
+            }
+        });
+    Some((rest, h))
 }
 
 /// Model 4's terms besides the observer: two per play, the band line, the hats, the harmonics,

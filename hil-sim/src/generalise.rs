@@ -234,9 +234,10 @@ pub fn measure(
     plant: &PlantParams,
     scenarios: &[Scenario],
     plan_seed: u64,
+    observer: eval::Observer,
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<PlantTable, Error> {
-    let cal = eval::calibrate_plant_with(plant, plan_seed, &[], progress)?;
+    let cal = eval::calibrate_plant_for(plant, plan_seed, &[], observer, progress)?;
     let coeffs = cal.params.build(&plant.rig())?;
     let limits = drive_setup::drive_limits(plant.rig());
     let mut rows = Vec::new();
@@ -294,6 +295,7 @@ pub fn measure(
 pub fn measure_all(
     jobs: &[(PlantParams, Vec<Scenario>)],
     plan_seed: u64,
+    observer: eval::Observer,
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Vec<PlantTable>, Error> {
     use std::sync::atomic::{AtomicUsize, Ordering};
@@ -306,7 +308,7 @@ pub fn measure_all(
             .iter()
             .map(|(p, w)| {
                 let name = p.name().to_string();
-                measure(p, w, plan_seed, &mut |s, f| {
+                measure(p, w, plan_seed, observer, &mut |s, f| {
                     progress(&format!("{name}: {s}"), f)
                 })
             })
@@ -327,7 +329,7 @@ pub fn measure_all(
                 };
                 let name = plant.name().to_string();
                 let mut stage = String::new();
-                let r = measure(plant, scenarios, plan_seed, &mut |s, _| {
+                let r = measure(plant, scenarios, plan_seed, observer, &mut |s, _| {
                     if s != stage {
                         stage = s.to_string();
                         // The receiver outlives every worker; a failed send loses progress only.

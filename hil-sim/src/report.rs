@@ -338,10 +338,12 @@ pub fn write(
         let w = crate::generalise::workloads(&p, crate::generalise::TABLE_SEED)?;
         jobs.push((p, w));
     }
-    let tables =
-        crate::generalise::measure_all(&jobs, crate::eval::CALIBRATION_PLAN_SEED, &mut |s, f| {
-            progress.stage(&format!("generalisation: {s}"), f)
-        })?;
+    let tables = crate::generalise::measure_all(
+        &jobs,
+        crate::eval::CALIBRATION_PLAN_SEED,
+        crate::eval::Observer::default(),
+        &mut |s, f| progress.stage(&format!("generalisation: {s}"), f),
+    )?;
     md += "\n## Generalisation (every estimator, held-out workloads, five plants)\n\n";
     md += "RMS of e in um; floor: RMS of the tick-by-tick difference of x_LS - x_PE between two \
            noise seeds, / sqrt 2. Each plant is calibrated by its own default plan; generated \

@@ -35,11 +35,18 @@ fn fig18_pil_is_bit_identical_to_the_host() {
     let plant = PlantParams::paper_rig();
     let cal = paper_calibration();
     let scenario = Scenario::load("fig18").unwrap();
-    let pil = assert_pil_matches_host(elf, &plant, &cal.params, &scenario, ModelKind::Table, 3);
-    eprintln!(
-        "fig18: {} ticks bit-identical between host and firmware under QEMU",
-        pil.records.len()
+    // Model 3, and Model 4 with the belt observer the default calibration gives it.
+    assert!(
+        cal.params.model4.belt.is_some(),
+        "the paper rig's Model 4 has its belt observer"
     );
+    for model in [ModelKind::Table, ModelKind::Operator] {
+        let pil = assert_pil_matches_host(elf.clone(), &plant, &cal.params, &scenario, model, 3);
+        eprintln!(
+            "fig18, {model}: {} ticks bit-identical between host and firmware under QEMU",
+            pil.records.len()
+        );
+    }
 }
 
 /// Runs `scenario` in-process and with the firmware under QEMU (the pipe transport) with the

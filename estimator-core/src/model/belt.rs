@@ -161,50 +161,50 @@ const MAX_LENGTH_M: f64 = 100.0;
 const MAX_SMALL_M: f64 = 0.01;
 
 /// The observer's build-time constants.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct BeltCoeffs {
-    m_per_count: Gain,
-    accel: Gain,
-    sigma0: Gain,
-    sigma1_t: Gain,
-    m1_t: Gain,
-    inv_stribeck: Gain,
-    kappa: Gain,
-    damping_t: Gain,
-    tt_per_m: Gain,
-    tooth: Gain,
-    span_per_ae_l: Gain,
-    inv_length: Gain,
-    mu_kinetic_q30: i32,
-    dmu_q30: i32,
+    pub(crate) m_per_count: Gain,
+    pub(crate) accel: Gain,
+    pub(crate) sigma0: Gain,
+    pub(crate) sigma1_t: Gain,
+    pub(crate) m1_t: Gain,
+    pub(crate) inv_stribeck: Gain,
+    pub(crate) kappa: Gain,
+    pub(crate) damping_t: Gain,
+    pub(crate) tt_per_m: Gain,
+    pub(crate) tooth: Gain,
+    pub(crate) span_per_ae_l: Gain,
+    pub(crate) inv_length: Gain,
+    pub(crate) mu_kinetic_q30: i32,
+    pub(crate) dmu_q30: i32,
     /// `sigma0` and `sigma1 / T` as friction coefficient (Q30) per slip (Q36 m), times 2^8:
     /// the bristles' growth over the step in the balance ([`BeltState::advance`]).
-    sigma0_q8: i32,
-    sigma1_t_q8: i32,
-    wrap_q28: i32,
-    preload_q16: i32,
-    preload_wrap_q16: i32,
-    tooth_n_per_m: u32,
-    damping_t_n_per_m: u32,
-    gear_compliance_q56: u64,
-    guide_q16: i32,
-    guide_delta_q16: [i32; MAX_GUIDE_BINS],
-    guide_bins: u32,
-    guide_start_q16: i32,
+    pub(crate) sigma0_q8: i32,
+    pub(crate) sigma1_t_q8: i32,
+    pub(crate) wrap_q28: i32,
+    pub(crate) preload_q16: i32,
+    pub(crate) preload_wrap_q16: i32,
+    pub(crate) tooth_n_per_m: u32,
+    pub(crate) damping_t_n_per_m: u32,
+    pub(crate) gear_compliance_q56: u64,
+    pub(crate) guide_q16: i32,
+    pub(crate) guide_delta_q16: [i32; MAX_GUIDE_BINS],
+    pub(crate) guide_bins: u32,
+    pub(crate) guide_start_q16: i32,
     /// Q16 m to Q16 points.
-    guide_per_step: Gain,
-    half_gap_q36: i32,
-    gear_half_q36: i32,
-    length_q16: i32,
-    span_offset_q16: i32,
-    max_slip_q36: i32,
-    jump_q36: i32,
+    pub(crate) guide_per_step: Gain,
+    pub(crate) half_gap_q36: i32,
+    pub(crate) gear_half_q36: i32,
+    pub(crate) length_q16: i32,
+    pub(crate) span_offset_q16: i32,
+    pub(crate) max_slip_q36: i32,
+    pub(crate) jump_q36: i32,
     /// The tracking filter's gains in Q32 for one step: position `1 - t^3`, velocity
     /// `1.5 (1 - t)^2 (1 + t)`, acceleration `2 * 0.5 (1 - t)^3`. (In Q31 `i32`s, one `SMULL`
     /// each, the step measured 14 instructions more.)
-    track_q32: [i64; 3],
+    pub(crate) track_q32: [i64; 3],
     /// Ticks per step ([`BeltState::tick`]), 1 to [`MAX_STEP_TICKS`].
-    every: u8,
+    pub(crate) every: u8,
 }
 
 impl BeltParams {
@@ -406,14 +406,14 @@ fn q(v: f64, bits: f64, f: ConfigField) -> Result<i32, ConfigError> {
 /// a step applies some twenty factors). Factors from 2^-1 up carry 31 significant bits; smaller
 /// ones `31 + log2 factor` (the smallest physics `build` accepts keep 20 or more), and below
 /// 2^-32 a factor multiplies to 0.
-#[derive(Clone, Copy, Debug, PartialEq)]
-struct Gain {
-    mant: i32,
-    shift: u8,
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Gain {
+    pub(crate) mant: i32,
+    pub(crate) shift: u8,
 }
 
 /// [`Gain`]'s largest shift.
-const GAIN_MAX_SHIFT: u8 = 31;
+pub(crate) const GAIN_MAX_SHIFT: u8 = 31;
 
 impl Gain {
     fn new(v: f64, f: ConfigField) -> Result<Gain, ConfigError> {
@@ -591,7 +591,43 @@ struct Pending {
     du: i32,
 }
 
+impl Pending {
+    const NONE: Pending = Pending {
+        next: 0,
+        ds: 0,
+        dcounts: 0,
+        x16: 0,
+        k_chain: 0,
+        ratio: 0,
+        lambda: 0,
+        decay: 0,
+        phi: 0,
+        m0: 0,
+        kz_q8: 0,
+        rel: 0,
+        du: 0,
+    };
+}
+
 impl BeltState {
+    /// Nothing observed: a value to hold until [`BeltState::new`] starts the observer.
+    pub const ZERO: BeltState = BeltState {
+        counts: 0,
+        track: [0; 3],
+        d: 0,
+        v: 0,
+        o: 0,
+        z: 0,
+        du: 0,
+        slide: 0,
+        pending: Pending::NONE,
+        now_counts: 0,
+        ahead_counts: 0,
+        ahead_per_count: 0,
+        ticks: 0,
+        current_sum: 0,
+    };
+
     /// At rest at motor position `counts`, on the forward flanks and unloaded.
     pub fn new(c: &BeltCoeffs, counts: i32) -> BeltState {
         BeltState {
@@ -610,6 +646,17 @@ impl BeltState {
             ticks: 0,
             current_sum: 0,
         }
+    }
+
+    /// [`BeltState::new`] on the flanks that motion in the registered direction leans on
+    /// (reverse: the mirror image), for an observer started after a move.
+    pub fn start(c: &BeltCoeffs, counts: i32, forward: bool) -> BeltState {
+        let mut s = BeltState::new(c, counts);
+        if !forward {
+            s.d = c.half_gap_q36.saturating_sub(c.gear_half_q36);
+            s.o = c.half_gap_q36.saturating_neg();
+        }
+        s
     }
 
     /// One tick of the drive: a step begins every [`BeltParams::build_every`] ticks, on this
@@ -665,6 +712,11 @@ impl BeltState {
             .min(most)
             .max(-most) as i32;
         to_um_bits(self.o.saturating_add(ahead))
+    }
+
+    /// The latest counts the observer was given.
+    pub fn now_counts(&self) -> i32 {
+        self.now_counts
     }
 
     /// The committed step's mesh offset, not carried forward ([`BeltState::offset_um_bits`]),

@@ -106,7 +106,7 @@ pub use convert::MAX_ABS_UM;
 pub use exponential::{Model2Coeffs, Model2Params};
 pub use fixmath::Scale;
 pub use linear::{LinearBand, Model1Coeffs, Model1Params};
-pub use operator::{Model4Coeffs, Model4Params};
+pub use operator::{BeltTerm, BeltTermCoeffs, Model4Coeffs, Model4Params};
 pub use table::{
     BandCoeffs, BandParams, Model3Coeffs, Model3Params, Model3Source, TransitionCoeffs,
     TransitionParams, MAX_BAND_POINTS, MAX_TRANSITION_D, MAX_TRANSITION_G0,
@@ -245,8 +245,8 @@ impl Default for ModelParams {
     }
 }
 
-/// Fixed-point coefficients of every model and baseline; immutable per tick. 3448 bytes on the
-/// drive (3496 on the host, with the closing distances), of which Model 3's tables take 2112
+/// Fixed-point coefficients of every model and baseline; immutable per tick. 3888 bytes on the
+/// drive (3936 on the host, with the closing distances), of which Model 3's tables take 2112
 /// and the bidirectional table 1 KiB.
 ///
 /// In this order, so that Model 3's band headers sit within reach of one `LDRD` from the drive's
@@ -264,17 +264,18 @@ pub struct ModelCoeffs {
 }
 
 // The firmware keeps one `ModelCoeffs` in static RAM (budget 8 KiB) and moves it when a
-// calibration loads: any growth must be deliberate (3428 B with the host's closing distances,
+// calibration loads: any growth must be deliberate (3936 B with the host's closing distances,
 // the 256-row bidirectional table 1 KiB in I13F3, Model 3's even-axis bands 528 B and Model 4
-// 160 B of it; ModelState 128 B, Model 4's plays and its slip observer 32 B of it, Model 3's
+// 668 B of it, 508 B its belt observer's; ModelState 264 B, Model 4's plays and its slip
+// observer 32 B of it, its belt observer and the placement's prediction of it 136 B, Model 3's
 // line over the current stretch and its half-drawn successor 40 B). Exact: a shrink shows here
 // too.
 #[cfg(feature = "std")]
-const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3428);
+const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3936);
 // On the drive (no closing distances): what the static RAM figures count.
 #[cfg(not(feature = "std"))]
-const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3380);
-const _: () = assert!(core::mem::size_of::<ModelState>() == 128);
+const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3888);
+const _: () = assert!(core::mem::size_of::<ModelState>() == 264);
 
 impl ModelCoeffs {
     /// Everything zero and no tables: a value to decode a calibration image into
@@ -347,6 +348,7 @@ impl ModelCoeffs {
                 current_um_per_a: I16F16::ZERO,
                 current_lp_um_per_a: I16F16::ZERO,
                 slip: slip::SlipCoeffs::ZERO,
+                belt: None,
             },
             backlash: BacklashCoeffs {
                 forward_um: I16F16::ZERO,
@@ -448,6 +450,10 @@ pub struct ModelState {
     pub(crate) plays: operator::Plays,
     /// Model 4's belt-slip observer (restarted with the plays).
     pub(crate) slip: slip::Slip,
+    /// Model 4's belt observer, where the calibration has one (restarted with the plays).
+    pub(crate) belt: belt::BeltState,
+    /// The placement's predicted rest of its offset (a copy's, [`estimate`]).
+    pub(crate) belt_rest: operator::BeltRest,
     /// Model 4's low-passed current, I16F16 amperes (restarted with the plays).
     pub(crate) current_lp_bits: i32,
 }
@@ -470,6 +476,8 @@ impl ModelState {
             piece: table::Piece::NONE,
             plays: operator::Plays::NEW,
             slip: slip::Slip::NEW,
+            belt: belt::BeltState::ZERO,
+            belt_rest: operator::BeltRest::NONE,
             current_lp_bits: 0,
         }
     }
@@ -555,7 +563,7 @@ pub fn estimate(
         state.current_lp_bits = 0;
         state.slip.lp_bits = 0;
     }
-    estimate_with_current(coeffs, kind, state, x_counts, I16F16::ZERO)
+    estimate_at(coeffs, kind, state, x_counts, I16F16::ZERO, true)
 }
 
 /// [`estimate`] with the motor current commanded this tick (amperes in the drive's frame,
@@ -566,6 +574,19 @@ pub fn estimate_with_current(
     state: &mut ModelState,
     x_counts: i32,
     current_a: I16F16,
+) -> I16F16 {
+    estimate_at(coeffs, kind, state, x_counts, current_a, false)
+}
+
+/// [`estimate_with_current`]; `predict`: [`estimate`]'s prediction at rest (Model 4's belt
+/// observer predicts its rest instead of stepping).
+fn estimate_at(
+    coeffs: &ModelCoeffs,
+    kind: ModelKind,
+    state: &mut ModelState,
+    x_counts: i32,
+    current_a: I16F16,
+    predict: bool,
 ) -> I16F16 {
     state.track(coeffs.deadband_counts, x_counts);
     if kind != ModelKind::Operator {
@@ -580,7 +601,7 @@ pub fn estimate_with_current(
         ModelKind::Table => table::eval(&coeffs.model3, state, x_counts),
         ModelKind::Backlash => baseline::eval_backlash(&coeffs.backlash, state),
         ModelKind::BidirTable => baseline::eval_bidir(&coeffs.bidir, state, x_counts),
-        ModelKind::Operator => operator::eval(&coeffs.model4, state, x_counts, current_a),
+        ModelKind::Operator => operator::eval(&coeffs.model4, state, x_counts, current_a, predict),
     };
     if x_counts == state.x_ext_counts {
         state.y_ext_um = y;

@@ -53,7 +53,9 @@
 use crate::ConfigField;
 use fixed::types::I16F16;
 
+use super::belt::{BeltCoeffs, BeltParams, BeltState};
 use super::convert::{finite, MAX_ABS_UM};
+use super::fixmath::{exp2_neg_q30, Scale};
 use super::slip::{SlipCoeffs, SlipParams};
 use super::{Direction, ModelState};
 use crate::ConfigError;
@@ -116,6 +118,69 @@ pub struct Model4Params {
     pub current_lp_um_per_a: f64,
     /// The belt-slip observer and the weight of its mesh offset.
     pub slip: SlipParams,
+    /// The reduced plant observer ([`super::belt`]) whose mesh offset, weighted, takes the slip
+    /// observer's place (the slip observer is then not run); `None`: the slip observer.
+    pub belt: Option<BeltTerm>,
+}
+
+/// Model 4's belt observer term: identified physics, the step it was built for, and the weight
+/// of its mesh offset.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BeltTerm {
+    /// The observer's physics (identified by calibration).
+    pub physics: BeltParams,
+    /// The control tick the physics were identified at, s (the drive's `1 / rate_hz`).
+    pub tick_s: f64,
+    /// Ticks per observer step, 1 to [`super::belt::MAX_STEP_TICKS`].
+    pub step_ticks: u32,
+    /// Error per unit of mesh offset (um per um), within +-8.
+    pub weight: f64,
+    /// Where the offset settles at rest after travel in reverse (`[0]`) and forward (`[1]`),
+    /// um: the placement's prediction ([`crate::model::estimate`]), measured by calibration on
+    /// the observer's own offsets.
+    pub rest_um: [f64; 2],
+    /// Travel that halves the offset's way to its rest value, mm (> 0).
+    pub half_travel_mm: f64,
+}
+
+/// [`BeltTerm`] built: the observer's coefficients and the offset's weight, Q16.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BeltTermCoeffs {
+    pub(crate) c: BeltCoeffs,
+    pub(crate) weight_q16: i32,
+    /// [`BeltTerm::rest_um`], I16F16 um.
+    pub(crate) rest_bits: [i32; 2],
+    /// Counts to the exponent of `2^-t` (Q32.32) of the offset's approach to rest.
+    pub(crate) approach: Scale,
+}
+
+impl BeltTerm {
+    /// Checks every field (errors name it) and builds the observer for `counts_per_mm`.
+    pub fn build(&self, counts_per_mm: f64) -> Result<BeltTermCoeffs, ConfigError> {
+        let c = self.physics.build_every(self.tick_s, self.step_ticks)?;
+        let w = finite(self.weight, ConfigField::Model4BeltWeight)?;
+        if w.abs() > 8.0 {
+            return Err(ConfigError::OutOfRange(ConfigField::Model4BeltWeight));
+        }
+        let rest = [
+            um(self.rest_um[0], ConfigField::Model4BeltRestUm)?,
+            um(self.rest_um[1], ConfigField::Model4BeltRestUm)?,
+        ];
+        let half = finite(self.half_travel_mm, ConfigField::Model4BeltHalfTravelMm)?;
+        // At least a count, at most 10 m.
+        if !(half * counts_per_mm >= 1.0 && half <= 10_000.0) {
+            return Err(ConfigError::OutOfRange(ConfigField::Model4BeltHalfTravelMm));
+        }
+        Ok(BeltTermCoeffs {
+            c,
+            weight_q16: rnd(w * 65536.0) as i32,
+            rest_bits: rest.map(I16F16::to_bits),
+            approach: Scale::from_f64(
+                (1u64 << 32) as f64 / (half * counts_per_mm),
+                ConfigField::Model4BeltHalfTravelMm,
+            )?,
+        })
+    }
 }
 
 impl Model4Params {
@@ -141,6 +206,7 @@ impl Model4Params {
             current_um_per_a: 0.0,
             current_lp_um_per_a: 0.0,
             slip: SlipParams::ZERO,
+            belt: None,
         }
     }
 
@@ -226,6 +292,10 @@ impl Model4Params {
             current_um_per_a: um(self.current_um_per_a, ConfigField::Model4CurrentUmPerA)?,
             current_lp_um_per_a: um(self.current_lp_um_per_a, ConfigField::Model4CurrentLpUmPerA)?,
             slip: self.slip.build(counts_per_mm)?,
+            belt: match &self.belt {
+                Some(b) => Some(b.build(counts_per_mm)?),
+                None => None,
+            },
         })
     }
 }
@@ -279,6 +349,8 @@ pub struct Model4Coeffs {
     pub(crate) current_lp_um_per_a: I16F16,
     /// The belt-slip observer.
     pub(crate) slip: SlipCoeffs,
+    /// The belt observer in the slip observer's place.
+    pub(crate) belt: Option<BeltTermCoeffs>,
 }
 
 /// Sine of `i / 256` of a turn in Q15, `i = 0..=256`, for interpolation.
@@ -411,22 +483,111 @@ impl Plays {
     }
 }
 
+/// The mesh offset's weighted term, Q24 um: the belt observer's where the calibration has one,
+/// else the slip observer's. Each is started (on the registered direction's flanks) when the
+/// plays are, and steps every tick after.
+#[inline(always)]
+fn mesh_offset_term(
+    c: &Model4Coeffs,
+    state: &mut ModelState,
+    starting: bool,
+    predict: bool,
+    forward: bool,
+    x: i32,
+    current_bits: i32,
+) -> i64 {
+    if let Some(b) = &c.belt {
+        if starting {
+            state.belt = BeltState::start(&b.c, x, forward);
+            state.belt_rest.valid = false;
+        }
+        let offset_bits = if predict {
+            predict_rest(b, state, x)
+        } else {
+            if !starting {
+                state.belt.tick(&b.c, x, current_bits);
+            }
+            state.belt_rest.valid = false;
+            state.belt.offset_um_bits()
+        };
+        return (b.weight_q16 as i64 * offset_bits as i64) >> 8;
+    }
+    if starting {
+        state.slip.start(&c.slip, forward, x, current_bits);
+    } else {
+        state.slip.step(&c.slip, forward, x, current_bits);
+    }
+    state.slip.term(&c.slip)
+}
+
+/// Where the belt observer's offset will rest after travel to `x` (the placement's prediction,
+/// [`crate::model::estimate`]): from the offset now, or the last prediction's, it approaches
+/// the rest value of the direction of travel, halving its way every
+/// [`BeltTerm::half_travel_mm`]. I16F16 um; the observer itself does not move.
+#[inline(never)]
+fn predict_rest(b: &BeltTermCoeffs, state: &mut ModelState, x: i32) -> i32 {
+    let r = &mut state.belt_rest;
+    let (from, o) = if r.valid {
+        (r.counts, r.offset_bits)
+    } else {
+        (state.belt.now_counts(), state.belt.offset_um_bits())
+    };
+    let d = x as i64 - from as i64;
+    let o = if d == 0 {
+        o
+    } else {
+        let rest = b.rest_bits[(d > 0) as usize];
+        let travel = d.unsigned_abs().min(u32::MAX as u64) as u32;
+        let k = exp2_neg_q30(b.approach.apply(travel)) as i64;
+        let gap = o as i64 - rest as i64;
+        (rest as i64 + ((gap * k) >> 30)) as i32
+    };
+    *r = BeltRest {
+        valid: true,
+        counts: x,
+        offset_bits: o,
+    };
+    o
+}
+
+/// The placement's predicted rest of the belt observer's offset, on a copy of the model state
+/// ([`predict_rest`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub(crate) struct BeltRest {
+    pub(crate) valid: bool,
+    pub(crate) counts: i32,
+    pub(crate) offset_bits: i32,
+}
+
+impl BeltRest {
+    pub(crate) const NONE: BeltRest = BeltRest {
+        valid: false,
+        counts: 0,
+        offset_bits: 0,
+    };
+}
+
 /// One tick of Model 4: moves the plays and the observer with `x` and sums every term. Out of
 /// line: inlined into the dispatch it made every other model's tick dearer (measured).
 #[inline(never)]
-pub(crate) fn eval(c: &Model4Coeffs, state: &mut ModelState, x: i32, current_a: I16F16) -> I16F16 {
+pub(crate) fn eval(
+    c: &Model4Coeffs,
+    state: &mut ModelState,
+    x: i32,
+    current_a: I16F16,
+    predict: bool,
+) -> I16F16 {
     let forward = state.dir == Direction::Forward;
     let current_bits = current_a.to_bits();
-    if !state.plays.valid {
+    let mut acc: i64 = (c.offset_um.to_bits() as i64) << 8;
+    let starting = !state.plays.valid;
+    if starting {
         state.plays.start(c, state.dir, x);
         state.current_lp_bits = current_bits;
-        state.slip.start(&c.slip, forward, x, current_bits);
     } else {
         state.current_lp_bits = current_lowpass(state.current_lp_bits, current_bits);
-        state.slip.step(&c.slip, forward, x, current_bits);
     }
-    let mut acc: i64 = (c.offset_um.to_bits() as i64) << 8;
-    acc += state.slip.term(&c.slip);
+    acc += mesh_offset_term(c, state, starting, predict, forward, x, current_bits);
     // `x - x_ref` saturated to `i32`.
     let dx = x.saturating_sub(c.x_ref_counts);
     acc += (dx as i64 * c.slope_q31 as i64) >> 7;
@@ -470,6 +631,78 @@ mod tests {
             m.play_forward_um_per_mm[j] = f;
         }
         m.build(1868.0).expect("plays build")
+    }
+
+    /// The placement's prediction with the belt observer: from the offset now it approaches
+    /// the rest of the direction of travel by `2^(-L / H)` (within 0.05 um of that in `f64`),
+    /// a second prediction continues from the first, and the observer itself never moves.
+    #[test]
+    fn the_belt_prediction_approaches_the_rest_of_its_direction() {
+        use crate::model::{estimate, estimate_with_current, ModelKind, ModelParams, ModelState};
+        use crate::rig::Rig;
+        let rig = Rig::PAPER;
+        let cpm = rig.counts_per_mm();
+        let (rest, half_mm) = ([-120.0, 135.0], 8.0);
+        let mut p = ModelParams::PAPER;
+        p.model4.belt = Some(BeltTerm {
+            physics: BeltParams {
+                m_per_count: 1e-3 / cpm,
+                ..BeltParams::PAPER
+            },
+            tick_s: 1.0 / 2000.0,
+            step_ticks: 6,
+            weight: 1.0,
+            rest_um: rest,
+            half_travel_mm: half_mm,
+        });
+        let c = p.build(&rig).unwrap();
+        let mut s = ModelState::new(0);
+        // Out and part of the way back, with a current that loads the belt.
+        for k in 0..4000i32 {
+            let x = if k < 3000 {
+                k * 4
+            } else {
+                12_000 - (k - 3000) * 3
+            };
+            let a = I16F16::from_num(if k < 3000 { 1.5 } else { -1.0 });
+            estimate_with_current(&c, ModelKind::Operator, &mut s, x, a);
+        }
+        let here = s.belt.now_counts();
+        let o_now = s.belt.offset_um_bits() as f64 / 65536.0;
+        let predict = |o: f64, from: i32, to: i32| {
+            let r = rest[(to > from) as usize];
+            let l_mm = (to - from).abs() as f64 / cpm;
+            r + (o - r) * (-l_mm / half_mm).exp2()
+        };
+        let offset_after = |state: &ModelState| state.belt_rest.offset_bits as f64 / 65536.0;
+        for target in [here, here + 1, here - 1_000, 20_000, -400_000, 2_000_000] {
+            let mut copy = s.clone();
+            estimate(&c, ModelKind::Operator, &mut copy, target);
+            assert_eq!(copy.belt, s.belt, "the observer moved");
+            let want = predict(o_now, here, target);
+            let got = offset_after(&copy);
+            assert!(
+                (got - want).abs() <= 0.05,
+                "to {target}: {got} against {want}"
+            );
+            // Through a stopping point, then back.
+            estimate(&c, ModelKind::Operator, &mut copy, target - 5_000);
+            let want = predict(want, target, target - 5_000);
+            let got = offset_after(&copy);
+            assert!(
+                (got - want).abs() <= 0.05,
+                "back from {target}: {got} against {want}"
+            );
+        }
+        // Far enough, the offset rests at its direction's value.
+        let mut copy = s.clone();
+        estimate(
+            &c,
+            ModelKind::Operator,
+            &mut copy,
+            here + (400.0 * cpm) as i32,
+        );
+        assert!((offset_after(&copy) - rest[1]).abs() <= 0.05);
     }
 
     #[test]

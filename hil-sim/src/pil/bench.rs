@@ -45,11 +45,28 @@ pub struct RunReport {
 }
 
 /// The calibration image both sides load before a run with a model: the paper's parameters
-/// (Model 3 sampled from Model 1), built exactly as for a calibration `hil-sim calibrate` writes.
+/// (Model 3 sampled from Model 1), and Model 4 with the belt observer of the paper rig's
+/// physics (its guide profile in every point, a unit weight), as a calibration by `hil-sim
+/// calibrate` has it; built exactly as for a calibration it writes.
 pub fn paper_image() -> Result<Vec<u8>, PilError> {
+    use estimator_core::model::belt::{BeltParams, MAX_GUIDE_BINS};
     let cfg = DriveConfig::paper_rig();
+    let mut physics = BeltParams::PAPER;
+    physics.guide_bins = MAX_GUIDE_BINS;
+    for (k, d) in physics.guide_delta_n.iter_mut().enumerate() {
+        *d = 0.8 * (k as f64 * 0.6).sin();
+    }
+    let mut params = ModelParams::PAPER;
+    params.model4.belt = Some(estimator_core::model::BeltTerm {
+        physics,
+        tick_s: 1.0 / cfg.settings.rate_hz,
+        step_ticks: crate::calibrate::BELT_STEP_TICKS,
+        weight: -1.0,
+        rest_um: [-130.0, 140.0],
+        half_travel_mm: 10.0,
+    });
     Ok(estimator_core::image::of_params(
-        &ModelParams::PAPER,
+        &params,
         &cfg.settings.rig,
     )?)
 }

@@ -41,7 +41,12 @@ fn assert_model4_best_held_out(plants: impl IntoIterator<Item = hil_sim::PlantPa
             (plant, generated)
         })
         .collect();
-    let tables = generalise::measure_all(&jobs, eval::CALIBRATION_PLAN_SEED, &mut |_, _| {});
+    let tables = generalise::measure_all(
+        &jobs,
+        eval::CALIBRATION_PLAN_SEED,
+        eval::Observer::default(),
+        &mut |_, _| {},
+    );
     for (t, (plant, _)) in tables.unwrap().iter().zip(&jobs) {
         assert_eq!(t.rows.len(), 6, "{}: a workload was refused", plant.name());
         let m4 = held_out(t, "model4");
