@@ -30,7 +30,7 @@
 //!                     I16F16, creep per mm I8F24, limit um, half gap um, weight I16F16,
 //!                     belt observer: present u32 (0: none, the rest absent), tick s f64,
 //!                     ticks a step u32, weight I16F16, rest reverse, forward um I16F16,
-//!                     half travel mm f64, 21 physics f64 (SI, `BeltParams`'
+//!                     half travels fast, slow mm f64, fast share I8F24, 21 physics f64 (SI, `BeltParams`'
 //!                     order), guide points u32, guide start m, step m f64, points x N f64
 //! ```
 //! Slopes are I16F16 um per mm, errors I16F16 um, Model 2 rates I8F24 per mm. Decoding checks
@@ -68,7 +68,7 @@ pub const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 8) + BELT_BYT
 pub const MODEL4_NO_BELT_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 8) + 4;
 /// Model 4's belt observer: presence, tick, step and weight, 21 physics and the guide
 /// profile's count, start, step and points.
-const BELT_BYTES: usize = 4 + 8 + 4 + 4 + 8 + 8 + 8 * 21 + 4 + 16 + 8 * MAX_GUIDE_BINS;
+const BELT_BYTES: usize = 4 + 8 + 4 + 4 + 8 + 16 + 4 + 8 * 21 + 4 + 16 + 8 * MAX_GUIDE_BINS;
 const RIG_BYTES: usize = 24;
 /// Largest blob: header, rig and dead band, Models 1 and 2, two full bands, two full tables,
 /// backlash and a full bidirectional table.
@@ -691,7 +691,9 @@ fn write_belt(w: &mut Writer<'_>, belt: Option<&BeltTerm>) -> Result<(), BlobErr
     w.fixed(b.weight, Q16, ConfigField::Model4BeltWeight)?;
     w.fixed(b.rest_um[0], Q16, ConfigField::Model4BeltRestUm)?;
     w.fixed(b.rest_um[1], Q16, ConfigField::Model4BeltRestUm)?;
-    w.u64(b.half_travel_mm.to_bits());
+    w.u64(b.half_travel_mm[0].to_bits());
+    w.u64(b.half_travel_mm[1].to_bits());
+    w.fixed(b.fast_share, Q24, ConfigField::Model4BeltFastShare)?;
     let mut p = b.physics;
     for v in belt_scalars(&mut p) {
         w.u64(v.to_bits());
@@ -720,7 +722,8 @@ fn read_belt(r: &mut Reader<'_>) -> Result<Option<BeltTerm>, BlobError> {
     let step_ticks = r.u32()?;
     let weight = r.fixed(Q16)?;
     let rest_um = [r.fixed(Q16)?, r.fixed(Q16)?];
-    let half_travel_mm = f64_(r)?;
+    let half_travel_mm = [f64_(r)?, f64_(r)?];
+    let fast_share = r.fixed(Q24)?;
     let mut physics = BeltParams::PAPER;
     for v in belt_scalars(&mut physics) {
         *v = f64_(r)?;
@@ -744,6 +747,7 @@ fn read_belt(r: &mut Reader<'_>) -> Result<Option<BeltTerm>, BlobError> {
         weight,
         rest_um,
         half_travel_mm,
+        fast_share,
     }))
 }
 

@@ -32,7 +32,8 @@
 //!                     kappa per count Q32 u32, um per count I16F16 u32, limit, half gap I16F16
 //!                     um, weight Q16,
 //!                     belt observer: present u32 (0: none, the rest absent), weight Q16,
-//!                     rest reverse, forward I16F16 um, approach per count (as Model 2's rates),
+//!                     rest reverse, forward I16F16 um, fast and slow approach per count (as
+//!                     Model 2's rates), fast share Q30,
 //!                     13 factors (mantissa i32, shift u32), 7 friction and force words i32,
 //!                     tooth and damping stiffness u32, gear compliance Q56 u64, guide
 //!                     friction Q16, guide points u32, guide start Q16 m, 6 lengths i32,
@@ -79,7 +80,7 @@ const BIDIR_BYTES: usize = 12 + 4 * MAX_BIDIR_ROWS;
 const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 9) + BELT_BYTES;
 /// Model 4's belt observer: presence and weight, 13 factors, 21 words, the guide profile, the
 /// tracking gains and the step.
-const BELT_BYTES: usize = 8 + 16 + 13 * 8 + 4 * 21 + 4 * MAX_GUIDE_BINS + 3 * 8 + 4;
+const BELT_BYTES: usize = 8 + 8 + 20 + 13 * 8 + 4 * 21 + 4 * MAX_GUIDE_BINS + 3 * 8 + 4;
 /// Largest image: every table full.
 pub const MAX_BYTES: usize = HEADER
     + RIG_BYTES
@@ -498,7 +499,11 @@ fn read_belt(r: &mut Stream) -> Result<Option<BeltTermCoeffs>, BlobError> {
         um(r, ANY, F::Model4BeltRestUm)?.to_bits(),
         um(r, ANY, F::Model4BeltRestUm)?.to_bits(),
     ];
-    let approach = read_scale(r, F::Model4BeltHalfTravelMm)?;
+    let approach = [
+        read_scale(r, F::Model4BeltHalfTravelMm)?,
+        read_scale(r, F::Model4BeltHalfTravelMm)?,
+    ];
+    let fast_q30 = i32_in(r, 0, 1 << 30, F::Model4BeltFastShare)?;
     let mut g = [Gain { mant: 0, shift: 1 }; BELT_GAINS.len()];
     for (g, &f) in g.iter_mut().zip(&BELT_GAINS) {
         *g = read_gain(r, f)?;
@@ -588,6 +593,7 @@ fn read_belt(r: &mut Stream) -> Result<Option<BeltTermCoeffs>, BlobError> {
         weight_q16,
         rest_bits,
         approach,
+        fast_q30,
     }))
 }
 
@@ -839,7 +845,9 @@ mod write {
         w.i32(b.weight_q16);
         w.i32(b.rest_bits[0]);
         w.i32(b.rest_bits[1]);
-        scale(w, &b.approach);
+        scale(w, &b.approach[0]);
+        scale(w, &b.approach[1]);
+        w.i32(b.fast_q30);
         let c = &b.c;
         for g in [
             c.m_per_count,

@@ -39,7 +39,8 @@ fn params() -> ModelParams {
         step_ticks: 6,
         weight: -0.875,
         rest_um: [-131.5, 140.25],
-        half_travel_mm: 12.5,
+        half_travel_mm: [0.25, 12.5],
+        fast_share: 0.625,
     });
     p
 }
@@ -63,8 +64,8 @@ const MODEL1: usize = 16 + 24 + 4;
 const MODEL2: usize = MODEL1 + 24;
 const MODEL3: usize = MODEL2 + 40;
 /// Model 4's section: widths and two weight sets, five words, the knots, eight words, the slip
-/// observer's nine, then the belt observer's (236 bytes and its guide points).
-const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 9) + 236 + 4 * GUIDE_BINS;
+/// observer's nine, then the belt observer's (248 bytes and its guide points).
+const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 9) + 248 + 4 * GUIDE_BINS;
 
 #[test]
 fn coefficients_arrive_exactly_and_re_encode_to_the_same_bytes() {
@@ -241,7 +242,7 @@ fn every_section_is_checked() {
     let slip = pitch_rate + 4 * 8;
     // The belt observer's section, its factors, words and lengths.
     let belt = slip + 4 * 9;
-    let gains = belt + 24;
+    let gains = belt + 36;
     let words = gains + 8 * 13;
     let lengths = words + 28 + 28;
     assert_refusals(&[

@@ -323,7 +323,9 @@ fn belt(cpm: f64) -> impl Strategy<Value = Option<BeltTerm>> {
                 step_ticks,
                 weight,
                 rest_um,
-                half_travel_mm: half.max(2.0 / cpm),
+                half_travel_mm: [half.max(2.0 / cpm) / 20.0, half.max(2.0 / cpm)]
+                    .map(|h| h.max(2.0 / cpm)),
+                fast_share: (weight.abs() / 1.5).min(1.0),
             }
         });
     prop_oneof![Just(None), term.prop_map(Some)]

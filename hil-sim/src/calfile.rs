@@ -292,7 +292,7 @@ fn models_of(p: &ModelParams) -> Models {
                     ("tick_s", b.tick_s),
                     ("step_ticks", f64::from(b.step_ticks)),
                     ("weight", b.weight),
-                    ("half_travel_mm", b.half_travel_mm),
+                    ("fast_share", b.fast_share),
                     ("mass_kg", p.mass_kg),
                     ("guide_n", p.guide_n),
                     ("preload_n", p.preload_n),
@@ -318,6 +318,10 @@ fn models_of(p: &ModelParams) -> Models {
                     ("guide_profile_step_m", p.guide_step_m),
                 ]);
                 belt.insert("rest_um".into(), floats(&b.rest_um));
+                belt.insert(
+                    "half_travel_mm".into(),
+                    toml::Value::Array(b.half_travel_mm.map(toml::Value::Float).to_vec()),
+                );
                 let guide = p.guide_delta_n[..p.guide_bins.min(p.guide_delta_n.len())]
                     .iter()
                     .map(|&v| toml::Value::Float(v))

@@ -774,7 +774,8 @@ fn belt_term(
         step_ticks: BELT_STEP_TICKS,
         weight: 0.0,
         rest_um: [0.0; 2],
-        half_travel_mm: 10.0,
+        half_travel_mm: [0.3, 10.0],
+        fast_share: 0.5,
     };
     // Physics the drive's builder refuses are not a calibration (the search keeps to them).
     if term.build(rig.counts_per_mm()).is_err() {
@@ -796,9 +797,11 @@ fn belt_term(
             offset.push(model4.model4_step(x, a).1.slip_um);
         }
     }
-    if let Some((rest_um, half_travel_mm)) = rest_of(runs, &offset, rig.counts_per_mm()) {
+    if let Some((rest_um, half_travel_mm, fast_share)) = rest_of(runs, &offset, rig.counts_per_mm())
+    {
         term.rest_um = rest_um;
         term.half_travel_mm = half_travel_mm;
+        term.fast_share = fast_share;
     }
     Ok(solve(&offset).map(|(v, sse)| (term, v, sse)))
 }
@@ -808,11 +811,16 @@ fn belt_term(
 const REST_TICKS: usize = 40;
 
 /// The placement's model of the belt observer's rest ([`BeltTerm::rest_um`],
-/// [`BeltTerm::half_travel_mm`]) from its own offsets along the recordings: between two rests
-/// with one-way travel `L` between them, the offset goes from `o0` to `r_d + (o0 - r_d)
-/// 2^(-L / H)`. `H` by a search over 1 um to 1 m, `r_d` per direction by least squares for each.
-/// `None` without a pair of rests each way.
-fn rest_of(runs: &[Prepared], offset_um: &[f64], counts_per_mm: f64) -> Option<([f64; 2], f64)> {
+/// [`BeltTerm::half_travel_mm`], [`BeltTerm::fast_share`]) from its own offsets along the
+/// recordings: between two rests with one-way travel `L` between them, the offset goes from
+/// `o0` to `r_d + (o0 - r_d) (a 2^(-L / H1) + (1 - a) 2^(-L / H2))`, a fast part (the gap
+/// crossed) and a slow one (the creep). `H1`, `H2` and `a` by a search over a grid, `r_d` per
+/// direction by least squares for each. `None` without a pair of rests each way.
+fn rest_of(
+    runs: &[Prepared],
+    offset_um: &[f64],
+    counts_per_mm: f64,
+) -> Option<([f64; 2], [f64; 2], f64)> {
     // (one-way travel in mm, forward, offset at the first rest, at the second).
     let mut pairs: Vec<(f64, bool, f64, f64)> = Vec::new();
     let mut at = 0;
@@ -858,12 +866,15 @@ fn rest_of(runs: &[Prepared], offset_um: &[f64], counts_per_mm: f64) -> Option<(
     if !(pairs.iter().any(|p| p.1) && pairs.iter().any(|p| !p.1)) {
         return None;
     }
-    let fit = |h: f64| -> ([f64; 2], f64) {
+    // The share of the way still to go after `l` mm: `a 2^(-l / h1) + (1 - a) 2^(-l / h2)`.
+    let left =
+        |l: f64, (h1, h2, a): (f64, f64, f64)| a * (-l / h1).exp2() + (1.0 - a) * (-l / h2).exp2();
+    let fit = |shape: (f64, f64, f64)| -> ([f64; 2], f64) {
         let mut rest = [0.0; 2];
         for (dir, r) in rest.iter_mut().enumerate() {
             let (mut num, mut den) = (0.0, 0.0);
             for &(l, _, o0, o1) in pairs.iter().filter(|p| p.1 == (dir == 1)) {
-                let e = (-l / h).exp2();
+                let e = left(l, shape);
                 num += (1.0 - e) * (o1 - o0 * e);
                 den += (1.0 - e) * (1.0 - e);
             }
@@ -872,28 +883,30 @@ fn rest_of(runs: &[Prepared], offset_um: &[f64], counts_per_mm: f64) -> Option<(
         let sse = pairs
             .iter()
             .map(|&(l, fwd, o0, o1)| {
-                let e = (-l / h).exp2();
                 let r = rest[fwd as usize];
-                (o1 - (r + (o0 - r) * e)).powi(2)
+                (o1 - (r + (o0 - r) * left(l, shape))).powi(2)
             })
             .sum();
         (rest, sse)
     };
-    // 1 um (two counts at least) to 1 m of travel, 8 a decade.
-    let (rest, h, _) = (0..=48)
-        .map(|i| (1e-3 * 10f64.powf(i as f64 / 8.0)).max(2.0 / counts_per_mm))
-        .map(|h| {
-            let (r, sse) = fit(h);
-            (r, h, sse)
-        })
-        .fold(([0.0; 2], 1.0, f64::INFINITY), |best, c| {
-            if c.2 < best.2 {
-                c
-            } else {
-                best
+    // The fast part 20 um to 2 mm, the slow one 1 mm to 1 m (8 a decade, at least two counts),
+    // the share in twentieths.
+    let count2 = 2.0 / counts_per_mm;
+    let h = |from: f64, i: i32| (from * 10f64.powf(f64::from(i) / 8.0)).max(count2);
+    let mut best = ([0.0; 2], (1.0, 10.0, 0.0), f64::INFINITY);
+    for i in 0..=16 {
+        for j in 0..=24 {
+            for k in 0..=20 {
+                let shape = (h(0.02, i), h(1.0, j), f64::from(k) / 20.0);
+                let (rest, sse) = fit(shape);
+                if sse < best.2 {
+                    best = (rest, shape, sse);
+                }
             }
-        });
-    Some((rest, h))
+        }
+    }
+    let (rest, (h1, h2, a), _) = best;
+    Some((rest, [h1, h2], a))
 }
 
 /// Model 4's terms besides the observer: two per play, the band line, the hats, the harmonics,

@@ -245,8 +245,8 @@ impl Default for ModelParams {
     }
 }
 
-/// Fixed-point coefficients of every model and baseline; immutable per tick. 3888 bytes on the
-/// drive (3936 on the host, with the closing distances), of which Model 3's tables take 2112
+/// Fixed-point coefficients of every model and baseline; immutable per tick. 3896 bytes on the
+/// drive (3944 on the host, with the closing distances), of which Model 3's tables take 2112
 /// and the bidirectional table 1 KiB.
 ///
 /// In this order, so that Model 3's band headers sit within reach of one `LDRD` from the drive's
@@ -264,17 +264,17 @@ pub struct ModelCoeffs {
 }
 
 // The firmware keeps one `ModelCoeffs` in static RAM (budget 8 KiB) and moves it when a
-// calibration loads: any growth must be deliberate (3936 B with the host's closing distances,
+// calibration loads: any growth must be deliberate (3944 B with the host's closing distances,
 // the 256-row bidirectional table 1 KiB in I13F3, Model 3's even-axis bands 528 B and Model 4
-// 668 B of it, 508 B its belt observer's; ModelState 264 B, Model 4's plays and its slip
+// 676 B of it, 516 B its belt observer's; ModelState 264 B, Model 4's plays and its slip
 // observer 32 B of it, its belt observer and the placement's prediction of it 136 B, Model 3's
 // line over the current stretch and its half-drawn successor 40 B). Exact: a shrink shows here
 // too.
 #[cfg(feature = "std")]
-const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3936);
+const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3944);
 // On the drive (no closing distances): what the static RAM figures count.
 #[cfg(not(feature = "std"))]
-const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3888);
+const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3896);
 const _: () = assert!(core::mem::size_of::<ModelState>() == 264);
 
 impl ModelCoeffs {

@@ -139,8 +139,11 @@ pub struct BeltTerm {
     /// um: the placement's prediction ([`crate::model::estimate`]), measured by calibration on
     /// the observer's own offsets.
     pub rest_um: [f64; 2],
-    /// Travel that halves the offset's way to its rest value, mm (> 0).
-    pub half_travel_mm: f64,
+    /// Travel that halves the offset's way to its rest value, mm (> 0): the fast part (the
+    /// belt crossing the tooth gap) and the slow one (its creep).
+    pub half_travel_mm: [f64; 2],
+    /// The fast part's share of the way, 0 to 1.
+    pub fast_share: f64,
 }
 
 /// [`BeltTerm`] built: the observer's coefficients and the offset's weight, Q16.
@@ -150,8 +153,11 @@ pub struct BeltTermCoeffs {
     pub(crate) weight_q16: i32,
     /// [`BeltTerm::rest_um`], I16F16 um.
     pub(crate) rest_bits: [i32; 2],
-    /// Counts to the exponent of `2^-t` (Q32.32) of the offset's approach to rest.
-    pub(crate) approach: Scale,
+    /// Counts to the exponent of `2^-t` (Q32.32) of the offset's approach to rest, fast and
+    /// slow part.
+    pub(crate) approach: [Scale; 2],
+    /// The fast part's share, Q30.
+    pub(crate) fast_q30: i32,
 }
 
 impl BeltTerm {
@@ -166,19 +172,28 @@ impl BeltTerm {
             um(self.rest_um[0], ConfigField::Model4BeltRestUm)?,
             um(self.rest_um[1], ConfigField::Model4BeltRestUm)?,
         ];
-        let half = finite(self.half_travel_mm, ConfigField::Model4BeltHalfTravelMm)?;
-        // At least a count, at most 10 m.
-        if !(half * counts_per_mm >= 1.0 && half <= 10_000.0) {
-            return Err(ConfigError::OutOfRange(ConfigField::Model4BeltHalfTravelMm));
+        let mut approach = [Scale::ZERO; 2];
+        for (a, &half) in approach.iter_mut().zip(&self.half_travel_mm) {
+            let half = finite(half, ConfigField::Model4BeltHalfTravelMm)?;
+            // At least a count, at most 10 m.
+            if !(half * counts_per_mm >= 1.0 && half <= 10_000.0) {
+                return Err(ConfigError::OutOfRange(ConfigField::Model4BeltHalfTravelMm));
+            }
+            *a = Scale::from_f64(
+                (1u64 << 32) as f64 / (half * counts_per_mm),
+                ConfigField::Model4BeltHalfTravelMm,
+            )?;
+        }
+        let share = finite(self.fast_share, ConfigField::Model4BeltFastShare)?;
+        if !(0.0..=1.0).contains(&share) {
+            return Err(ConfigError::OutOfRange(ConfigField::Model4BeltFastShare));
         }
         Ok(BeltTermCoeffs {
             c,
             weight_q16: rnd(w * 65536.0) as i32,
             rest_bits: rest.map(I16F16::to_bits),
-            approach: Scale::from_f64(
-                (1u64 << 32) as f64 / (half * counts_per_mm),
-                ConfigField::Model4BeltHalfTravelMm,
-            )?,
+            approach,
+            fast_q30: rnd(share * (1u64 << 30) as f64) as i32,
         })
     }
 }
@@ -522,7 +537,7 @@ fn mesh_offset_term(
 
 /// Where the belt observer's offset will rest after travel to `x` (the placement's prediction,
 /// [`crate::model::estimate`]): from the offset now, or the last prediction's, it approaches
-/// the rest value of the direction of travel, halving its way every
+/// the rest value of the direction of travel in two parts, each halving its way every
 /// [`BeltTerm::half_travel_mm`]. I16F16 um; the observer itself does not move.
 #[inline(never)]
 fn predict_rest(b: &BeltTermCoeffs, state: &mut ModelState, x: i32) -> i32 {
@@ -538,7 +553,9 @@ fn predict_rest(b: &BeltTermCoeffs, state: &mut ModelState, x: i32) -> i32 {
     } else {
         let rest = b.rest_bits[(d > 0) as usize];
         let travel = d.unsigned_abs().min(u32::MAX as u64) as u32;
-        let k = exp2_neg_q30(b.approach.apply(travel)) as i64;
+        // The share of the way still to go, Q30: `a 2^(-L / H_fast) + (1 - a) 2^(-L / H_slow)`.
+        let [fast, slow] = b.approach.map(|a| away_q30(a, travel));
+        let k = slow + (((fast - slow) * b.fast_q30 as i64) >> 30);
         let gap = o as i64 - rest as i64;
         (rest as i64 + ((gap * k) >> 30)) as i32
     };
@@ -548,6 +565,12 @@ fn predict_rest(b: &BeltTermCoeffs, state: &mut ModelState, x: i32) -> i32 {
         offset_bits: o,
     };
     o
+}
+
+/// `2^(-travel a)` in Q30 (one copy of the exponential for both parts: flash).
+#[inline(never)]
+fn away_q30(a: Scale, travel: u32) -> i64 {
+    exp2_neg_q30(a.apply(travel)) as i64
 }
 
 /// The placement's predicted rest of the belt observer's offset, on a copy of the model state
@@ -634,7 +657,8 @@ mod tests {
     }
 
     /// The placement's prediction with the belt observer: from the offset now it approaches
-    /// the rest of the direction of travel by `2^(-L / H)` (within 0.05 um of that in `f64`),
+    /// the rest of the direction of travel by `a 2^(-L / H1) + (1 - a) 2^(-L / H2)` (within
+    /// 0.05 um of that in `f64`),
     /// a second prediction continues from the first, and the observer itself never moves.
     #[test]
     fn the_belt_prediction_approaches_the_rest_of_its_direction() {
@@ -642,7 +666,7 @@ mod tests {
         use crate::rig::Rig;
         let rig = Rig::PAPER;
         let cpm = rig.counts_per_mm();
-        let (rest, half_mm) = ([-120.0, 135.0], 8.0);
+        let (rest, half_mm, share) = ([-120.0, 135.0], [0.4, 8.0], 0.7);
         let mut p = ModelParams::PAPER;
         p.model4.belt = Some(BeltTerm {
             physics: BeltParams {
@@ -654,6 +678,7 @@ mod tests {
             weight: 1.0,
             rest_um: rest,
             half_travel_mm: half_mm,
+            fast_share: share,
         });
         let c = p.build(&rig).unwrap();
         let mut s = ModelState::new(0);
@@ -672,7 +697,9 @@ mod tests {
         let predict = |o: f64, from: i32, to: i32| {
             let r = rest[(to > from) as usize];
             let l_mm = (to - from).abs() as f64 / cpm;
-            r + (o - r) * (-l_mm / half_mm).exp2()
+            let k =
+                share * (-l_mm / half_mm[0]).exp2() + (1.0 - share) * (-l_mm / half_mm[1]).exp2();
+            r + (o - r) * k
         };
         let offset_after = |state: &ModelState| state.belt_rest.offset_bits as f64 / 65536.0;
         for target in [here, here + 1, here - 1_000, 20_000, -400_000, 2_000_000] {

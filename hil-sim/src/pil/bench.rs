@@ -63,7 +63,8 @@ pub fn paper_image() -> Result<Vec<u8>, PilError> {
         step_ticks: crate::calibrate::BELT_STEP_TICKS,
         weight: -1.0,
         rest_um: [-130.0, 140.0],
-        half_travel_mm: 10.0,
+        half_travel_mm: [0.3, 10.0],
+        fast_share: 0.6,
     });
     Ok(estimator_core::image::of_params(
         &params,
