@@ -709,8 +709,8 @@ pub const BELT_STEP_TICKS: u32 = 6;
 /// The identification's search: carriage-mass starts (the fit has local minima in the mass),
 /// evaluations a round and further rounds (README, "A reduced plant observer").
 const BELT_MASS_STARTS: [f64; 4] = [0.5, 1.0, 2.0, 4.0];
-const BELT_EVALS: usize = 250;
-const BELT_ROUNDS: usize = 2;
+const BELT_EVALS: usize = 150;
+const BELT_ROUNDS: usize = 1;
 
 /// Model 4's belt observer on these recordings: the guide's friction along the travel, the
 /// physics identified from `start`, and the weights refitted with its offset exactly as the
