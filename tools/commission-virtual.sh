@@ -84,7 +84,10 @@ echo "== 2. configure, home, calibrate, save" >&2
 ctl config load tools/commission-config.toml
 ctl enable
 ctl home
-ctl calibrate --out "$work/calibration" --json | tee "$work/calibrate.json" >&2
+# The machine's geometry and motor (its plant file; the belt's, friction's and carriage's
+# physics are identified from the paper rig's) give Model 4's belt observer.
+ctl calibrate --out "$work/calibration" --machine "$work/plant.toml" --json \
+    | tee "$work/calibrate.json" >&2
 # The upload left the drive disabled, still homed.
 ctl enable
 validation=$(ctl validate --scenario tools/commission-validate.toml --select --json \

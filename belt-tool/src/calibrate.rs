@@ -433,6 +433,9 @@ pub struct Options {
     pub model: ModelKind,
     /// Save configuration and calibration in the drive's storage afterwards.
     pub save: bool,
+    /// The machine's geometry and motor (a plant file and its path) for Model 4's belt
+    /// observer; none: the slip observer only.
+    pub machine: Option<(PathBuf, hil_sim::PlantParams)>,
 }
 
 /// What a calibration produced.
@@ -467,6 +470,32 @@ pub fn run(link: &mut Link, opts: &Options, progress: &mut Progress) -> Result<O
     ops::require_ready(&status, "calibration")?;
     let settings = crate::config::settings(link)?;
     let rig = settings.rig;
+    // Before any move: the machine file must describe this drive's geometry.
+    let belt_start = match &opts.machine {
+        Some((path, m)) if !m.rig().same_bits(&rig) => {
+            return Err(ToolError::Usage(format!(
+                "--machine {}: its geometry {:?} is not the drive's {:?}",
+                path.display(),
+                m.rig(),
+                rig
+            )))
+        }
+        // The identification steps the observer at hil-sim's 2 kHz tick.
+        Some((path, _)) if settings.rate_hz != 1.0 / hil_sim::belt_observer::TICK_S => {
+            return Err(ToolError::Usage(format!(
+                "--machine {}: Model 4's belt observer is identified at {} Hz, this drive runs at \
+                 {} Hz (drive.rate_hz); calibrate without --machine for the slip observer",
+                path.display(),
+                1.0 / hil_sim::belt_observer::TICK_S,
+                settings.rate_hz
+            )))
+        }
+        Some((_, m)) => Some(hil_sim::belt_observer::BeltPhysics::of(
+            m,
+            &hil_sim::PlantParams::paper_rig(),
+        )),
+        None => None,
+    };
     let plan = plan(
         &settings,
         opts.velocity_cap,
@@ -528,7 +557,10 @@ pub fn run(link: &mut Link, opts: &Options, progress: &mut Progress) -> Result<O
         "beltctl: disabled the drive for the fit and the upload (the drive stages the calibration \
          in flash); enable it to move again",
     );
-    let mut cal = hil_sim::calibrate::calibrate(&traces, &rig, &mut |s, f| progress.stage(s, f))?;
+    let mut cal =
+        hil_sim::calibrate::calibrate_with(&traces, &rig, belt_start.as_ref(), &mut |s, f| {
+            progress.stage(s, f)
+        })?;
     // What the moves covered: calibration.toml keeps it, `hil-sim` warns by it.
     let coverage = hil_sim::coverage::Coverage::of(&plan.scenarios);
     progress.println(&coverage.markdown());

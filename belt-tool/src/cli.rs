@@ -142,6 +142,12 @@ pub enum Cmd {
         /// it saves only while disabled).
         #[arg(long)]
         save: bool,
+        /// This machine's geometry and motor as a plant file (`hil-sim`'s format: encoder,
+        /// gearbox, pulley, belt lengths, motor): Model 4's belt observer is identified from
+        /// them (the belt's, friction's and carriage's physics start from the paper rig's) and
+        /// kept where it fits better than the slip observer. Without it: the slip observer.
+        #[arg(long, value_name = "FILE")]
+        machine: Option<PathBuf>,
     },
     /// Place the carriage on a scenario's moves once per compensator and compare the arrivals
     /// on the linear scale (commissioning, with the scale fitted); `--select` keeps the best.
@@ -488,7 +494,16 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
             scenarios,
             model,
             save,
+            machine,
         } => {
+            // The error names the file and the field.
+            let machine = machine
+                .map(|p| {
+                    hil_sim::PlantParams::load(&p)
+                        .map(|m| (p.clone(), m))
+                        .map_err(|e| ToolError::Usage(format!("--machine {e}")))
+                })
+                .transpose()?;
             let scenarios = scenarios
                 .iter()
                 .map(|p| {
@@ -507,6 +522,7 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
                 scenarios,
                 model: model_kind(&model, "--model ")?,
                 save,
+                machine,
             };
             let mut progress = Progress::named("beltctl");
             let o = calibrate::run(link, &opts, &mut progress)?;

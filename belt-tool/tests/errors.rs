@@ -754,3 +754,38 @@ fn a_reply_wait_the_drive_s_link_watchdog_would_not_survive_is_refused() {
     let (out, _) = beltctl(&["--port", &path, "--timeout-ms", "400", "status"], LIMIT);
     assert!(out.status.success(), "{}", text(&out.stderr));
 }
+
+/// `calibrate --machine` with a plant file of another geometry than the drive's (a 15-tooth
+/// pulley and a 500-line encoder against the paper rig's) is refused naming the file and both
+/// geometries, before any move; a machine file that cannot be read names it too.
+#[test]
+fn a_machine_of_another_geometry_is_refused_before_any_move() {
+    let other = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../hil-sim/presets/variants/other-geometry.toml"
+    );
+    let missing = "/nonexistent-machine.toml";
+    for (machine, says) in [(other, "is not the drive's"), (missing, missing)] {
+        let p = pty();
+        let path = p.path.clone();
+        let fake = serve(p.master, FakeDrive::new(Faults::default()));
+        let out_dir = std::env::temp_dir().join(format!("beltctl-machine-{}", std::process::id()));
+        let d = out_dir.display().to_string();
+        let (out, _) = beltctl(
+            &args(&path, &["calibrate", "--out", &d, "--machine", machine]),
+            LIMIT,
+        );
+        let err = assert_clean_failure(&out);
+        assert!(err.contains("--machine") && err.contains(says), "{err}");
+        let moved = fake.drive.lock().unwrap().requests.iter().any(|r| {
+            matches!(
+                r,
+                belt_link::Request::Command(belt_link::Command::MoveTo { .. })
+                    | belt_link::Request::Command(belt_link::Command::MoveMotorTo { .. })
+                    | belt_link::Request::Record { .. }
+            )
+        });
+        assert!(!moved, "{machine}: the drive was moved or recorded");
+        let _ = std::fs::remove_dir_all(out_dir);
+    }
+}
