@@ -652,6 +652,18 @@ fn moves_outside_the_calibrated_region_are_warned_about() {
     let _ = std::fs::remove_file(f);
 }
 
+/// Whether any of `requests` moved the drive or started a recording.
+fn moved_or_recorded(requests: &[belt_link::Request]) -> bool {
+    requests.iter().any(|r| {
+        matches!(
+            r,
+            belt_link::Request::Command(belt_link::Command::MoveTo { .. })
+                | belt_link::Request::Command(belt_link::Command::MoveMotorTo { .. })
+                | belt_link::Request::Record { .. }
+        )
+    })
+}
+
 #[test]
 fn a_calibration_whose_output_cannot_be_written_is_refused_before_any_move() {
     let file = std::env::temp_dir().join(format!("beltctl-out-{}.txt", std::process::id()));
@@ -667,14 +679,7 @@ fn a_calibration_whose_output_cannot_be_written_is_refused_before_any_move() {
             err.contains(&format!("--out {d}: cannot be written")),
             "{err}"
         );
-        let moved = fake.drive.lock().unwrap().requests.iter().any(|r| {
-            matches!(
-                r,
-                belt_link::Request::Command(belt_link::Command::MoveTo { .. })
-                    | belt_link::Request::Command(belt_link::Command::MoveMotorTo { .. })
-                    | belt_link::Request::Record { .. }
-            )
-        });
+        let moved = moved_or_recorded(&fake.drive.lock().unwrap().requests);
         assert!(!moved, "{d}: the drive was moved or recorded");
     }
     assert_eq!(std::fs::read_to_string(&file).unwrap(), "not a directory");
@@ -777,14 +782,7 @@ fn a_machine_of_another_geometry_is_refused_before_any_move() {
         );
         let err = assert_clean_failure(&out);
         assert!(err.contains("--machine") && err.contains(says), "{err}");
-        let moved = fake.drive.lock().unwrap().requests.iter().any(|r| {
-            matches!(
-                r,
-                belt_link::Request::Command(belt_link::Command::MoveTo { .. })
-                    | belt_link::Request::Command(belt_link::Command::MoveMotorTo { .. })
-                    | belt_link::Request::Record { .. }
-            )
-        });
+        let moved = moved_or_recorded(&fake.drive.lock().unwrap().requests);
         assert!(!moved, "{machine}: the drive was moved or recorded");
         let _ = std::fs::remove_dir_all(out_dir);
     }
