@@ -1,6 +1,7 @@
 //! The reduced plant observer of the belt in fixed point: the port of `hil_sim::belt_observer`
-//! (the `f64` original, measured there against the slip observer) for the drive's tick. It is
-//! not yet Model 4's term; this module is the step and its cost.
+//! (the `f64` original, measured there against the slip observer) for the drive's tick. Model 4
+//! takes its mesh offset in the slip observer's place where calibration identified it
+//! ([`super::operator::BeltTerm`]).
 //!
 //! One step per tick, from the motor counts and the drive's current:
 //! 1. an alpha-beta-gamma tracking filter on the counts, its model acceleration the current's;

@@ -14,7 +14,10 @@
 //! `g` is the observer's mesh offset: where the belt sits in the pulley's tooth gap, moved by
 //! pre-sliding and creep under the load the current and the direction of motion put on it. The
 //! observer's own parameters (load, limit, half gap, creep rate) are fitted by calibration
-//! around the least-squares fit of the weights.
+//! around the least-squares fit of the weights. Where calibration identified the belt observer
+//! ([`BeltTerm`], [`super::belt`]: the carriage on its spans, the bristles, the capstan, a step
+//! every few ticks), its offset is `g` instead and the slip observer is not run; the placement's
+//! prediction at rest then predicts its rest rather than stepping it (`predict_rest`).
 //!
 //! `P_r[x]` is the play operator of half-width `r`: its state `p` follows `x` only when `x` is
 //! more than `r` away (`p = clamp(p, x - r, x + r)`), and the feature is `x - p` in `[-r, r]`.
