@@ -454,6 +454,8 @@ pub struct ModelState {
     pub(crate) belt: belt::BeltState,
     /// The placement's predicted rest of its offset (a copy's, [`estimate`]).
     pub(crate) belt_rest: operator::BeltRest,
+    /// Within [`estimate`]: Model 4's belt observer predicts its rest instead of stepping.
+    pub(crate) predicting: bool,
     /// Model 4's low-passed current, I16F16 amperes (restarted with the plays).
     pub(crate) current_lp_bits: i32,
 }
@@ -478,6 +480,7 @@ impl ModelState {
             slip: slip::Slip::NEW,
             belt: belt::BeltState::ZERO,
             belt_rest: operator::BeltRest::NONE,
+            predicting: false,
             current_lp_bits: 0,
         }
     }
@@ -563,7 +566,12 @@ pub fn estimate(
         state.current_lp_bits = 0;
         state.slip.lp_bits = 0;
     }
-    estimate_at(coeffs, kind, state, x_counts, I16F16::ZERO, true)
+    // The flag lives in the state, not in an argument, so that the per-tick call is the same
+    // as before the belt observer (an argument cost every compensator 2-3 instructions a tick).
+    state.predicting = true;
+    let y = estimate_with_current(coeffs, kind, state, x_counts, I16F16::ZERO);
+    state.predicting = false;
+    y
 }
 
 /// [`estimate`] with the motor current commanded this tick (amperes in the drive's frame,
@@ -574,19 +582,6 @@ pub fn estimate_with_current(
     state: &mut ModelState,
     x_counts: i32,
     current_a: I16F16,
-) -> I16F16 {
-    estimate_at(coeffs, kind, state, x_counts, current_a, false)
-}
-
-/// [`estimate_with_current`]; `predict`: [`estimate`]'s prediction at rest (Model 4's belt
-/// observer predicts its rest instead of stepping).
-fn estimate_at(
-    coeffs: &ModelCoeffs,
-    kind: ModelKind,
-    state: &mut ModelState,
-    x_counts: i32,
-    current_a: I16F16,
-    predict: bool,
 ) -> I16F16 {
     state.track(coeffs.deadband_counts, x_counts);
     if kind != ModelKind::Operator {
@@ -601,7 +596,7 @@ fn estimate_at(
         ModelKind::Table => table::eval(&coeffs.model3, state, x_counts),
         ModelKind::Backlash => baseline::eval_backlash(&coeffs.backlash, state),
         ModelKind::BidirTable => baseline::eval_bidir(&coeffs.bidir, state, x_counts),
-        ModelKind::Operator => operator::eval(&coeffs.model4, state, x_counts, current_a, predict),
+        ModelKind::Operator => operator::eval(&coeffs.model4, state, x_counts, current_a),
     };
     if x_counts == state.x_ext_counts {
         state.y_ext_um = y;

@@ -596,13 +596,8 @@ impl BeltRest {
 /// One tick of Model 4: moves the plays and the observer with `x` and sums every term. Out of
 /// line: inlined into the dispatch it made every other model's tick dearer (measured).
 #[inline(never)]
-pub(crate) fn eval(
-    c: &Model4Coeffs,
-    state: &mut ModelState,
-    x: i32,
-    current_a: I16F16,
-    predict: bool,
-) -> I16F16 {
+pub(crate) fn eval(c: &Model4Coeffs, state: &mut ModelState, x: i32, current_a: I16F16) -> I16F16 {
+    let predict = state.predicting;
     let forward = state.dir == Direction::Forward;
     let current_bits = current_a.to_bits();
     let mut acc: i64 = (c.offset_um.to_bits() as i64) << 8;
