@@ -43,8 +43,9 @@
 //! ```
 //! What the per-tick code derives (reciprocals, spans, total weights) is derived again here, in
 //! integers, rather than trusted. Every field is checked against the range its builder
-//! guarantees (and the per-tick code is total on any value anyway); a refusal names the
-//! parameter it came from, as the builders do. What stays with the host builder is the one check
+//! guarantees (the per-tick code has no panic path on any value in the release build, and these
+//! ranges keep its products within their formats); a refusal names the parameter it came from,
+//! as the builders do. What stays with the host builder is the one check
 //! that needs the parameters' `f64` interpolation: Model 3's reverse band at or above its forward
 //! band (a violation misplaces the estimate, never the drive).
 
@@ -78,9 +79,9 @@ const BAND_BYTES: usize = 12 + 4 * MAX_BAND_POINTS;
 const TRANSITION_BYTES: usize = 12 + 2 * MAX_TRANSITION_D * MAX_TRANSITION_G0;
 const BIDIR_BYTES: usize = 12 + 4 * MAX_BIDIR_ROWS;
 const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 9) + BELT_BYTES;
-/// Model 4's belt observer: presence and weight, 13 factors, 21 words, the guide profile, the
-/// tracking gains and the step.
-const BELT_BYTES: usize = 8 + 8 + 20 + 13 * 8 + 4 * 21 + 4 * MAX_GUIDE_BINS + 3 * 8 + 4;
+/// Model 4's belt observer: presence and weight, the rest prediction, 13 factors, 20 words, the
+/// guide profile, the tracking gains and the step.
+const BELT_BYTES: usize = 8 + 8 + 20 + 13 * 8 + 4 * 20 + 4 * MAX_GUIDE_BINS + 3 * 8 + 4;
 /// Largest image: every table full.
 pub const MAX_BYTES: usize = HEADER
     + RIG_BYTES
@@ -449,7 +450,8 @@ const BELT_WORDS: [(i32, i32, ConfigField); 7] = {
         (0, i32::MAX, F::Model4BeltSigma1SPerM),
         (1, 7 << 28, F::Model4BeltWrapRad),
         (1, 4000 << 16, F::Model4BeltPreloadN),
-        (1, i32::MAX, F::Model4BeltPreloadN),
+        // At most 4 kN times 7 rad: the capstan's slope stays within 64 bits in the balance.
+        (1, 28_000 << 16, F::Model4BeltPreloadN),
     ]
 };
 
@@ -485,8 +487,8 @@ fn read_gain(r: &mut Stream, f: ConfigField) -> Result<Gain, BlobError> {
 }
 
 /// Model 4's belt observer, if the image has one: each field within what
-/// [`crate::model::belt::BeltParams::build_every`] makes (the step is total on any value; these
-/// keep it the physics it was built from).
+/// [`crate::model::belt::BeltParams::build_every`] makes: these keep the step the physics it
+/// was built from, and its products within their formats.
 fn read_belt(r: &mut Stream) -> Result<Option<BeltTermCoeffs>, BlobError> {
     use ConfigField as F;
     match r.u32()? {
@@ -535,6 +537,12 @@ fn read_belt(r: &mut Stream) -> Result<Option<BeltTermCoeffs>, BlobError> {
     // The span from the pulley within the belt.
     if l[3] > l[2] {
         return Err(out_of_range(F::Model4BeltSpanOffsetM));
+    }
+    // `1 / L` is the belt's own (L / L = 1 in Q30 within 0.4 %): the spans' ratio stays within
+    // its range in the balance whatever the carriage's position.
+    let one_q30 = (l[2] as i64 * g[11].mant as i64) >> g[11].shift;
+    if (one_q30 - (1 << 30)).abs() > 1 << 22 {
+        return Err(out_of_range(F::Model4BeltLengthM));
     }
     let mut guide_delta_q16 = [0i32; MAX_GUIDE_BINS];
     for d in guide_delta_q16.iter_mut().take(guide_bins as usize) {

@@ -322,6 +322,13 @@ fn every_section_is_checked() {
             &(8i32 << 28).to_le_bytes(),
             "model4.belt.wrap_rad",
         ),
+        // Preload times wrap beyond 4 kN times 7 rad, and a `1 / L` that is not the belt's.
+        (
+            words + 24,
+            &(28_001i32 << 16).to_le_bytes(),
+            "model4.belt.preload_n",
+        ),
+        (gains + 8 * 11, &1i32.to_le_bytes(), "model4.belt.length_m"),
         (
             words + 28 + 20,
             &65u32.to_le_bytes(),

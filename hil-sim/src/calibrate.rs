@@ -799,9 +799,16 @@ fn belt_term(
     }
     if let Some((rest_um, half_travel_mm, fast_share)) = rest_of(runs, &offset, rig.counts_per_mm())
     {
-        term.rest_um = rest_um;
-        term.half_travel_mm = half_travel_mm;
-        term.fast_share = fast_share;
+        let fitted = BeltTerm {
+            rest_um,
+            half_travel_mm,
+            fast_share,
+            ..term
+        };
+        // A fit the drive's formats refuse (a rest beyond their range) keeps the defaults.
+        if fitted.build(rig.counts_per_mm()).is_ok() {
+            term = fitted;
+        }
     }
     Ok(solve(&offset).map(|(v, sse)| (term, v, sse)))
 }
@@ -863,7 +870,8 @@ fn rest_of(
             k = end + 1;
         }
     }
-    if !(pairs.iter().any(|p| p.1) && pairs.iter().any(|p| !p.1)) {
+    // Two pairs each way at least: with one, every shape fits it exactly.
+    if pairs.iter().filter(|p| p.1).count() < 2 || pairs.iter().filter(|p| !p.1).count() < 2 {
         return None;
     }
     // The share of the way still to go after `l` mm: `a 2^(-l / h1) + (1 - a) 2^(-l / h2)`.

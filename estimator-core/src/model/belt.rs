@@ -29,7 +29,9 @@
 //! ([`recip`]): 2^-15 relative, well inside what the physics is known to. The exponentials are
 //! third-order polynomials below 1/64 and [`exp2_neg_q30`] above. Every operation saturates,
 //! and no clamp or index can panic whatever the coefficients hold: any counts, current and
-//! state give a defined state.
+//! state give a defined state. The products stay within 64 bits for the coefficients
+//! [`BeltParams::build_every`] makes and the calibration image's checks accept (a preload
+//! times wrap beyond 28 kN or a `1 / L` not the belt's could overflow the capstan's slope).
 //!
 //! Against the `f64` observer on the same inputs: within 0.3 um (hil-sim's
 //! `the_fixed_point_port_follows_the_f64_observer`); bit-identical on the Cortex-M4
@@ -357,13 +359,13 @@ impl BeltParams {
             )?,
             // l1 in Q16 m to l1 / L in Q30.
             inv_length: scale((1u64 << 14) as f64 / length, F::Model4BeltLengthM)?,
-            mu_kinetic_q30: q(mu_k, 30.0, F::Model4BeltMuKinetic)?,
+            mu_kinetic_q30: q_positive(mu_k, 30.0, F::Model4BeltMuKinetic)?,
             sigma0_q8: q(sigma0 * q30_per_q36, 8.0, F::Model4BeltSigma0PerM)?,
             sigma1_t_q8: q(sigma1 / t * q30_per_q36, 8.0, F::Model4BeltSigma1SPerM)?,
             dmu_q30: q(mu_s - mu_k, 30.0, F::Model4BeltMuStatic)?,
-            wrap_q28: q(wrap, 28.0, F::Model4BeltWrapRad)?,
-            preload_q16: q(preload, 16.0, F::Model4BeltPreloadN)?,
-            preload_wrap_q16: q(preload * wrap, 16.0, F::Model4BeltPreloadN)?,
+            wrap_q28: q_positive(wrap, 28.0, F::Model4BeltWrapRad)?,
+            preload_q16: q_positive(preload, 16.0, F::Model4BeltPreloadN)?,
+            preload_wrap_q16: q_positive(preload * wrap, 16.0, F::Model4BeltPreloadN)?,
             tooth_n_per_m: tooth as u32,
             damping_t_n_per_m: (damping / t).min(u32::MAX as f64) as u32,
             gear_compliance_q56: ((1u64 << 56) as f64 / gear) as u64,
@@ -372,7 +374,7 @@ impl BeltParams {
             guide_bins: self.guide_bins as u32,
             guide_start_q16: q(guide_start, 16.0, F::Model4BeltGuideProfileStartM)?,
             guide_per_step: scale(1.0 / guide_step, F::Model4BeltGuideProfileStepM)?,
-            half_gap_q36: q(half_gap, 36.0, F::Model4BeltHalfGapM)?,
+            half_gap_q36: q_positive(half_gap, 36.0, F::Model4BeltHalfGapM)?,
             gear_half_q36: q(gear_half, 36.0, F::Model4BeltGearHalfM)?,
             length_q16: q(length, 16.0, F::Model4BeltLengthM)?,
             span_offset_q16: q(offset, 16.0, F::Model4BeltSpanOffsetM)?,
@@ -393,6 +395,14 @@ fn positive_tick(tick_s: f64) -> Result<f64, ConfigError> {
         return Err(ConfigError::OutOfRange(ConfigField::DriveRateHz));
     }
     Ok(tick_s)
+}
+
+/// [`q`] of a value that must stay above 0 in its format (the image refuses a 0 there).
+fn q_positive(v: f64, bits: f64, f: ConfigField) -> Result<i32, ConfigError> {
+    match q(v, bits, f)? {
+        0 => Err(ConfigError::OutOfRange(f)),
+        v => Ok(v),
+    }
 }
 
 /// `v * 2^bits` rounded, if it fits an `i32`.
@@ -650,11 +660,12 @@ impl BeltState {
     }
 
     /// [`BeltState::new`] on the flanks that motion in the registered direction leans on
-    /// (reverse: the mirror image), for an observer started after a move.
+    /// (reverse: the mirror image, gear and teeth on their other flanks), for an observer
+    /// started after a move.
     pub fn start(c: &BeltCoeffs, counts: i32, forward: bool) -> BeltState {
         let mut s = BeltState::new(c, counts);
         if !forward {
-            s.d = c.half_gap_q36.saturating_sub(c.gear_half_q36);
+            s.d = c.half_gap_q36.saturating_add(c.gear_half_q36);
             s.o = c.half_gap_q36.saturating_neg();
         }
         s

@@ -178,8 +178,8 @@ impl BeltTerm {
         let mut approach = [Scale::ZERO; 2];
         for (a, &half) in approach.iter_mut().zip(&self.half_travel_mm) {
             let half = finite(half, ConfigField::Model4BeltHalfTravelMm)?;
-            // At least a count, at most 10 m.
-            if !(half * counts_per_mm >= 1.0 && half <= 10_000.0) {
+            // More than a count (the factor stays below 2^32), at most 10 m.
+            if !(half * counts_per_mm > 1.0 && half <= 10_000.0) {
                 return Err(ConfigError::OutOfRange(ConfigField::Model4BeltHalfTravelMm));
             }
             *a = Scale::from_f64(
@@ -503,7 +503,8 @@ impl Plays {
 
 /// The mesh offset's weighted term, Q24 um: the belt observer's where the calibration has one,
 /// else the slip observer's. Each is started (on the registered direction's flanks) when the
-/// plays are, and steps every tick after.
+/// plays are, and steps every tick after; while predicting ([`crate::model::estimate`]) the
+/// belt observer does not step, its rest is predicted.
 #[inline(always)]
 fn mesh_offset_term(
     c: &Model4Coeffs,
