@@ -490,10 +490,7 @@ pub fn run(link: &mut Link, opts: &Options, progress: &mut Progress) -> Result<O
                 settings.rate_hz
             )))
         }
-        Some((_, m)) => Some(hil_sim::belt_observer::BeltPhysics::of(
-            m,
-            &hil_sim::PlantParams::paper_rig(),
-        )),
+        Some((_, m)) => Some(hil_sim::belt_observer::BeltPhysics::identification_start(m)),
         None => None,
     };
     let plan = plan(

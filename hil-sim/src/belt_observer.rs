@@ -139,6 +139,12 @@ impl BeltPhysics {
         }
     }
 
+    /// Where calibration starts the identification for `machine`: its configured geometry and
+    /// motor, the paper rig's belt, friction and carriage (the drive knows no other machine's).
+    pub fn identification_start(machine: &PlantParams) -> BeltPhysics {
+        BeltPhysics::of(machine, &PlantParams::paper_rig())
+    }
+
     /// The value of `param` (the kinetic coefficient for both friction coefficients).
     pub fn value(&self, param: Param) -> f64 {
         match param {

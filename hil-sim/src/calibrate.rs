@@ -663,10 +663,9 @@ fn model4(
         .and_then(|g| solve(&g))
         .ok_or(CalibrationError::Singular { fit: "Model 4" })?;
     if let Some(start) = belt {
-        let split: Vec<usize> = runs.iter().map(|r| r.x_counts.len()).collect();
-        if let Some((term, bv, sse)) = belt_term(
-            runs, &split, &cols, &y, start, &m, base, rig, &solve, progress,
-        )? {
+        if let Some((term, bv, sse)) =
+            belt_term(runs, &cols, &y, start, &m, base, rig, &solve, progress)?
+        {
             // Kept only where it fits the recordings better than the slip observer.
             if sse < slip_sse {
                 m.belt = Some(term);
@@ -697,7 +696,7 @@ fn model4(
         }
         None => m.slip.weight = weight,
     }
-    blob::quantise_model4(&m).map_err(CalibrationError::Rejected)
+    Ok(m)
 }
 
 /// Model 4's joint least squares with an offset column: the weights and the residual sum.
@@ -719,7 +718,6 @@ const BELT_ROUNDS: usize = 1;
 #[allow(clippy::too_many_arguments)]
 fn belt_term(
     runs: &[Prepared],
-    split: &[usize],
     cols: &[[f64; NB]],
     y: &[f64],
     start: &BeltPhysics,
@@ -731,7 +729,8 @@ fn belt_term(
 ) -> Result<Option<(BeltTerm, Vec<f64>, f64)>, CalibrationError> {
     let mut fit_runs = Vec::with_capacity(runs.len());
     let mut at = 0;
-    for (r, &n) in runs.iter().zip(split) {
+    for r in runs {
+        let n = r.x_counts.len();
         fit_runs.push(FitRun {
             inputs: r
                 .x_counts
@@ -822,7 +821,7 @@ const REST_TICKS: usize = 40;
 /// recordings: between two rests with one-way travel `L` between them, the offset goes from
 /// `o0` to `r_d + (o0 - r_d) (a 2^(-L / H1) + (1 - a) 2^(-L / H2))`, a fast part (the gap
 /// crossed) and a slow one (the creep). `H1`, `H2` and `a` by a search over a grid, `r_d` per
-/// direction by least squares for each. `None` without a pair of rests each way.
+/// direction by least squares for each. `None` without two pairs of rests each way.
 fn rest_of(
     runs: &[Prepared],
     offset_um: &[f64],

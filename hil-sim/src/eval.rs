@@ -193,7 +193,7 @@ pub enum Observer {
     /// The slip observer (`estimator_core::model::slip`) only: six parameters, about 10 s.
     Slip,
     /// Also the belt observer (`estimator_core::model::belt`), identified from the plant file's
-    /// geometry and motor with the paper rig's physics as the start (about 45 s more on this
+    /// geometry and motor with the paper rig's physics as the start (about 10 s more on this
     /// machine); kept where it fits the recordings better than the slip observer.
     #[default]
     Belt,
@@ -209,10 +209,8 @@ pub fn calibrate_plant_for(
 ) -> Result<Calibration, Error> {
     let scenarios = calibration_scenarios(plant, plan_seed, user)?;
     let traces = record(plant, &scenarios, progress)?;
-    // The machine's configured geometry and motor; the physics to identify start from the
-    // paper rig's (the drive knows no other machine's).
     let start = (observer == Observer::Belt)
-        .then(|| crate::belt_observer::BeltPhysics::of(plant, &PlantParams::paper_rig()));
+        .then(|| crate::belt_observer::BeltPhysics::identification_start(plant));
     let mut cal = calibrate_with(&traces, &plant.rig(), start.as_ref(), progress)?;
     cal.coverage = Some(crate::coverage::Coverage::of(&scenarios));
     Ok(cal)

@@ -159,7 +159,7 @@ enum Cmd {
         #[arg(long = "scenario", value_name = "FILE")]
         scenarios: Vec<String>,
         /// Model 4's observer of the belt in the tooth gap: `belt` identifies the belt observer
-        /// from the plant file's geometry and motor (about 45 s more) and keeps it where it
+        /// from the plant file's geometry and motor (about 10 s more) and keeps it where it
         /// fits the recordings better than the slip observer; `slip` fits the slip observer only.
         #[arg(long, default_value = "belt", value_parser = ["belt", "slip"])]
         observer: String,

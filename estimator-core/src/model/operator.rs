@@ -657,8 +657,8 @@ mod tests {
 
     /// The placement's prediction with the belt observer: from the offset now it approaches
     /// the rest of the direction of travel by `a 2^(-L / H1) + (1 - a) 2^(-L / H2)` (within
-    /// 0.05 um of that in `f64`),
-    /// a second prediction continues from the first, and the observer itself never moves.
+    /// 0.05 um of that in `f64`), a second prediction continues from the first, and the
+    /// observer itself never moves.
     #[test]
     fn the_belt_prediction_approaches_the_rest_of_its_direction() {
         use crate::model::{estimate, estimate_with_current, ModelKind, ModelParams, ModelState};
