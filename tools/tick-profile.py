@@ -74,6 +74,15 @@ def main(elf, trace, top=40, over=500):
     print("\nper function (after inlining), mean and heaviest tick:")
     for fn, n in by_fn.most_common(top):
         print(f"{n / ticks:8.1f} {fn_max[fn]:6d}  {fn}")
+    # The model's own: every function of `estimator_core::model` but the dispatch, summed per
+    # tick (Model 4's `operator::eval` calls `BeltState::advance` out of line).
+    def is_own(fn):
+        return fn.startswith("estimator_core::model::") and not re.match(
+            r"estimator_core::model::estimate(_with_current)?$", fn)
+    own = [sum(n for pc, n in tick.items() if is_own(fn_of[pc])) for tick in all_ticks]
+    if own:
+        print(f"\nthe model's own (estimator_core::model but the dispatch): "
+              f"{sum(own) / len(own):.1f} mean, {max(own)} heaviest tick")
 
     pcs = sorted(counts)
     chains = inline_chains(elf, pcs)

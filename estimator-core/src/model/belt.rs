@@ -124,9 +124,11 @@ pub const NEWTON_STEPS: u8 = 2;
 /// [`BeltState::advance`] the geometry, the Newton steps, the bristles and the carriage.
 pub const STEP_PARTS: u8 = 4 + NEWTON_STEPS;
 const PART_GEOMETRY: u8 = 1;
-/// The last Newton step, which moves the offset.
-pub const PART_COMMIT: u8 = PART_GEOMETRY + NEWTON_STEPS;
-const PART_BRISTLES: u8 = PART_COMMIT + 1;
+/// The bristles' part, which first commits the last Newton step's slip: the offset moves
+/// here. (In the last Newton step's part, the heaviest, it made that tick 25 instructions
+/// heavier; the state after the step is the same either way.)
+pub const PART_COMMIT: u8 = PART_GEOMETRY + NEWTON_STEPS + 1;
+const PART_BRISTLES: u8 = PART_COMMIT;
 const PART_CARRIAGE: u8 = PART_BRISTLES + 1;
 const _: () = assert!(PART_CARRIAGE + 1 == STEP_PARTS);
 
@@ -562,10 +564,12 @@ pub struct BeltState {
     /// The latest counts ([`BeltState::tick`] or [`BeltState::begin`]), to which
     /// [`BeltState::offset_um_bits`] carries the committed step's slip.
     now_counts: i32,
-    /// The committed step's counts at its begin and its slip per count (Q36 m); the carried
-    /// slip is at most twice the step's (`du`).
+    /// The committed step's counts at its begin, its slip per count (Q36 m) and the most
+    /// counts it is carried over either way (twice the step's: the carried slip is at most
+    /// twice the step's).
     ahead_counts: i32,
     ahead_per_count: i32,
+    ahead_most_counts: i32,
     /// [`BeltState::tick`]: ticks since the last step began and their current's sum (I16F16
     /// amperes).
     ticks: u32,
@@ -577,8 +581,10 @@ pub struct BeltState {
 struct Pending {
     /// The next part; 0: none (the step has ended).
     next: u8,
-    /// The tracked motor's travel over the step, Q36 m.
-    ds: i32,
+    /// The tracked motor's travel over the step less the carriage's velocity at its start
+    /// (per step), Q36 m: the spans' stretch rate with no slip (the Newton steps and the
+    /// carriage take it with the slip).
+    ds_less_v: i32,
     /// The counts' travel over the step; 0 after a jump.
     dcounts: i32,
     /// The carriage along the travel, Q16 m.
@@ -605,7 +611,7 @@ struct Pending {
 impl Pending {
     const NONE: Pending = Pending {
         next: 0,
-        ds: 0,
+        ds_less_v: 0,
         dcounts: 0,
         x16: 0,
         k_chain: 0,
@@ -635,6 +641,7 @@ impl BeltState {
         now_counts: 0,
         ahead_counts: 0,
         ahead_per_count: 0,
+        ahead_most_counts: 0,
         ticks: 0,
         current_sum: 0,
     };
@@ -654,6 +661,7 @@ impl BeltState {
             now_counts: counts,
             ahead_counts: counts,
             ahead_per_count: 0,
+            ahead_most_counts: 0,
             ticks: 0,
             current_sum: 0,
         }
@@ -677,21 +685,34 @@ impl BeltState {
     /// the step begins. The same inputs give the same state as [`BeltState::step`] on each
     /// step's counts and mean current.
     pub fn tick(&mut self, c: &BeltCoeffs, counts: i32, current_bits: i32) {
-        let every = u32::from(c.every.clamp(1, MAX_STEP_TICKS as u8));
+        // `build_every` and the image keep `every` in 1..=16; a 0 would begin a step every
+        // tick (and divide by 1).
+        let every = u32::from(c.every);
         self.now_counts = counts;
         self.ticks += 1;
         // Saturates only beyond 2^31 / 16 bits (2,048 A) a tick; `SDIV`, not a 64-bit call.
         self.current_sum = self.current_sum.saturating_add(current_bits);
+        // From 6 ticks a step on (the schedule's last row, without the table): `begin` alone
+        // on its tick, then one part a tick.
+        let one_a_tick = every >= STEP_PARTS as u32;
         let since = if self.ticks >= every {
-            let mean = self.current_sum / every as i32;
+            let mean = self.current_sum / every.max(1) as i32;
             self.begin(c, counts, mean);
             (self.ticks, self.current_sum) = (0, 0);
+            if one_a_tick {
+                return;
+            }
             0
         } else {
             self.ticks
         };
-        let row = schedule(every);
-        let want = row[(since as usize).min(row.len() - 1)];
+        if one_a_tick {
+            if self.pending.next != 0 {
+                self.advance(c);
+            }
+            return;
+        }
+        let want = schedule(every)[(since as usize).min(STEP_PARTS as usize - 1)];
         while self.parts_done() < want {
             self.advance(c);
         }
@@ -716,13 +737,16 @@ impl BeltState {
     /// twice that slip either way. Measured on the paper rig, a step every 4 ticks, identified
     /// (README): fig18 5.2 -> 3.6 um, generated mean square 11.5 -> 10.3 um. At a step every
     /// tick nothing is carried.
+    #[inline(always)]
     pub fn offset_um_bits(&self) -> i32 {
-        let since = self.now_counts.wrapping_sub(self.ahead_counts);
-        let most = 2 * (self.du as i64).abs();
-        // `min` then `max`, not `clamp`: no panic path.
-        let ahead = (self.ahead_per_count as i64 * since as i64)
+        let most = self.ahead_most_counts;
+        // `min` then `max`, not `clamp`: no panic path (`most` is at least 0).
+        let since = self
+            .now_counts
+            .wrapping_sub(self.ahead_counts)
             .min(most)
-            .max(-most) as i32;
+            .max(most.wrapping_neg());
+        let ahead = sat_i32(self.ahead_per_count as i64 * since as i64);
         to_um_bits(self.o.saturating_add(ahead))
     }
 
@@ -870,7 +894,7 @@ impl BeltState {
         });
         self.pending = Pending {
             next: PART_GEOMETRY,
-            ds,
+            ds_less_v: ds.saturating_sub(self.v),
             dcounts,
             x16: sat_i32(x >> 20),
             k_chain: 0,
@@ -908,6 +932,17 @@ impl BeltState {
                 p.kz_q8 = sat_i32(grow - damp);
             }
             PART_BRISTLES => {
+                // The commit (`PART_COMMIT`).
+                self.du = p.du;
+                self.o = self.o.saturating_add(p.du);
+                // Slip per count, carried forward by `offset_um_bits` until the next commit
+                // (`self.counts` is still this step's: the next begins later). Truncated to a
+                // Q36 unit per count: over the counts a step holds, well under 0.1 um.
+                let dc = p.dcounts;
+                self.ahead_per_count = if dc == 0 { 0 } else { p.du.wrapping_div(dc) };
+                self.ahead_counts = self.counts;
+                // Twice |dc| within 2^31 - 1 (`dcounts` is a difference of `i32`s).
+                self.ahead_most_counts = (dc.unsigned_abs().min(1 << 30) << 1) as i32;
                 // z e^-l + du (1 - e^-l) / l, at the rate the step began with; the slip's part
                 // of the next step's rate from this one's slip.
                 self.slide = Self::slide(c, p.du);
@@ -918,23 +953,12 @@ impl BeltState {
             PART_CARRIAGE => {
                 p.next = 0;
                 let p = *p;
-                self.carriage(c, p.k_chain as i64, p.rel, p.ds, p.du, p.x16);
+                self.carriage(c, p.k_chain as i64, p.rel, p.ds_less_v, p.du, p.x16);
                 return true;
             }
             _ => {
-                // A Newton step; the last commits the slip.
-                p.du = Self::newton(c, p, self.o, self.v);
-                if p.next == PART_COMMIT {
-                    self.du = p.du;
-                    self.o = self.o.saturating_add(p.du);
-                    // Slip per count, carried forward by `offset_um_bits` until the next
-                    // commit (`self.counts` is still this step's: the next begins later).
-                    // Truncated to a Q36 unit per count: over the counts a step holds, well
-                    // under 0.1 um.
-                    let dc = p.dcounts;
-                    self.ahead_per_count = if dc == 0 { 0 } else { p.du.wrapping_div(dc) };
-                    self.ahead_counts = self.counts;
-                }
+                // A Newton step (on the offset not yet committed: `self.o` is the last step's).
+                p.du = Self::newton(c, p, self.o);
             }
         }
         p.next += 1;
@@ -943,22 +967,18 @@ impl BeltState {
 
     /// One Newton step of the belt's force balance at the pulley from slip `p.du`.
     #[inline(always)]
-    fn newton(c: &BeltCoeffs, p: &Pending, o: i32, v: i32) -> i32 {
-        let (k_chain, ratio, rel, ds, m0, kz_q8) =
-            (p.k_chain, p.ratio, p.rel, p.ds, p.m0, p.kz_q8 as i64);
+    fn newton(c: &BeltCoeffs, p: &Pending, o: i32) -> i32 {
+        let (k_chain, ratio, rel, ds_less_v, m0, kz_q8) =
+            (p.k_chain, p.ratio, p.rel, p.ds_less_v, p.m0, p.kz_q8 as i64);
         let k_chain64 = k_chain as i64;
         let du = p.du;
         let o = o.saturating_add(du);
         let q = dead_zone(rel.saturating_sub(o), c.gear_half_q36);
         let f_chain = (k_chain64 * q as i64) >> 20;
-        let k_c = if q == 0 { 0 } else { k_chain as u64 };
+        let k_c = if q == 0 { 0 } else { k_chain };
         let teeth = dead_zone(o, c.half_gap_q36);
         let f_teeth = mul(c.tooth, teeth);
-        let k_t = if teeth == 0 {
-            0
-        } else {
-            c.tooth_n_per_m as u64
-        };
+        let k_t = if teeth == 0 { 0 } else { c.tooth_n_per_m };
         let mu = m0
             .saturating_add(sat_i32(mul(c.m1_t, du) + ((kz_q8 * du as i64) >> 8)))
             .clamp(-(ONE_Q30 as i32), ONE_Q30 as i32);
@@ -967,12 +987,12 @@ impl BeltState {
         let f_f = (c.preload_q16 as i64 * (a as i64 + ((a as i64 * ac as i64) >> 28))) >> 28;
         // N Q16 per unit of mu.
         let slope_f = sat_i32((c.preload_wrap_q16 as i64 * (ONE_Q28 + 2 * ac as i64)) >> 28);
-        let rel_v = ds.saturating_sub(du).saturating_sub(v);
+        let rel_v = ds_less_v.saturating_sub(du);
         let damping = mul(c.damping_t, rel_v);
         let residual = sat_i32(f_chain + damping - f_teeth - f_f);
         // N/m; the capstan's through mu's slope in du (Q30 per Q36, Q16 -> Q10 N/m).
         let friction = (mul(c.m1_t, slope_f) + ((kz_q8 * slope_f as i64) >> 8)).max(0);
-        let slope = k_c + k_t + (friction as u64 >> 10) + c.damping_t_n_per_m as u64;
+        let slope = k_c as u64 + k_t as u64 + (friction as u64 >> 10) + c.damping_t_n_per_m as u64;
         if slope == 0 {
             return du;
         }
@@ -1011,9 +1031,17 @@ impl BeltState {
 
     /// The carriage on the chain's force, Coulomb friction implicit.
     #[inline(always)]
-    fn carriage(&mut self, c: &BeltCoeffs, k_chain64: i64, rel: i32, ds: i32, du: i32, x16: i32) {
+    fn carriage(
+        &mut self,
+        c: &BeltCoeffs,
+        k_chain64: i64,
+        rel: i32,
+        ds_less_v: i32,
+        du: i32,
+        x16: i32,
+    ) {
         let q = dead_zone(rel.saturating_sub(self.o), c.gear_half_q36);
-        let rel_v = ds.saturating_sub(du).saturating_sub(self.v);
+        let rel_v = ds_less_v.saturating_sub(du);
         let f = sat_i32(((k_chain64 * q as i64) >> 20) + mul(c.damping_t, rel_v));
         let v = self.v.saturating_add(mul32(c.tt_per_m, f));
         let guide = c

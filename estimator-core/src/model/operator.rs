@@ -44,7 +44,8 @@
 //! - slope Q31 um per count times `x - x_ref` (saturated to `i32`), shifted by 7;
 //! - the observer's weight Q16 times `g` I16F16, shifted by 8;
 //! - offset, hat, harmonic and current weights I16F16 (um, um, um, um per A) times the hat in
-//!   Q16, the sine in Q15 and the currents in I16F16, shifted by 8, 7 and 8;
+//!   Q16, the sine in Q15 and the currents in I16F16, shifted by 8, 7 (both harmonics' sum)
+//!   and 8;
 //! - the low pass `l += (i - l) >> 5` on the I16F16 current bits (arithmetic shift: floor);
 //! - the output `acc >> 8` as I16F16, saturated to [`MAX_ABS_UM`](super::MAX_ABS_UM).
 //!
@@ -58,7 +59,7 @@ use fixed::types::I16F16;
 
 use super::belt::{BeltCoeffs, BeltParams, BeltState};
 use super::convert::{finite, MAX_ABS_UM};
-use super::fixmath::{exp2_neg_q30, Scale};
+use super::fixmath::{exp2_neg_q30, sat_i32, Scale};
 use super::slip::{SlipCoeffs, SlipParams};
 use super::{Direction, ModelState};
 use crate::ConfigError;
@@ -417,12 +418,13 @@ fn sine_q15(phase: u32) -> i32 {
     a + (((b - a) * frac) >> 16)
 }
 
-/// `w[0] sin + w[1] cos` at phase `ph`, Q24 um.
+/// `w[0] sin + w[1] cos` at phase `ph`, Q31 um (`|.| < 2^47`: the two harmonics are summed
+/// before their one shift).
 #[inline(always)]
 fn harmonic(ph: u32, w: &[I16F16; 2]) -> i64 {
     let s = sine_q15(ph) as i64;
     let co = sine_q15(ph.wrapping_add(1 << 30)) as i64;
-    (w[0].to_bits() as i64 * s + w[1].to_bits() as i64 * co) >> 7
+    w[0].to_bits() as i64 * s + w[1].to_bits() as i64 * co
 }
 
 /// Phase in turns (Q32) of `x` along a period with `rate` turns per count.
@@ -622,12 +624,14 @@ pub(crate) fn eval(c: &Model4Coeffs, state: &mut ModelState, x: i32, current_a: 
             acc += ((c.knot_um[seg].to_bits() as i64) * t as i64) >> 8;
         }
     }
-    acc += harmonic(phase(x, c.x_ref_counts, c.pitch_rate), &c.pitch_um);
-    acc += harmonic(phase(x, c.x_ref_counts, c.turn_rate), &c.turn_um);
+    acc += (harmonic(phase(x, c.x_ref_counts, c.pitch_rate), &c.pitch_um)
+        + harmonic(phase(x, c.x_ref_counts, c.turn_rate), &c.turn_um))
+        >> 7;
     acc += (c.current_um_per_a.to_bits() as i64 * current_bits as i64) >> 8;
     acc += (c.current_lp_um_per_a.to_bits() as i64 * state.current_lp_bits as i64) >> 8;
-    let out = (acc >> 8).clamp(-(MAX_ABS_UM as i64) << 16, (MAX_ABS_UM as i64) << 16);
-    I16F16::from_bits(out as i32)
+    // Saturated to `i32` first: the bounds' compare in 32 bits.
+    const MOST: i32 = (MAX_ABS_UM as i32) << 16;
+    I16F16::from_bits(sat_i32(acc >> 8).clamp(-MOST, MOST))
 }
 
 #[cfg(test)]
