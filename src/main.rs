@@ -192,6 +192,8 @@ mod app {
             // Cannot happen: an empty image is no calibration, not a bad one.
             Err(e) => defmt::panic!("drive not assembled: {=istr}", blob_error_name(e)),
         };
+        // The timer runs at the stored configuration's rate from here to the next boot.
+        drive.set_tick_rate_hz(rate_hz);
         let mut configured = false;
         let mut initial_model = ModelKind::None;
         if let Some((active, parts)) = stored {
@@ -614,9 +616,9 @@ mod app {
                     Effect::Calibrate(len) => {
                         // Checked here, outside the drive's lock; the lock is held only while
                         // the checked image is read into the coefficients (no staging copy).
-                        let rig = drive.lock(|d| *d.rig());
+                        let (rig, rate_hz) = drive.lock(|d| (*d.rig(), d.rate_hz()));
                         let mut staged = endpoint.calibration(len);
-                        let result = image::check_from(&mut staged, &rig).and_then(|()| {
+                        let result = image::check_from(&mut staged, &rig, rate_hz).and_then(|()| {
                             drive.lock(|d| d.load_checked_calibration_from(&mut staged))
                         });
                         let (reply, event) = endpoint.calibration_done(len, result);
@@ -640,6 +642,8 @@ mod app {
                             .map_err(Ok)
                             .and_then(|p| {
                                 let limit = p.max_current_a();
+                                // Another control rate is installed but not run: enabling
+                                // is refused, by name, until the restart.
                                 drive.lock(|d| d.reconfigure(p)).map_err(Err)?;
                                 Ok(limit)
                             });
@@ -861,6 +865,9 @@ mod app {
             CommandError::NotHomed => defmt::intern!("not homed"),
             CommandError::Unconfigured => defmt::intern!("not configured"),
             CommandError::NotCalibrated => defmt::intern!("no calibration for this geometry"),
+            CommandError::RestartNeeded => {
+                defmt::intern!("control rate changed: save and restart")
+            }
         }
     }
 
@@ -887,6 +894,7 @@ mod app {
             BlobError::UnsupportedVersion(_) => defmt::intern!("unsupported version"),
             BlobError::BadChecksum => defmt::intern!("checksum mismatch"),
             BlobError::RigMismatch => defmt::intern!("calibrated on another rig"),
+            BlobError::RateMismatch => defmt::intern!("belt observer for another control rate"),
             BlobError::BadCount(_) => defmt::intern!("table count out of bounds"),
             BlobError::Invalid(_) => defmt::intern!("a value failed the model checks"),
             BlobError::Busy => defmt::intern!("drive moving"),

@@ -195,6 +195,9 @@ pub enum CommandError {
     Unconfigured,
     /// The selected model needs a calibration for this drive's geometry: load one first.
     NotCalibrated,
+    /// The applied configuration has another control rate than the tick runs at (it is set at
+    /// boot): enabling is refused until the drive restarts with it stored.
+    RestartNeeded,
 }
 
 impl core::fmt::Display for CommandError {
@@ -210,13 +213,16 @@ impl core::fmt::Display for CommandError {
                 "the drive is not configured: set and apply a configuration"
             }
             CommandError::NotCalibrated => "no calibration for this geometry: load one first",
+            CommandError::RestartNeeded => {
+                "the control rate changed: save the configuration and restart the drive"
+            }
         })
     }
 }
 
 impl CommandError {
     /// Every refusal.
-    pub const ALL: [CommandError; 8] = [
+    pub const ALL: [CommandError; 9] = [
         CommandError::TargetOutOfTravel,
         CommandError::VelocityOutOfRange,
         CommandError::AccelOutOfRange,
@@ -225,6 +231,7 @@ impl CommandError {
         CommandError::NotHomed,
         CommandError::Unconfigured,
         CommandError::NotCalibrated,
+        CommandError::RestartNeeded,
     ];
 
     /// Wire code (`detail` of [`crate::LinkError::Refused`]).
@@ -238,6 +245,7 @@ impl CommandError {
             CommandError::NotHomed => 7,
             CommandError::Unconfigured => 8,
             CommandError::NotCalibrated => 9,
+            CommandError::RestartNeeded => 10,
         }
     }
 
@@ -252,6 +260,7 @@ impl CommandError {
             7 => CommandError::NotHomed,
             8 => CommandError::Unconfigured,
             9 => CommandError::NotCalibrated,
+            10 => CommandError::RestartNeeded,
             _ => return None,
         })
     }

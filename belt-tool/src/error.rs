@@ -220,7 +220,7 @@ pub fn is_damage(e: LinkError) -> bool {
 
 /// Names of the drive's calibration-blob refusals (the low bits of a
 /// [`cal_error::REJECTED`] detail, `endpoint::blob_error_code`).
-const BLOB_ERRORS: [(u8, &str); 12] = [
+const BLOB_ERRORS: [(u8, &str); 13] = [
     (1, "the blob is truncated"),
     (2, "the blob is too long"),
     (3, "not a calibration blob (bad magic)"),
@@ -239,6 +239,10 @@ const BLOB_ERRORS: [(u8, &str); 12] = [
         "a parameter cannot be represented in the drive's fixed-point formats",
     ),
     (12, "the drive could not read its staging flash back"),
+    (
+        13,
+        "its belt observer was built for another control rate than the drive's (drive.rate_hz): calibrate at the drive's rate",
+    ),
 ];
 
 /// Storage failures by code (`storage::StorageError::code`).
@@ -379,6 +383,7 @@ mod tests {
             (BlobError::BadMagic, "magic"),
             (BlobError::BadChecksum, "checksum"),
             (BlobError::RigMismatch, "geometry"),
+            (BlobError::RateMismatch, "control rate"),
             (BlobError::Busy, "busy"),
             (BlobError::BufferTooSmall, "buffer"),
         ] {

@@ -98,6 +98,8 @@ pub enum BlobError {
     BadChecksum,
     /// Calibrated on a rig with another counts-per-mm.
     RigMismatch,
+    /// Its belt observer was built for another control rate than the drive's.
+    RateMismatch,
     /// A table count is out of bounds.
     BadCount(ConfigField),
     /// A value failed the models' own checks.
@@ -125,6 +127,9 @@ impl core::fmt::Display for BlobError {
             BlobError::RigMismatch => {
                 f.write_str("calibration blob is for another rig (counts per mm differ)")
             }
+            BlobError::RateMismatch => f.write_str(
+                "calibration blob's belt observer is for another control rate (drive.rate_hz)",
+            ),
             BlobError::BadCount(x) => write!(f, "calibration blob: {x} out of bounds"),
             BlobError::Invalid(e) => write!(f, "calibration blob: {e}"),
             BlobError::Busy => f.write_str("calibration refused: the drive is moving"),

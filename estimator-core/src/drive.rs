@@ -214,6 +214,12 @@ pub struct Drive {
     homing_cfg: HomingCoeffs,
     /// A configuration was given (boot: stored, or over the link); otherwise enabling is refused.
     configured: bool,
+    /// The configuration's control rate and the rate the tick runs at (the firmware's timer,
+    /// set at boot: [`Drive::set_tick_rate_hz`]), whole hertz. While they differ enabling is
+    /// refused ([`CommandError::RestartNeeded`]): every per-tick coefficient is the
+    /// configuration's.
+    rate_hz: u32,
+    tick_rate_hz: u32,
     /// `models` hold coefficients for `rig`; otherwise only `ModelKind::None` may be selected.
     models_valid: bool,
 }
@@ -490,7 +496,7 @@ impl Drive {
         if calibration.is_empty() {
             drive.uncalibrated();
         } else {
-            crate::image::decode_into(calibration, &rig, &mut drive.models)?;
+            crate::image::decode_into(calibration, &rig, drive.rate_hz, &mut drive.models)?;
         }
         Ok(drive)
     }
@@ -507,11 +513,13 @@ impl Drive {
         match cfg.model {
             Models::Params(p) => self.models = p.build(&cfg.settings.rig)?,
             Models::Image([]) => self.uncalibrated(),
-            Models::Image(b) => crate::image::decode_into(b, &cfg.settings.rig, &mut self.models)
-                .map_err(|e| match e {
-                BlobError::Invalid(e) => e,
-                _ => ConfigError::OutOfRange(ConfigField::CalibrationImage),
-            })?,
+            Models::Image(b) => {
+                crate::image::decode_into(b, &cfg.settings.rig, self.rate_hz, &mut self.models)
+                    .map_err(|e| match e {
+                        BlobError::Invalid(e) => e,
+                        _ => ConfigError::OutOfRange(ConfigField::CalibrationImage),
+                    })?
+            }
         }
         Ok(())
     }
@@ -543,6 +551,8 @@ impl Drive {
             homing_cfg: p.homing,
             homing: false,
             configured: true,
+            rate_hz: p.rate_hz,
+            tick_rate_hz: p.rate_hz,
             enabled: false,
             homed: false,
             faults: Faults::NONE,
@@ -572,6 +582,24 @@ impl Drive {
         self.configured
     }
 
+    /// The rate the control tick runs at, whole hertz: the firmware sets its timer's at boot,
+    /// before it installs the stored configuration. A configuration of another rate is
+    /// installed but not run ([`Drive::restart_needed`]).
+    pub fn set_tick_rate_hz(&mut self, rate_hz: u32) {
+        self.tick_rate_hz = rate_hz;
+    }
+
+    /// The configuration's control rate, whole hertz.
+    pub fn rate_hz(&self) -> u32 {
+        self.rate_hz
+    }
+
+    /// The configuration's control rate is not the tick's: enabling is refused until the drive
+    /// restarts with it stored (the timer is set at boot).
+    pub fn restart_needed(&self) -> bool {
+        self.rate_hz != self.tick_rate_hz
+    }
+
     /// Whether the error models hold coefficients for this drive's geometry (a calibration, or
     /// the presets of the geometry they were made for).
     pub fn is_calibrated(&self) -> bool {
@@ -590,11 +618,14 @@ impl Drive {
         if self.enabled || !self.trajectory.is_done() {
             return Err(CommandError::Busy);
         }
-        if !p.rig.same_bits(&self.rig) {
+        // Another geometry, or another rate (Model 4's observer and low pass are built for
+        // one): the calibration no longer applies.
+        if !p.rig.same_bits(&self.rig) || p.rate_hz != self.rate_hz {
             self.models_valid = false;
         }
         let here = self.motor_state.position_counts();
         self.rig = p.rig;
+        self.rate_hz = p.rate_hz;
         self.limits = p.limits;
         self.motor = p.motor;
         self.scale = p.scale;
@@ -632,7 +663,7 @@ impl Drive {
         if !self.trajectory.is_done() {
             return Err(BlobError::Busy);
         }
-        crate::image::check_from(image, &self.rig)?;
+        crate::image::check_from(image, &self.rig, self.rate_hz)?;
         self.load_checked_calibration_from(image)
     }
 
@@ -653,7 +684,8 @@ impl Drive {
         if !self.trajectory.is_done() {
             return Err(BlobError::Busy);
         }
-        if let Err(e) = crate::image::decode_from(image, &self.rig, &mut self.models) {
+        if let Err(e) = crate::image::decode_from(image, &self.rig, self.rate_hz, &mut self.models)
+        {
             self.models = ModelCoeffs::ZERO;
             self.models_valid = false;
             self.model = ModelKind::None;
@@ -937,6 +969,9 @@ impl Drive {
             Command::Enable => {
                 if !self.configured {
                     return Err(CommandError::Unconfigured);
+                }
+                if self.restart_needed() {
+                    return Err(CommandError::RestartNeeded);
                 }
                 if !self.faults.is_clear() {
                     return Err(CommandError::NotEnabled);

@@ -72,6 +72,7 @@ pub fn blob_error_code(e: BlobError) -> u8 {
         BlobError::BufferTooSmall => 10,
         BlobError::Unrepresentable(_) => 11,
         BlobError::Unreadable => 12,
+        BlobError::RateMismatch => 13,
     }
 }
 

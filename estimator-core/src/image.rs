@@ -5,11 +5,12 @@
 //! (`calibration.bin`, parameters for people and tools); [`from_blob`] turns it into the image a
 //! drive loads over the link, stores, and boots from.
 //!
-//! Layout (little-endian), version 6 (version 5 had no belt observer; version 4 weighted Model
-//! 2 in Model 4 and had ten plays and no slip observer; earlier versions weighted Model 1 and had no low-passed current):
+//! Layout (little-endian), version 7 (version 6 did not record the belt observer's control rate;
+//! version 5 had no belt observer; version 4 weighted Model 2 in Model 4 and had ten plays and no
+//! slip observer; earlier versions weighted Model 1 and had no low-passed current):
 //! ```text
 //! 0   magic "BDCI"
-//! 4   version u16 (= 6)          6  reserved u16 (= 0)
+//! 4   version u16 (= 7)          6  reserved u16 (= 0)
 //! 8   payload length u32        12  CRC-32 (IEEE) of bytes 0..12 followed by the payload
 //! 16  payload:
 //!     geometry        as in the blob (must match the drive's exactly)
@@ -31,7 +32,8 @@
 //!                     slip observer: load reverse, forward, per A reverse, forward I16F16 um,
 //!                     kappa per count Q32 u32, um per count I16F16 u32, limit, half gap I16F16
 //!                     um, weight Q16,
-//!                     belt observer: present u32 (0: none, the rest absent), weight Q16,
+//!                     belt observer: present u32 (0: none, the rest absent), control rate
+//!                     u32 Hz (must be the drive's), weight Q16,
 //!                     rest reverse, forward I16F16 um, fast and slow approach per count (as
 //!                     Model 2's rates), fast share Q30,
 //!                     13 factors (mantissa i32, shift u32), 7 friction and force words i32,
@@ -72,16 +74,16 @@ use belt_link::bytes::Fields;
 /// First four bytes of every image.
 pub const MAGIC: [u8; 4] = *b"BDCI";
 /// The version this code writes and reads.
-pub const VERSION: u16 = 6;
+pub const VERSION: u16 = 7;
 const HEADER: usize = 16;
 const RIG_BYTES: usize = 24;
 const BAND_BYTES: usize = 12 + 4 * MAX_BAND_POINTS;
 const TRANSITION_BYTES: usize = 12 + 2 * MAX_TRANSITION_D * MAX_TRANSITION_G0;
 const BIDIR_BYTES: usize = 12 + 4 * MAX_BIDIR_ROWS;
 const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 9) + BELT_BYTES;
-/// Model 4's belt observer: presence and weight, the rest prediction, 13 factors, 20 words, the
-/// guide profile, the tracking gains and the step.
-const BELT_BYTES: usize = 8 + 8 + 20 + 13 * 8 + 4 * 20 + 4 * MAX_GUIDE_BINS + 3 * 8 + 4;
+/// Model 4's belt observer: presence, control rate and weight, the rest prediction, 13 factors,
+/// 20 words, the guide profile, the tracking gains and the step.
+const BELT_BYTES: usize = 12 + 8 + 20 + 13 * 8 + 4 * 20 + 4 * MAX_GUIDE_BINS + 3 * 8 + 4;
 /// Largest image: every table full.
 pub const MAX_BYTES: usize = HEADER
     + RIG_BYTES
@@ -331,7 +333,7 @@ fn read_bidir(r: &mut Stream, mut out: Option<&mut BidirCoeffs>) -> Result<(), B
     Ok(())
 }
 
-fn read_model4(r: &mut Stream) -> Result<Model4Coeffs, BlobError> {
+fn read_model4(r: &mut Stream, rate_hz: Option<u32>) -> Result<Model4Coeffs, BlobError> {
     let mut widths_counts = [0i32; N_OPS];
     let mut narrower = 0;
     for w in widths_counts.iter_mut() {
@@ -397,7 +399,7 @@ fn read_model4(r: &mut Stream) -> Result<Model4Coeffs, BlobError> {
     let current_um_per_a = um(r, ANY, ConfigField::Model4CurrentUmPerA)?;
     let current_lp_um_per_a = um(r, ANY, ConfigField::Model4CurrentLpUmPerA)?;
     let slip = read_slip(r)?;
-    let belt = read_belt(r)?;
+    let belt = read_belt(r, rate_hz)?;
     Ok(Model4Coeffs {
         widths_counts,
         weight_q24,
@@ -473,7 +475,8 @@ const BELT_LENGTHS: [(i32, i32, ConfigField); 6] = {
     ]
 };
 
-/// A factor: a non-negative mantissa, a shift of 1 to 31.
+/// A factor: a non-negative mantissa, a shift of 1 to 31. Inlined into its one loop (flash).
+#[inline(always)]
 fn read_gain(r: &mut Stream, f: ConfigField) -> Result<Gain, BlobError> {
     let mant = r.i32()?;
     let shift = r.u32()?;
@@ -489,12 +492,20 @@ fn read_gain(r: &mut Stream, f: ConfigField) -> Result<Gain, BlobError> {
 /// Model 4's belt observer, if the image has one: each field within what
 /// [`crate::model::belt::BeltParams::build_every`] makes: these keep the step the physics it
 /// was built from, and its products within their formats.
-fn read_belt(r: &mut Stream) -> Result<Option<BeltTermCoeffs>, BlobError> {
+fn read_belt(r: &mut Stream, rate_hz: Option<u32>) -> Result<Option<BeltTermCoeffs>, BlobError> {
     use ConfigField as F;
     match r.u32()? {
         0 => return Ok(None),
         1 => {}
         _ => return Err(out_of_range(F::Model4BeltStepTicks)),
+    }
+    // Built for one control rate: every factor per tick is that rate's.
+    let made_for_hz = r.u32()?;
+    if !(100..=100_000).contains(&made_for_hz) {
+        return Err(out_of_range(F::DriveRateHz));
+    }
+    if rate_hz.is_some_and(|hz| hz != made_for_hz) {
+        return Err(BlobError::RateMismatch);
     }
     let weight_q16 = i32_in(r, -(8 << 16), 8 << 16, F::Model4BeltWeight)?;
     let rest_bits = [
@@ -602,6 +613,7 @@ fn read_belt(r: &mut Stream) -> Result<Option<BeltTermCoeffs>, BlobError> {
         rest_bits,
         approach,
         fast_q30,
+        rate_hz: made_for_hz,
     }))
 }
 
@@ -669,11 +681,12 @@ fn read_closing(r: &mut Stream) -> Result<crate::model::Closing, BlobError> {
 fn read_image(
     src: &mut dyn Source,
     rig: &Rig,
+    rate_hz: Option<u32>,
     out: Option<&mut ModelCoeffs>,
 ) -> Result<(), BlobError> {
     check_header_from(src, MAGIC, VERSION, MAX_BYTES)?;
     let mut r = Stream::new(src, HEADER);
-    let result = read_fields(&mut r, rig, out);
+    let result = read_fields(&mut r, rig, rate_hz, out);
     // A source that failed to read is not a short image.
     match result {
         Err(BlobError::Truncated) if r.failed() => Err(BlobError::Unreadable),
@@ -684,6 +697,7 @@ fn read_image(
 fn read_fields(
     r: &mut Stream,
     rig: &Rig,
+    rate_hz: Option<u32>,
     mut out: Option<&mut ModelCoeffs>,
 ) -> Result<(), BlobError> {
     let r = &mut *r;
@@ -702,7 +716,7 @@ fn read_fields(
         reverse_um: I16F16::from_bits(r.i32()?),
     };
     read_bidir(r, out.as_deref_mut().map(|c| &mut c.bidir))?;
-    let model4 = read_model4(r)?;
+    let model4 = read_model4(r, rate_hz)?;
     #[cfg(feature = "std")]
     let closing = [read_closing(r)?, read_closing(r)?, read_closing(r)?];
     #[cfg(not(feature = "std"))]
@@ -726,37 +740,48 @@ fn read_fields(
     Ok(())
 }
 
-/// Checks an image for a drive on `rig` without keeping anything. Integer-only: lengths and the
-/// checksum first, then every field against its range; a refusal names the field.
-pub fn check(image: &[u8], rig: &Rig) -> Result<(), BlobError> {
-    read_image(&mut { image }, rig, None)
+/// Checks an image for a drive on `rig` at control rate `rate_hz` without keeping anything.
+/// Integer-only: lengths and the checksum first, then every field against its range; a
+/// refusal names the field. The geometry must be the drive's ([`BlobError::RigMismatch`]),
+/// and a belt observer must be built for the drive's rate ([`BlobError::RateMismatch`]).
+pub fn check(image: &[u8], rig: &Rig, rate_hz: u32) -> Result<(), BlobError> {
+    read_image(&mut { image }, rig, Some(rate_hz), None)
 }
 
 /// [`check`] an image read from `src` (the drive's staging flash) in small windows.
-pub fn check_from(src: &mut dyn Source, rig: &Rig) -> Result<(), BlobError> {
-    read_image(src, rig, None)
+pub fn check_from(src: &mut dyn Source, rig: &Rig, rate_hz: u32) -> Result<(), BlobError> {
+    read_image(src, rig, Some(rate_hz), None)
 }
 
 /// Reads an image's coefficients into `out`, checking it as [`check`] does. On a refusal `out`
 /// holds part of the image: read into a staging copy, or [`check`] first (the drive does, and
 /// then reads straight into its own coefficients without a 5 KiB copy).
-pub fn decode_into(image: &[u8], rig: &Rig, out: &mut ModelCoeffs) -> Result<(), BlobError> {
-    read_image(&mut { image }, rig, Some(out))
+pub fn decode_into(
+    image: &[u8],
+    rig: &Rig,
+    rate_hz: u32,
+    out: &mut ModelCoeffs,
+) -> Result<(), BlobError> {
+    read_image(&mut { image }, rig, Some(rate_hz), Some(out))
 }
 
 /// [`decode_into`] from an image read from `src` in small windows.
 pub fn decode_from(
     src: &mut dyn Source,
     rig: &Rig,
+    rate_hz: u32,
     out: &mut ModelCoeffs,
 ) -> Result<(), BlobError> {
-    read_image(src, rig, Some(out))
+    read_image(src, rig, Some(rate_hz), Some(out))
 }
 
-/// [`decode_into`] a fresh set of coefficients: the refusal changes nothing.
+/// An image's coefficients for `rig` at whatever control rate its belt observer was built for
+/// (host tools reading an image: no drive's rate to hold it to; see
+/// [`BeltTermCoeffs::rate_hz`]); otherwise checked as [`check`] does. The refusal changes
+/// nothing.
 pub fn decode(image: &[u8], rig: &Rig) -> Result<ModelCoeffs, BlobError> {
     let mut c = ModelCoeffs::ZERO;
-    decode_into(image, rig, &mut c)?;
+    read_image(&mut { image }, rig, None, Some(&mut c))?;
     Ok(c)
 }
 
@@ -850,6 +875,7 @@ mod write {
             return;
         };
         w.u32(1);
+        w.u32(b.rate_hz);
         w.i32(b.weight_q16);
         w.i32(b.rest_bits[0]);
         w.i32(b.rest_bits[1]);

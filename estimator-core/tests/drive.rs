@@ -580,3 +580,73 @@ fn a_drive_built_in_place_is_the_drive_built_by_value() {
     let mut slot = MaybeUninit::uninit();
     assert!(Drive::new_in(&mut slot, &cfg).is_err());
 }
+
+/// A configuration of another control rate is installed but not run: the tick's rate is set at
+/// boot, so enabling is refused by name until the drive runs at the configured rate, and the
+/// calibration (built for the old rate) no longer applies. The same rate again changes nothing.
+#[test]
+fn another_control_rate_is_refused_until_the_tick_runs_at_it() {
+    use estimator_core::drive::Parts;
+    let (mut d, _) = homed(100.0);
+    assert!(d.is_calibrated() && !d.restart_needed());
+    let mut s = DriveConfig::paper_rig().settings;
+    d.reconfigure(Parts::build(&s).unwrap()).unwrap();
+    assert!(d.is_calibrated(), "the same rate keeps the calibration");
+    d.command(Command::Enable).unwrap();
+    d.command(Command::Disable).unwrap();
+
+    s.rate_hz = 4000.0;
+    d.reconfigure(Parts::build(&s).unwrap()).unwrap();
+    assert_eq!(d.rate_hz(), 4000);
+    assert!(d.restart_needed());
+    assert!(
+        !d.is_calibrated(),
+        "a calibration for 2 kHz is not one for 4 kHz"
+    );
+    assert_eq!(d.command(Command::Enable), Err(CommandError::RestartNeeded));
+    assert!(!d.telemetry().amplifier_enabled);
+    assert_eq!(
+        CommandError::RestartNeeded.to_string(),
+        "the control rate changed: save the configuration and restart the drive"
+    );
+    // The boot after saving: the timer at the stored rate.
+    d.set_tick_rate_hz(4000);
+    assert!(!d.restart_needed());
+    d.command(Command::Enable).unwrap();
+}
+
+/// A drive configured at 4 kHz refuses a calibration whose belt observer was built at 2 kHz, by
+/// that reason, and keeps what it had; one built at its rate loads.
+#[test]
+fn a_calibration_for_another_control_rate_is_refused_and_changes_nothing() {
+    use estimator_core::blob::BlobError;
+    use estimator_core::model::belt::BeltParams;
+    use estimator_core::model::{BeltTerm, ModelParams};
+    use estimator_core::rig::Rig;
+    let image_at = |rate_hz: f64| {
+        let mut p = ModelParams::PAPER;
+        p.model4.belt = Some(BeltTerm {
+            physics: BeltParams::PAPER,
+            tick_s: 1.0 / rate_hz,
+            step_ticks: 6,
+            weight: -0.875,
+            rest_um: [-131.5, 140.25],
+            half_travel_mm: [0.25, 12.5],
+            fast_share: 0.625,
+        });
+        estimator_core::image::of_params(&p, &Rig::PAPER).unwrap()
+    };
+    let mut cfg = DriveConfig::paper_rig();
+    cfg.settings.rate_hz = 4000.0;
+    let (mut d, _) = homed_with(&cfg, 100.0);
+    let before = d.models().clone();
+    assert_eq!(
+        d.load_calibration(&image_at(2000.0)),
+        Err(BlobError::RateMismatch)
+    );
+    assert_eq!(d.models(), &before, "a refusal changes nothing");
+    d.load_calibration(&image_at(4000.0)).unwrap();
+    assert_eq!(d.models().model4().belt().map(|b| b.rate_hz()), Some(4000));
+    d.command(Command::SelectModel(ModelKind::Operator))
+        .unwrap();
+}

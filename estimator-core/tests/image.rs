@@ -64,8 +64,8 @@ const MODEL1: usize = 16 + 24 + 4;
 const MODEL2: usize = MODEL1 + 24;
 const MODEL3: usize = MODEL2 + 40;
 /// Model 4's section: widths and two weight sets, five words, the knots, eight words, the slip
-/// observer's nine, then the belt observer's (248 bytes and its guide points).
-const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 9) + 248 + 4 * GUIDE_BINS;
+/// observer's nine, then the belt observer's (252 bytes and its guide points).
+const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 9) + 252 + 4 * GUIDE_BINS;
 
 #[test]
 fn coefficients_arrive_exactly_and_re_encode_to_the_same_bytes() {
@@ -242,7 +242,7 @@ fn every_section_is_checked() {
     let slip = pitch_rate + 4 * 8;
     // The belt observer's section, its factors, words and lengths.
     let belt = slip + 4 * 9;
-    let gains = belt + 36;
+    let gains = belt + 40;
     let words = gains + 8 * 13;
     let lengths = words + 28 + 28;
     assert_refusals(&[
@@ -286,17 +286,19 @@ fn every_section_is_checked() {
             &((8i32 << 16) + 1).to_le_bytes(),
             "model4.slip.weight",
         ),
-        // The belt observer: its presence word, weight, a factor's shift and sign, the
+        // The belt observer: its presence word, control rate, weight, a factor's shift and sign, the
         // friction coefficients beyond 1, the guide profile's length, the span from the pulley
         // beyond the belt, a length, a tracking gain and the step.
         (belt, &2u32.to_le_bytes(), "model4.belt.step_ticks"),
+        (belt + 4, &0u32.to_le_bytes(), "drive.rate_hz"),
+        (belt + 4, &100_001u32.to_le_bytes(), "drive.rate_hz"),
         (
-            belt + 4,
+            belt + 8,
             &((8i32 << 16) + 1).to_le_bytes(),
             "model4.belt.weight",
         ),
         (
-            belt + 20,
+            belt + 24,
             &64u16.to_le_bytes(),
             "model4.belt.half_travel_mm",
         ),
@@ -414,4 +416,33 @@ fn whatever_decodes_evaluates_safely() {
         "only {} of 3000 decoded",
         decoded.get()
     );
+}
+
+/// The belt observer is built for one control rate: a drive at another refuses the image by
+/// that reason before it reads anything in (checking and decoding alike), one at the rate takes
+/// it, and host tools read it whatever the rate (the coefficients say which).
+#[test]
+fn a_belt_observer_for_another_control_rate_is_refused() {
+    let rig = Rig::PAPER;
+    let good = paper_image();
+    assert_eq!(image::check(&good, &rig, 2000), Ok(()));
+    assert_eq!(
+        image::check(&good, &rig, 4000),
+        Err(BlobError::RateMismatch)
+    );
+    let mut c = estimator_core::model::ModelCoeffs::ZERO;
+    assert_eq!(
+        image::decode_into(&good, &rig, 1000, &mut c),
+        Err(BlobError::RateMismatch)
+    );
+    let c = image::decode(&good, &rig).unwrap();
+    assert_eq!(c.model4().belt().map(|b| b.rate_hz()), Some(2000));
+    assert!(BlobError::RateMismatch
+        .to_string()
+        .contains("drive.rate_hz"));
+    // Without a belt observer the image holds no rate: any drive's takes it.
+    let mut p = params();
+    p.model4.belt = None;
+    let plain = image::of_params(&p, &rig).unwrap();
+    assert_eq!(image::check(&plain, &rig, 4000), Ok(()));
 }

@@ -134,9 +134,10 @@ const _: () = assert!(PART_CARRIAGE + 1 == STEP_PARTS);
 
 /// [`BeltState::tick`]'s schedule: for a step every `n` ticks ([`schedule`]), how many of the
 /// step's parts have run by the end of each tick from the one that begins it. Balanced by
-/// their cost measured on the Cortex-M4 (README): `begin` 241 instructions, the geometry 160
-/// (with the bristles' relaxation), the Newton steps 259 and 274 (the last commits), the
-/// bristles 162, the carriage 138 at most.
+/// their cost measured on the Cortex-M4 (README, before the commit moved into the bristles'
+/// part): `begin` 241 instructions, the geometry 160 (with the bristles' relaxation), the Newton
+/// steps 259 and 274, the bristles 162, the carriage 138 at most. From 6 ticks a step on (the
+/// last row) [`BeltState::tick`] runs one part a tick without the table.
 const SCHEDULE: [[u8; 6]; 6] = [
     [6, 6, 6, 6, 6, 6],
     [3, 6, 6, 6, 6, 6],
@@ -911,8 +912,8 @@ impl BeltState {
     }
 
     /// Runs the pending step's next part; `true` once none is left (the step has ended). The
-    /// parts after [`BeltState::begin`]: the geometry, each Newton step (the last commits the
-    /// slip), the bristles, the carriage: [`STEP_PARTS`] in all.
+    /// parts after [`BeltState::begin`]: the geometry, each Newton step, the bristles (which
+    /// first commit the slip: [`PART_COMMIT`]), the carriage: [`STEP_PARTS`] in all.
     pub fn advance(&mut self, c: &BeltCoeffs) -> bool {
         let p = &mut self.pending;
         match p.next {

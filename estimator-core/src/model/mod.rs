@@ -264,17 +264,17 @@ pub struct ModelCoeffs {
 }
 
 // The firmware keeps one `ModelCoeffs` in static RAM (budget 8 KiB) and moves it when a
-// calibration loads: any growth must be deliberate (3944 B with the host's closing distances,
+// calibration loads: any growth must be deliberate (3952 B with the host's closing distances,
 // the 256-row bidirectional table 1 KiB in I13F3, Model 3's even-axis bands 528 B and Model 4
-// 676 B of it, 516 B its belt observer's; ModelState 272 B, Model 4's plays and its slip
-// observer 32 B of it, its belt observer and the placement's prediction of it 144 B, Model 3's
+// 680 B of it, 520 B its belt observer's with the control rate it was built for; ModelState
+// 272 B, Model 4's plays and its slip observer 32 B of it, its belt observer and the placement's prediction of it 144 B, Model 3's
 // line over the current stretch and its half-drawn successor 40 B). Exact: a shrink shows here
 // too.
 #[cfg(feature = "std")]
-const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3944);
+const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3952);
 // On the drive (no closing distances): what the static RAM figures count.
 #[cfg(not(feature = "std"))]
-const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3896);
+const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3904);
 const _: () = assert!(core::mem::size_of::<ModelState>() == 272);
 
 impl ModelCoeffs {

@@ -162,12 +162,27 @@ pub struct BeltTermCoeffs {
     pub(crate) approach: [Scale; 2],
     /// The fast part's share, Q30.
     pub(crate) fast_q30: i32,
+    /// The control rate the observer was built for (`1 / tick_s`), whole hertz: a drive at
+    /// another rate refuses it ([`crate::blob::BlobError::RateMismatch`]).
+    pub(crate) rate_hz: u32,
+}
+
+impl BeltTermCoeffs {
+    /// The control rate this observer was built for, whole hertz.
+    pub fn rate_hz(&self) -> u32 {
+        self.rate_hz
+    }
 }
 
 impl BeltTerm {
     /// Checks every field (errors name it) and builds the observer for `counts_per_mm`.
     pub fn build(&self, counts_per_mm: f64) -> Result<BeltTermCoeffs, ConfigError> {
         let c = self.physics.build_every(self.tick_s, self.step_ticks)?;
+        // The drive's rates are whole hertz (`drive.rate_hz`, 100 Hz to 100 kHz).
+        let rate = 1.0 / self.tick_s;
+        if !((100.0..=100_000.0).contains(&rate) && (rate - rnd(rate)).abs() < 1e-6 * rate) {
+            return Err(ConfigError::OutOfRange(ConfigField::DriveRateHz));
+        }
         let w = finite(self.weight, ConfigField::Model4BeltWeight)?;
         if w.abs() > 8.0 {
             return Err(ConfigError::OutOfRange(ConfigField::Model4BeltWeight));
@@ -198,6 +213,7 @@ impl BeltTerm {
             rest_bits: rest.map(I16F16::to_bits),
             approach,
             fast_q30: rnd(share * (1u64 << 30) as f64) as i32,
+            rate_hz: rnd(rate) as u32,
         })
     }
 }
@@ -370,6 +386,13 @@ pub struct Model4Coeffs {
     pub(crate) slip: SlipCoeffs,
     /// The belt observer in the slip observer's place.
     pub(crate) belt: Option<BeltTermCoeffs>,
+}
+
+impl Model4Coeffs {
+    /// The belt observer's term, where the calibration has one.
+    pub fn belt(&self) -> Option<&BeltTermCoeffs> {
+        self.belt.as_ref()
+    }
 }
 
 /// Sine of `i / 256` of a turn in Q15, `i = 0..=256`, for interpolation.
@@ -617,12 +640,15 @@ pub(crate) fn eval(c: &Model4Coeffs, state: &mut ModelState, x: i32, current_a: 
     acc += (dx as i64 * c.slope_q31 as i64) >> 7;
     acc += state.plays.step(c, forward as usize, x);
     if let Some((seg, t)) = hat(x, c.hat_start_counts, c.hat_recip_q32) {
+        // Both hats under one shift (each product below 2^47).
+        let mut hats = 0i64;
         if seg >= 1 {
-            acc += ((c.knot_um[seg - 1].to_bits() as i64) * (65536 - t) as i64) >> 8;
+            hats += (c.knot_um[seg - 1].to_bits() as i64) * (65536 - t) as i64;
         }
         if seg < N_KNOTS {
-            acc += ((c.knot_um[seg].to_bits() as i64) * t as i64) >> 8;
+            hats += (c.knot_um[seg].to_bits() as i64) * t as i64;
         }
+        acc += hats >> 8;
     }
     acc += (harmonic(phase(x, c.x_ref_counts, c.pitch_rate), &c.pitch_um)
         + harmonic(phase(x, c.x_ref_counts, c.turn_rate), &c.turn_um))
