@@ -44,8 +44,9 @@
 //! - slope Q31 um per count times `x - x_ref` (saturated to `i32`), shifted by 7;
 //! - the observer's weight Q16 times `g` I16F16, shifted by 8;
 //! - offset, hat, harmonic and current weights I16F16 (um, um, um, um per A) times the hat in
-//!   Q16, the sine in Q15 and the currents in I16F16, shifted by 8, 7 (both harmonics' sum)
-//!   and 8;
+//!   Q16, the sine in Q15 and the currents in I16F16, shifted by 8 (both hats' sum), 7 (both
+//!   harmonics' sum) and 8 (both currents' sum: the weights within `MAX_ABS_UM`, each product
+//!   below 2^61);
 //! - the low pass `l += (i - l) >> 5` on the I16F16 current bits (arithmetic shift: floor);
 //! - the output `acc >> 8` as I16F16, saturated to [`MAX_ABS_UM`](super::MAX_ABS_UM).
 //!
@@ -653,8 +654,10 @@ pub(crate) fn eval(c: &Model4Coeffs, state: &mut ModelState, x: i32, current_a: 
     acc += (harmonic(phase(x, c.x_ref_counts, c.pitch_rate), &c.pitch_um)
         + harmonic(phase(x, c.x_ref_counts, c.turn_rate), &c.turn_um))
         >> 7;
-    acc += (c.current_um_per_a.to_bits() as i64 * current_bits as i64) >> 8;
-    acc += (c.current_lp_um_per_a.to_bits() as i64 * state.current_lp_bits as i64) >> 8;
+    // Both currents under one shift (each product below 2^61: weights within MAX_ABS_UM).
+    acc += (c.current_um_per_a.to_bits() as i64 * current_bits as i64
+        + c.current_lp_um_per_a.to_bits() as i64 * state.current_lp_bits as i64)
+        >> 8;
     // Saturated to `i32` first: the bounds' compare in 32 bits.
     const MOST: i32 = (MAX_ABS_UM as i32) << 16;
     I16F16::from_bits(sat_i32(acc >> 8).clamp(-MOST, MOST))
