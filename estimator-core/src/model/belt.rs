@@ -740,6 +740,12 @@ impl BeltState {
     /// tick nothing is carried.
     #[inline(always)]
     pub fn offset_um_bits(&self) -> i32 {
+        to_um_bits(self.offset_q36())
+    }
+
+    /// [`BeltState::offset_um_bits`] in Q36 metres, not rounded to micrometres.
+    #[inline(always)]
+    pub fn offset_q36(&self) -> i32 {
         let most = self.ahead_most_counts;
         // `min` then `max`, not `clamp`: no panic path (`most` is at least 0).
         let since = self
@@ -748,7 +754,7 @@ impl BeltState {
             .min(most)
             .max(most.wrapping_neg());
         let ahead = sat_i32(self.ahead_per_count as i64 * since as i64);
-        to_um_bits(self.o.saturating_add(ahead))
+        self.o.saturating_add(ahead)
     }
 
     /// The latest counts the observer was given.
