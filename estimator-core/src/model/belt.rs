@@ -948,8 +948,8 @@ impl BeltState {
                 let dc = p.dcounts;
                 self.ahead_per_count = if dc == 0 { 0 } else { p.du.wrapping_div(dc) };
                 self.ahead_counts = self.counts;
-                // Twice |dc| within 2^31 - 1 (`dcounts` is a difference of `i32`s).
-                self.ahead_most_counts = (dc.unsigned_abs().min(1 << 30) << 1) as i32;
+                // Twice |dc|, at most 2^31 - 2 (`dcounts` is a difference of `i32`s).
+                self.ahead_most_counts = (dc.unsigned_abs().min((1 << 30) - 1) << 1) as i32;
                 // z e^-l + du (1 - e^-l) / l, at the rate the step began with; the slip's part
                 // of the next step's rate from this one's slip.
                 self.slide = Self::slide(c, p.du);
@@ -1252,6 +1252,23 @@ mod tests {
                 }
             }
             assert!(moved, "{every}: the offset never moved");
+        }
+    }
+
+    /// The carried slip's bound stays a count of at least 0 whatever the step's counts (a
+    /// difference of `i32`s, up to 2^31 either way).
+    #[test]
+    fn the_carried_bound_is_never_negative() {
+        let c = BeltParams::PAPER.build_every(5e-4, 6).unwrap();
+        for dc in [i32::MIN, i32::MIN + 1, -(1 << 30), 1 << 30, i32::MAX] {
+            let mut s = BeltState::new(&c, 0);
+            s.begin(&c, 0, 0);
+            s.pending.dcounts = dc;
+            while !s.advance(&c) {}
+            assert!(s.ahead_most_counts >= 0, "{dc}: {}", s.ahead_most_counts);
+            s.now_counts = s.ahead_counts.wrapping_add(dc);
+            let ahead = i64::from(s.offset_q36()) - i64::from(s.o);
+            assert!(ahead.abs() <= 2 * i64::from(s.du).abs(), "{dc}: {ahead}");
         }
     }
 
