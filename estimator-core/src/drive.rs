@@ -511,7 +511,14 @@ impl Drive {
     /// the firmware boots).
     fn install_models(&mut self, cfg: &DriveConfig) -> Result<(), ConfigError> {
         match cfg.model {
-            Models::Params(p) => self.models = p.build(&cfg.settings.rig)?,
+            Models::Params(p) => {
+                self.models = p.build(&cfg.settings.rig)?;
+                // A belt observer is built for one control rate, as the image check holds it.
+                let rate = self.models.model4.belt.as_ref().map(|b| b.rate_hz());
+                if rate.is_some_and(|hz| hz != self.rate_hz) {
+                    return Err(ConfigError::OutOfRange(ConfigField::DriveRateHz));
+                }
+            }
             Models::Image([]) => self.uncalibrated(),
             Models::Image(b) => {
                 crate::image::decode_into(b, &cfg.settings.rig, self.rate_hz, &mut self.models)

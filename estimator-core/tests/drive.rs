@@ -649,4 +649,19 @@ fn a_calibration_for_another_control_rate_is_refused_and_changes_nothing() {
     assert_eq!(d.models().model4().belt().map(|b| b.rate_hz()), Some(4000));
     d.command(Command::SelectModel(ModelKind::Operator))
         .unwrap();
+    // A drive built from parameters holds them to its rate as well, naming the rate.
+    let mut p = ModelParams::PAPER;
+    p.model4.belt = Some(BeltTerm {
+        physics: BeltParams::PAPER,
+        tick_s: 1.0 / 2000.0,
+        step_ticks: 6,
+        weight: -0.875,
+        rest_um: [-131.5, 140.25],
+        half_travel_mm: [0.25, 12.5],
+        fast_share: 0.625,
+    });
+    cfg.model = estimator_core::drive::Models::Params(&p);
+    assert_eq!(Drive::new(&cfg).unwrap_err().field(), "drive.rate_hz");
+    cfg.settings.rate_hz = 2000.0;
+    Drive::new(&cfg).unwrap();
 }
