@@ -261,6 +261,30 @@ fn short_watchdog_warning(
     })
 }
 
+/// The drive's active control rate (`drive.rate_hz`), before a change: `None` from a drive that
+/// does not answer with it (nothing to compare against).
+fn active_rate_hz(link: &mut Link) -> Option<f64> {
+    let field = config::lookup(estimator_core::ConfigField::DriveRateHz.name()).ok()?;
+    config::get(link, field).ok().map(|v| v.active)
+}
+
+/// The note for values that changed the control rate: the drive's tick timer is set at boot,
+/// so it installs the new rate but refuses to enable until it restarts with it saved.
+fn rate_change_warning(
+    before_hz: Option<f64>,
+    applied: &[(&'static settings::Field, f64)],
+) -> Option<String> {
+    let key = estimator_core::ConfigField::DriveRateHz;
+    let (_, hz) = applied.iter().rev().find(|(f, _)| f.field == key)?;
+    let before = before_hz?;
+    (*hz != before).then(|| {
+        format!(
+            "beltctl: {} = {hz} Hz (was {before} Hz): the drive's tick keeps the rate it booted              with, so the drive refuses to enable until it restarts with this configuration:              `beltctl config save`, then restart the drive",
+            key.name()
+        )
+    })
+}
+
 /// Refuses a `--timeout-ms` that would let one lost reply trip an enabled drive's link
 /// watchdog (`faults.link_timeout_s`): the motor would stop with `link_timeout` mid-move.
 fn check_timeout(link: &mut Link, timeout_ms: u64) -> Result<(), ToolError> {
@@ -440,16 +464,24 @@ pub fn run(cli: Cli) -> Result<(), ToolError> {
                 }
             }
             ConfigCmd::Set { .. } => {
+                let rate_before = active_rate_hz(link);
                 config::set_and_apply(link, &set_values, "config set")?;
                 hil_sim::outln!("applied {}", values(set_values.len()));
                 if let Some(w) = short_watchdog_warning(&set_values, timeout_ms) {
                     hil_sim::errln!("{w}");
                 }
+                if let Some(w) = rate_change_warning(rate_before, &set_values) {
+                    hil_sim::errln!("{w}");
+                }
             }
             ConfigCmd::Load { file } => {
+                let rate_before = active_rate_hz(link);
                 config::set_and_apply(link, &load, &file.display().to_string())?;
                 hil_sim::outln!("applied {} from {}", values(load.len()), file.display());
                 if let Some(w) = short_watchdog_warning(&load, timeout_ms) {
+                    hil_sim::errln!("{w}");
+                }
+                if let Some(w) = rate_change_warning(rate_before, &load) {
                     hil_sim::errln!("{w}");
                 }
             }
@@ -782,5 +814,35 @@ mod tests {
         assert!(super::short_watchdog_warning(&[(watchdog, 0.5)], 300).is_none());
         assert!(super::short_watchdog_warning(&[(watchdog, 0.0)], 300).is_none());
         assert!(super::short_watchdog_warning(&[(f("pid.kp_a_per_mm"), 0.2)], 300).is_none());
+    }
+
+    /// A configuration of another control rate is applied but not run until the drive restarts:
+    /// `config set` / `load` say so with what to do, and the drive's refusal to enable says why.
+    /// The same rate, other fields and a drive that did not answer with its rate give no note.
+    #[test]
+    fn a_changed_control_rate_is_noted_with_the_restart_it_needs() {
+        use belt_link::{Command, Request};
+        let f = |name| crate::config::lookup(name).unwrap();
+        let rate = f("drive.rate_hz");
+        let mut link = crate::testing::endpoint_drive(|_| false);
+        let before = super::active_rate_hz(&mut link);
+        assert_eq!(before, Some(2000.0));
+        crate::config::set_and_apply(&mut link, &[(rate, 4000.0)], "config set").unwrap();
+        let w = super::rate_change_warning(before, &[(rate, 4000.0)]).expect("a note");
+        for says in [
+            "drive.rate_hz = 4000 Hz (was 2000 Hz)",
+            "beltctl config save",
+            "restart",
+        ] {
+            assert!(w.contains(says), "lacks `{says}`: {w}");
+        }
+        let e = link
+            .acked(&Request::Command(Command::Enable))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("the control rate changed"), "{e}");
+        assert!(super::rate_change_warning(before, &[(rate, 2000.0)]).is_none());
+        assert!(super::rate_change_warning(before, &[(f("pid.kp_a_per_mm"), 2.0)]).is_none());
+        assert!(super::rate_change_warning(None, &[(rate, 4000.0)]).is_none());
     }
 }
