@@ -501,7 +501,7 @@ fn read_belt(r: &mut Stream, rate_hz: Option<u32>) -> Result<Option<BeltTermCoef
     }
     // Built for one control rate: every factor per tick is that rate's.
     let made_for_hz = r.u32()?;
-    if !(100..=100_000).contains(&made_for_hz) {
+    if !crate::RATE_HZ.contains(&made_for_hz) {
         return Err(out_of_range(F::DriveRateHz));
     }
     if rate_hz.is_some_and(|hz| hz != made_for_hz) {

@@ -41,6 +41,10 @@ pub mod reference;
 pub use field::ConfigField;
 pub use fixed;
 
+/// The control rates the drive takes, whole hertz (`drive.rate_hz`): the configuration's
+/// check, its image's and the calibration image's belt observer's.
+pub const RATE_HZ: core::ops::RangeInclusive<u32> = 100..=100_000;
+
 /// What every per-tick configuration is built for: the drive train's geometry and the control
 /// rate, given once (as quartiq idsp passes the sample period to its builders) rather than a
 /// `rate_hz` in each sub-configuration. Only [`BuildContext::new`] makes one, so a builder can
@@ -67,12 +71,12 @@ impl BuildContext {
         })
     }
 
-    /// A control rate the drive takes: `100..=100_000` Hz, named `drive.rate_hz`.
+    /// A control rate the drive takes ([`RATE_HZ`]), named `drive.rate_hz`.
     pub fn check_rate_hz(rate_hz: f64) -> Result<f64, ConfigError> {
         if !rate_hz.is_finite() {
             return Err(ConfigError::NotFinite(ConfigField::DriveRateHz));
         }
-        if !(100.0..=100_000.0).contains(&rate_hz) {
+        if !(*RATE_HZ.start() as f64..=*RATE_HZ.end() as f64).contains(&rate_hz) {
             return Err(ConfigError::OutOfRange(ConfigField::DriveRateHz));
         }
         Ok(rate_hz)

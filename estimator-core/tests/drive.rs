@@ -623,7 +623,8 @@ fn a_calibration_for_another_control_rate_is_refused_and_changes_nothing() {
     use estimator_core::model::belt::BeltParams;
     use estimator_core::model::{BeltTerm, ModelParams};
     use estimator_core::rig::Rig;
-    let image_at = |rate_hz: f64| {
+    // The paper's parameters with a belt observer built for `rate_hz`.
+    let params_at = |rate_hz: f64| {
         let mut p = ModelParams::PAPER;
         p.model4.belt = Some(BeltTerm {
             physics: BeltParams::PAPER,
@@ -634,8 +635,10 @@ fn a_calibration_for_another_control_rate_is_refused_and_changes_nothing() {
             half_travel_mm: [0.25, 12.5],
             fast_share: 0.625,
         });
-        estimator_core::image::of_params(&p, &Rig::PAPER).unwrap()
+        p
     };
+    let image_at =
+        |rate_hz: f64| estimator_core::image::of_params(&params_at(rate_hz), &Rig::PAPER).unwrap();
     let mut cfg = DriveConfig::paper_rig();
     cfg.settings.rate_hz = 4000.0;
     let (mut d, _) = homed_with(&cfg, 100.0);
@@ -650,16 +653,7 @@ fn a_calibration_for_another_control_rate_is_refused_and_changes_nothing() {
     d.command(Command::SelectModel(ModelKind::Operator))
         .unwrap();
     // A drive built from parameters holds them to its rate as well, naming the rate.
-    let mut p = ModelParams::PAPER;
-    p.model4.belt = Some(BeltTerm {
-        physics: BeltParams::PAPER,
-        tick_s: 1.0 / 2000.0,
-        step_ticks: 6,
-        weight: -0.875,
-        rest_um: [-131.5, 140.25],
-        half_travel_mm: [0.25, 12.5],
-        fast_share: 0.625,
-    });
+    let p = params_at(2000.0);
     cfg.model = estimator_core::drive::Models::Params(&p);
     assert_eq!(Drive::new(&cfg).unwrap_err().field(), "drive.rate_hz");
     cfg.settings.rate_hz = 2000.0;

@@ -139,7 +139,7 @@ impl Parts {
         // The geometry's own check, float-free (its doubles on their bits).
         rig.validate().map_err(Some)?;
         let rate_hz = r.u32().map_err(short)?;
-        check((100..=100_000).contains(&rate_hz), ConfigField::DriveRateHz)?;
+        check(crate::RATE_HZ.contains(&rate_hz), ConfigField::DriveRateHz)?;
 
         let limits = Limits {
             counts_per_um_q32: r.u64().map_err(short)? as i64,

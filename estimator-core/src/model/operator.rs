@@ -42,7 +42,8 @@
 //! Every term lands in one `i64` accumulator in Q24 micrometres:
 //! - play weights Q24 um per count (|w| < 128 um/count) times the feature in counts;
 //! - slope Q31 um per count times `x - x_ref` (saturated to `i32`), shifted by 7;
-//! - the observer's weight Q16 times `g` I16F16, shifted by 8;
+//! - the observer's weight Q16 times `g` I16F16, shifted by 8 (the belt observer's on a tick:
+//!   `w_q16 15625 / 4` times its offset in Q36 m, shifted by 20);
 //! - offset, hat, harmonic and current weights I16F16 (um, um, um, um per A) times the hat in
 //!   Q16, the sine in Q15 and the currents in I16F16, shifted by 8 (both hats' sum), 7 (both
 //!   harmonics' sum) and 8 (both currents' sum: the weights within `MAX_ABS_UM`, each product
@@ -179,9 +180,9 @@ impl BeltTerm {
     /// Checks every field (errors name it) and builds the observer for `counts_per_mm`.
     pub fn build(&self, counts_per_mm: f64) -> Result<BeltTermCoeffs, ConfigError> {
         let c = self.physics.build_every(self.tick_s, self.step_ticks)?;
-        // The drive's rates are whole hertz (`drive.rate_hz`, 100 Hz to 100 kHz).
-        let rate = 1.0 / self.tick_s;
-        if !((100.0..=100_000.0).contains(&rate) && (rate - rnd(rate)).abs() < 1e-6 * rate) {
+        // A rate the drive takes, in whole hertz.
+        let rate = crate::BuildContext::check_rate_hz(1.0 / self.tick_s)?;
+        if (rate - rnd(rate)).abs() >= 1e-6 * rate {
             return Err(ConfigError::OutOfRange(ConfigField::DriveRateHz));
         }
         let w = finite(self.weight, ConfigField::Model4BeltWeight)?;
