@@ -5,12 +5,13 @@
 //! (`calibration.bin`, parameters for people and tools); [`from_blob`] turns it into the image a
 //! drive loads over the link, stores, and boots from.
 //!
-//! Layout (little-endian), version 7 (version 6 did not record the belt observer's control rate;
+//! Layout (little-endian), version 8 (version 7 held each harmonic as its sine and cosine
+//! amplitudes; version 6 did not record the belt observer's control rate;
 //! version 5 had no belt observer; version 4 weighted Model 2 in Model 4 and had ten plays and no
 //! slip observer; earlier versions weighted Model 1 and had no low-passed current):
 //! ```text
 //! 0   magic "BDCI"
-//! 4   version u16 (= 7)          6  reserved u16 (= 0)
+//! 4   version u16 (= 8)          6  reserved u16 (= 0)
 //! 8   payload length u32        12  CRC-32 (IEEE) of bytes 0..12 followed by the payload
 //! 16  payload:
 //!     geometry        as in the blob (must match the drive's exactly)
@@ -28,7 +29,8 @@
 //!     model4          widths counts, weights reverse, weights forward Q24 um/count
 //!                     3 x N_OPS x i32; x_ref counts, offset I16F16, slope Q31 um/count, hat
 //!                     start counts, hat reciprocal u32, knots N_KNOTS x I16F16, pitch rate u32,
-//!                     sin, cos I16F16, turn rate u32, sin, cos, um/A, low-passed um/A I16F16,
+//!                     amplitude I16F16 (not negative), phase Q32 turns u32, turn rate u32,
+//!                     amplitude, phase, um/A, low-passed um/A I16F16,
 //!                     slip observer: load reverse, forward, per A reverse, forward I16F16 um,
 //!                     kappa per count Q32 u32, um per count I16F16 u32, limit, half gap I16F16
 //!                     um, weight Q16,
@@ -57,7 +59,7 @@ use fixed::types::{I13F3, I16F16, I1F31, U11F5};
 use crate::blob::{check_header_from, BlobError};
 use crate::model::belt::{BeltCoeffs, Gain, GAIN_MAX_SHIFT, MAX_GUIDE_BINS, MAX_STEP_TICKS};
 use crate::model::fixmath::{Recip, Scale, MAX_SHIFT};
-use crate::model::operator::{N_KNOTS, N_OPS};
+use crate::model::operator::{Harmonic, FORWARD, N_KNOTS, N_OPS, REVERSE};
 use crate::model::slip::{self, SlipCoeffs};
 use crate::model::BeltTermCoeffs;
 use crate::model::LinearBand;
@@ -74,7 +76,7 @@ use belt_link::bytes::Fields;
 /// First four bytes of every image.
 pub const MAGIC: [u8; 4] = *b"BDCI";
 /// The version this code writes and reads.
-pub const VERSION: u16 = 7;
+pub const VERSION: u16 = 8;
 const HEADER: usize = 16;
 const RIG_BYTES: usize = 24;
 const BAND_BYTES: usize = 12 + 4 * MAX_BAND_POINTS;
@@ -349,17 +351,20 @@ fn read_model4(r: &mut Stream, rate_hz: Option<u32>) -> Result<Model4Coeffs, Blo
         }
         narrower = *w;
     }
-    let mut weight_q24 = [[0i32; N_OPS]; 2];
-    for set in weight_q24.iter_mut() {
+    // Reverse, then forward; the rows of `weight_q24` go by direction.
+    let mut rows = [[0i32; N_OPS]; 2];
+    for set in rows.iter_mut() {
         for w in set.iter_mut() {
             *w = r.i32()?;
         }
     }
+    let mut weight_q24 = [[0i32; N_OPS]; 2];
+    (weight_q24[REVERSE], weight_q24[FORWARD]) = (rows[0], rows[1]);
     let x_ref_counts = r.i32()?;
     if x_ref_counts.unsigned_abs() > i32::MAX as u32 / 2 {
         return Err(out_of_range(ConfigField::Model4XRefMm));
     }
-    let offset_um = um(r, ANY, ConfigField::Model4OffsetUm)?;
+    let offset_q31 = (um(r, ANY, ConfigField::Model4OffsetUm)?.to_bits() as i64) << 15;
     let slope_q31 = r.i32()?;
     if slope_q31 == i32::MIN {
         return Err(out_of_range(ConfigField::Model4SlopeUmPerMm));
@@ -386,16 +391,17 @@ fn read_model4(r: &mut Stream, rate_hz: Option<u32>) -> Result<Model4Coeffs, Blo
             Err(out_of_range(field))
         }
     };
+    // Amplitude (not negative) and phase (any turn).
+    let harmonic = |r: &mut Stream, field| -> Result<Harmonic, BlobError> {
+        Ok(Harmonic {
+            amp_q17: um(r, 0, field)?.to_bits() << 1,
+            phase_q32: r.u32()?,
+        })
+    };
     let pitch_rate = rate(r, ConfigField::Model4PitchMm)?;
-    let pitch_um = [
-        um(r, ANY, ConfigField::Model4PitchUm)?,
-        um(r, ANY, ConfigField::Model4PitchUm)?,
-    ];
+    let pitch = harmonic(r, ConfigField::Model4PitchUm)?;
     let turn_rate = rate(r, ConfigField::Model4TurnMm)?;
-    let turn_um = [
-        um(r, ANY, ConfigField::Model4TurnUm)?,
-        um(r, ANY, ConfigField::Model4TurnUm)?,
-    ];
+    let turn = harmonic(r, ConfigField::Model4TurnUm)?;
     let current_um_per_a = um(r, ANY, ConfigField::Model4CurrentUmPerA)?;
     let current_lp_um_per_a = um(r, ANY, ConfigField::Model4CurrentLpUmPerA)?;
     let slip = read_slip(r)?;
@@ -404,15 +410,15 @@ fn read_model4(r: &mut Stream, rate_hz: Option<u32>) -> Result<Model4Coeffs, Blo
         widths_counts,
         weight_q24,
         x_ref_counts,
-        offset_um,
+        offset_q31,
         slope_q31,
         hat_start_counts,
         hat_recip_q32,
         knot_um,
         pitch_rate,
-        pitch_um,
+        pitch,
         turn_rate,
-        turn_um,
+        turn,
         current_um_per_a,
         current_lp_um_per_a,
         slip,
@@ -835,13 +841,13 @@ mod write {
         for v in m
             .widths_counts
             .iter()
-            .chain(&m.weight_q24[0])
-            .chain(&m.weight_q24[1])
+            .chain(&m.weight_q24[REVERSE])
+            .chain(&m.weight_q24[FORWARD])
         {
             w.i32(*v);
         }
         w.i32(m.x_ref_counts);
-        w.i32(m.offset_um.to_bits());
+        w.i32((m.offset_q31 >> 15) as i32);
         w.i32(m.slope_q31);
         w.i32(m.hat_start_counts);
         w.u32(m.hat_recip_q32);
@@ -849,11 +855,11 @@ mod write {
             w.i32(k.to_bits());
         }
         w.u32(m.pitch_rate);
-        w.i32(m.pitch_um[0].to_bits());
-        w.i32(m.pitch_um[1].to_bits());
+        w.i32(m.pitch.amp_q17 >> 1);
+        w.u32(m.pitch.phase_q32);
         w.u32(m.turn_rate);
-        w.i32(m.turn_um[0].to_bits());
-        w.i32(m.turn_um[1].to_bits());
+        w.i32(m.turn.amp_q17 >> 1);
+        w.u32(m.turn.phase_q32);
         w.i32(m.current_um_per_a.to_bits());
         w.i32(m.current_lp_um_per_a.to_bits());
         let sl = &m.slip;

@@ -8,7 +8,7 @@
 //! compared, not the quantisation of calibration data.
 
 use crate::model::belt::{BeltCoeffs, BeltState};
-use crate::model::operator::{N_KNOTS, N_OPS};
+use crate::model::operator::{FORWARD, N_KNOTS, N_OPS, REVERSE};
 use crate::model::slip::{self, SlipCoeffs};
 use crate::model::{BandCoeffs, Direction, ModelKind, ModelParams, TransitionCoeffs};
 use crate::model::{Model1Params, Model2Params};
@@ -301,26 +301,24 @@ impl RefModel4 {
                 .sum::<f64>()
             + self.current_um_per_a * t.current_a
             + self.current_lp_um_per_a * t.current_lp_a;
-        let max = crate::model::MAX_ABS_UM;
-        y.clamp(-max, max)
+        let (lo, hi) = crate::model::operator::OUT_BITS;
+        y.clamp(lo as f64 / 65536.0, hi as f64 / 65536.0)
     }
 
     fn from_coeffs(c: &crate::model::Model4Coeffs) -> RefModel4 {
         let q24 = |v: i32| v as f64 / (1u64 << 24) as f64;
         RefModel4 {
             widths: c.widths_counts.map(|w| w as f64),
-            weight_um_per_count: c.weight_q24.map(|w| w.map(q24)),
+            // Reverse, forward (by the flag `forward`).
+            weight_um_per_count: [REVERSE, FORWARD].map(|k| c.weight_q24[k].map(q24)),
             x_ref: c.x_ref_counts,
-            offset_um: c.offset_um.to_num(),
+            offset_um: c.offset_q31 as f64 / (1u64 << 31) as f64,
             slope_um_per_count: c.slope_q31 as f64 / (1u64 << 31) as f64,
             hat_start: c.hat_start_counts as f64,
             hat_recip: c.hat_recip_q32 as f64 / (1u64 << 32) as f64,
             knot_um: c.knot_um.map(|k| k.to_num()),
             rates: [c.pitch_rate, c.turn_rate],
-            harmonic_um: [
-                [c.pitch_um[0].to_num(), c.pitch_um[1].to_num()],
-                [c.turn_um[0].to_num(), c.turn_um[1].to_num()],
-            ],
+            harmonic_um: [c.pitch.sin_cos_um(), c.turn.sin_cos_um()],
             current_um_per_a: c.current_um_per_a.to_num(),
             current_lp_um_per_a: c.current_lp_um_per_a.to_num(),
             slip_weight: c.belt.map_or(c.slip.weight_q16, |b| b.weight_q16) as f64 / 65536.0,

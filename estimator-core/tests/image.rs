@@ -258,12 +258,15 @@ fn every_section_is_checked() {
         ),
         (bidir, &1u16.to_le_bytes(), "bidir_table.rows"),
         (bidir + 8, &0u32.to_le_bytes(), "bidir_table.step_mm"),
-        // Model 4: widths out of order, a zero width, a period under 16 counts, the
-        // low-passed current's weight, the slip observer's load acting the wrong way, renewal,
-        // limit, half gap and weight.
+        // Model 4: widths out of order, a zero width, a period under 16 counts, a harmonic's
+        // amplitude below zero, the low-passed current's weight, the slip observer's load
+        // acting the wrong way, renewal, limit, half gap and weight.
         (model4 + 4, &1i32.to_le_bytes(), "model4.widths_mm"),
         (model4, &0i32.to_le_bytes(), "model4.widths_mm"),
         (pitch_rate, &(1u32 << 29).to_le_bytes(), "model4.pitch_mm"),
+        // A harmonic's amplitude below zero (its phase takes any turn).
+        (pitch_rate + 4, &(-1i32).to_le_bytes(), "model4.pitch_um"),
+        (pitch_rate + 16, &(-1i32).to_le_bytes(), "model4.turn_um"),
         (
             slip - 4,
             &i32::MAX.to_le_bytes(),

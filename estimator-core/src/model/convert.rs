@@ -72,9 +72,80 @@ pub(crate) fn exp_nonpos(x: f64) -> f64 {
     sum * pow2(k)
 }
 
+/// `sqrt(v)` for finite `v >= 0` without `std` (build time only): a start within a factor of
+/// 2 from the exponent, then Newton's steps (quadratic: 6 reach the last bit).
+pub(crate) fn sqrt_nonneg(v: f64) -> f64 {
+    if v == 0.0 {
+        return 0.0;
+    }
+    if v.is_nan() || v < 0.0 || v.is_infinite() {
+        return f64::NAN;
+    }
+    // Half the biased exponent: within a factor of 2 of the root.
+    let mut y = f64::from_bits((v.to_bits() >> 1) + (1023u64 << 51));
+    for _ in 0..8 {
+        y = 0.5 * (y + v / y);
+    }
+    y
+}
+
+/// `a sin(t) + b cos(t)` as `r sin(t + phase)`: `(r, phase)` with `phase` in turns, in
+/// `[0, 1)`; `(0, 0)` for `a = b = 0`. Build time only, without `std`.
+pub(crate) fn polar(a: f64, b: f64) -> (f64, f64) {
+    let r = sqrt_nonneg(a * a + b * b);
+    if r == 0.0 {
+        return (0.0, 0.0);
+    }
+    // atan2(b, a): reduced to t = min/max in [0, 1], halved twice by
+    // atan t = 2 atan(t / (1 + sqrt(1 + t^2))), then its series (|t| < 0.2: 24 terms).
+    let (ax, bx) = (a.abs(), b.abs());
+    let t = if ax >= bx { bx / ax } else { ax / bx };
+    let mut u = t;
+    for _ in 0..2 {
+        u /= 1.0 + sqrt_nonneg(1.0 + u * u);
+    }
+    let (mut term, mut sum, u2) = (u, 0.0, u * u);
+    for k in 0..24 {
+        sum += term / (2 * k + 1) as f64;
+        term *= -u2;
+    }
+    let quarter = core::f64::consts::FRAC_PI_2;
+    let first = 4.0 * sum;
+    let mut angle = if ax >= bx { first } else { quarter - first };
+    if a < 0.0 {
+        angle = 2.0 * quarter - angle;
+    }
+    if b < 0.0 {
+        angle = -angle;
+    }
+    let turns = angle / core::f64::consts::TAU;
+    (r, if turns < 0.0 { turns + 1.0 } else { turns })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn polar_matches_std() {
+        assert_eq!(polar(0.0, 0.0), (0.0, 0.0));
+        for i in 0..2000 {
+            let t = i as f64 * 0.0137 - 13.0;
+            for r in [1e-6, 0.3, 11.0, 16_000.0] {
+                let (a, b) = (r * t.cos(), r * t.sin());
+                let (rr, ph) = polar(a, b);
+                assert!((rr - r).abs() <= 1e-12 * r, "{a} {b}: {rr}");
+                assert!((0.0..1.0).contains(&ph), "{ph}");
+                let x = 0.7f64;
+                let want = a * x.sin() + b * x.cos();
+                let got = rr * (x + ph * core::f64::consts::TAU).sin();
+                assert!((want - got).abs() <= 1e-11 * r, "{a} {b}: {want} vs {got}");
+            }
+        }
+        for v in [0.0, 1e-300, 2.0, 1e300] {
+            assert!((sqrt_nonneg(v) - v.sqrt()).abs() <= 1e-15 * v.sqrt());
+        }
+    }
 
     #[test]
     fn exp_nonpos_matches_std() {

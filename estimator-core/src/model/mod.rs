@@ -264,17 +264,17 @@ pub struct ModelCoeffs {
 }
 
 // The firmware keeps one `ModelCoeffs` in static RAM (budget 8 KiB) and moves it when a
-// calibration loads: any growth must be deliberate (3952 B with the host's closing distances,
+// calibration loads: any growth must be deliberate (3960 B with the host's closing distances,
 // the 256-row bidirectional table 1 KiB in I13F3, Model 3's even-axis bands 528 B and Model 4
-// 680 B of it, 520 B its belt observer's with the control rate it was built for; ModelState
-// 272 B, Model 4's plays and its slip observer 32 B of it, its belt observer and the placement's prediction of it 144 B, Model 3's
-// line over the current stretch and its half-drawn successor 40 B). Exact: a shrink shows here
-// too.
+// 688 B of it, 520 B its belt observer's with the control rate it was built for, 8 B its offset
+// as an `i64`; ModelState 272 B, Model 4's plays and its slip observer 32 B of it, its belt
+// observer and the placement's prediction of it 144 B, Model 3's line over the current
+// stretch and its half-drawn successor 40 B). Exact: a shrink shows here too.
 #[cfg(feature = "std")]
-const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3952);
+const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3960);
 // On the drive (no closing distances): what the static RAM figures count.
 #[cfg(not(feature = "std"))]
-const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3904);
+const _: () = assert!(core::mem::size_of::<ModelCoeffs>() == 3912);
 const _: () = assert!(core::mem::size_of::<ModelState>() == 272);
 
 impl ModelCoeffs {
@@ -336,15 +336,15 @@ impl ModelCoeffs {
                 widths_counts: [0; operator::N_OPS],
                 weight_q24: [[0; operator::N_OPS]; 2],
                 x_ref_counts: 0,
-                offset_um: I16F16::ZERO,
+                offset_q31: 0,
                 slope_q31: 0,
                 hat_start_counts: 0,
                 hat_recip_q32: 0,
                 knot_um: [I16F16::ZERO; operator::N_KNOTS],
                 pitch_rate: 0,
-                pitch_um: [I16F16::ZERO; 2],
+                pitch: operator::Harmonic::ZERO,
                 turn_rate: 0,
-                turn_um: [I16F16::ZERO; 2],
+                turn: operator::Harmonic::ZERO,
                 current_um_per_a: I16F16::ZERO,
                 current_lp_um_per_a: I16F16::ZERO,
                 slip: slip::SlipCoeffs::ZERO,
@@ -454,7 +454,8 @@ pub struct ModelState {
     pub(crate) belt: belt::BeltState,
     /// The placement's predicted rest of its offset (a copy's, [`estimate`]).
     pub(crate) belt_rest: operator::BeltRest,
-    /// Within [`estimate`]: Model 4's belt observer predicts its rest instead of stepping.
+    /// Set by [`estimate`] (a prediction's copy): Model 4's belt observer predicts its rest
+    /// instead of stepping.
     pub(crate) predicting: bool,
     /// Model 4's low-passed current, I16F16 amperes (restarted with the plays).
     pub(crate) current_lp_bits: i32,
@@ -555,6 +556,11 @@ impl ModelState {
 /// at rest: Model 4 sees no current, its low passes settled at zero (as after the move that
 /// brings the motor to `x_counts`, whatever its length). See [`estimate_with_current`].
 ///
+/// The state becomes a prediction's: run it on a copy of the drive's (the placement does). It
+/// zeroes Model 4's low passes, and from then on its belt observer predicts its rest on every
+/// call instead of stepping, each prediction going on from the last (so the tick's path never
+/// has to mark a prediction stale).
+///
 /// Integer-only, bounded time, no panics for any input.
 pub fn estimate(
     coeffs: &ModelCoeffs,
@@ -569,9 +575,7 @@ pub fn estimate(
     // The flag lives in the state, not in an argument, so that the per-tick call is the same
     // as before the belt observer (an argument cost every compensator 2-3 instructions a tick).
     state.predicting = true;
-    let y = estimate_with_current(coeffs, kind, state, x_counts, I16F16::ZERO);
-    state.predicting = false;
-    y
+    estimate_with_current(coeffs, kind, state, x_counts, I16F16::ZERO)
 }
 
 /// [`estimate`] with the motor current commanded this tick (amperes in the drive's frame,

@@ -9,6 +9,7 @@
 //!   + sum_j (w_j + [forward] v_j) P_rj[x]                 the fast part: gear backlash, unloading
 //!   + s_p sin(2 pi x / p) + c_p cos(..)                   tooth-passing harmonic (belt pitch p)
 //!   + s_r sin(2 pi x / (n p)) + c_r cos(..)               pulley run-out (one pulley turn)
+//!     (each pair evaluated as one amplitude and phase, `r sin(2 pi x / p + phi)`)
 //!   + k_i i + k_l i_lp                                    belt force: the current, and its low pass
 //! ```
 //! `g` is the observer's mesh offset: where the belt sits in the pulley's tooth gap, moved by
@@ -44,14 +45,17 @@
 //! - slope Q31 um per count times `x - x_ref` (saturated to `i32`), shifted by 7;
 //! - the observer's weight Q16 times `g` I16F16, shifted by 8 (the belt observer's on a tick:
 //!   `w_q16 15625 / 4` times its offset in Q36 m, shifted by 20);
-//! - offset, hat, harmonic and current weights I16F16 (um, um, um, um per A) times the hat in
-//!   Q16, the sine in Q15 and the currents in I16F16, shifted by 8 (both hats' sum), 7 (both
-//!   harmonics' sum) and 8 (both currents' sum: the weights within `MAX_ABS_UM`, each product
-//!   below 2^61);
+//! - the offset I16F16 um shifted to Q31, summed with the slope's product before its shift;
+//! - hat and current weights I16F16 (um, um per A) times the hat in Q16 and the currents in
+//!   I16F16, each harmonic's amplitude in Q17 um times one sine in Q15: both hats summed and
+//!   shifted by 8, both harmonics and both currents (Q32, the currents' products below 2^61
+//!   with weights within `MAX_ABS_UM`) summed and shifted by 8;
 //! - the low pass `l += (i - l) >> 5` on the I16F16 current bits (arithmetic shift: floor);
-//! - the output `acc >> 8` as I16F16, saturated to [`MAX_ABS_UM`](super::MAX_ABS_UM).
+//! - the output `acc >> 8` as I16F16, saturated to +-2^14 um ([`OUT_BITS`]).
 //!
-//! Phases are `u32` turns: `(x - x_ref) * rate` wrapping, `rate = round(2^32 / period_counts)`;
+//! Phases are `u32` turns: `(x - x_ref) * rate + phase` wrapping, `rate = round(2^32 /
+//! period_counts)`, `phase` the harmonic's (`atan2(c, s)`, Q32 turns; its amplitude
+//! `hypot(s, c)`): one table read a harmonic instead of two (21 instructions a tick fewer);
 //! the sine is a 256-step table with linear interpolation (error < 1e-4 of the amplitude).
 //! The hat position is `(x - start) * recip >> 16` with `recip = round(2^32 / step_counts)`.
 //! The [`crate::reference`] model evaluates the same definitions in `f64`.
@@ -253,7 +257,7 @@ impl Model4Params {
             Ok(finite(mm, field)? * counts_per_mm)
         };
         let mut widths = [0i32; N_OPS];
-        // Per direction (reverse, forward): the forward weight is summed here, not per tick.
+        // Per direction (`FORWARD`, `REVERSE`): the forward weight is summed here, not per tick.
         let mut weight = [[0i32; N_OPS]; 2];
         for j in 0..N_OPS {
             let w = rnd(counts(self.widths_mm[j], ConfigField::Model4WidthsMm)?);
@@ -266,8 +270,9 @@ impl Model4Params {
                 self.play_forward_um_per_mm[j],
                 ConfigField::Model4PlayForwardUmPerMm,
             )?;
-            weight[0][j] = q24_per_count(reverse, counts_per_mm, ConfigField::Model4PlayUmPerMm)?;
-            weight[1][j] = q24_per_count(
+            weight[REVERSE][j] =
+                q24_per_count(reverse, counts_per_mm, ConfigField::Model4PlayUmPerMm)?;
+            weight[FORWARD][j] = q24_per_count(
                 reverse + extra,
                 counts_per_mm,
                 ConfigField::Model4PlayForwardUmPerMm,
@@ -311,21 +316,15 @@ impl Model4Params {
             widths_counts: widths,
             weight_q24: weight,
             x_ref_counts: x_ref as i32,
-            offset_um: um(self.offset_um, ConfigField::Model4OffsetUm)?,
+            offset_q31: (um(self.offset_um, ConfigField::Model4OffsetUm)?.to_bits() as i64) << 15,
             slope_q31: slope_q31 as i32,
             hat_start_counts: hat_start as i32,
             hat_recip_q32: rnd((1u64 << 32) as f64 / step).min(u32::MAX as f64) as u32,
             knot_um: knots,
             pitch_rate: rate(self.pitch_mm, ConfigField::Model4PitchMm)?,
-            pitch_um: [
-                um(self.pitch_um[0], ConfigField::Model4PitchUm)?,
-                um(self.pitch_um[1], ConfigField::Model4PitchUm)?,
-            ],
+            pitch: Harmonic::build(self.pitch_um, ConfigField::Model4PitchUm)?,
             turn_rate: rate(self.turn_mm, ConfigField::Model4TurnMm)?,
-            turn_um: [
-                um(self.turn_um[0], ConfigField::Model4TurnUm)?,
-                um(self.turn_um[1], ConfigField::Model4TurnUm)?,
-            ],
+            turn: Harmonic::build(self.turn_um, ConfigField::Model4TurnUm)?,
             current_um_per_a: um(self.current_um_per_a, ConfigField::Model4CurrentUmPerA)?,
             current_lp_um_per_a: um(self.current_lp_um_per_a, ConfigField::Model4CurrentLpUmPerA)?,
             slip: self.slip.build(counts_per_mm)?,
@@ -366,22 +365,71 @@ fn q24_per_count(
     Ok(q as i32)
 }
 
+/// A harmonic `amp sin(phase of x + phase)`: the fit's sine and cosine amplitudes `(s, c)` as
+/// `amp = hypot(s, c)`, `phase = atan2(c, s)`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Harmonic {
+    /// um in Q17 (an I16F16 value within `[0, MAX_ABS_UM]` shifted by 1: times the Q15 sine,
+    /// Q32 like the currents' products, under their shift).
+    pub(crate) amp_q17: i32,
+    /// Q32 turns.
+    pub(crate) phase_q32: u32,
+}
+
+impl Harmonic {
+    pub(crate) const ZERO: Harmonic = Harmonic {
+        amp_q17: 0,
+        phase_q32: 0,
+    };
+
+    /// From the sine and cosine amplitudes in um; errors name `field`.
+    fn build(w_um: [f64; 2], field: ConfigField) -> Result<Harmonic, ConfigError> {
+        let [s, c] = [finite(w_um[0], field)?, finite(w_um[1], field)?];
+        let (amp, turns) = super::convert::polar(s, c);
+        let amp_q17 = um(amp, field)?.to_bits() << 1;
+        if amp_q17 == 0 {
+            return Ok(Harmonic::ZERO);
+        }
+        // `turns` in [0, 1): wraps at 1 to 0.
+        let phase_q32 = rnd(turns * (1u64 << 32) as f64) as u64 as u32;
+        Ok(Harmonic { amp_q17, phase_q32 })
+    }
+
+    /// The sine and cosine amplitudes it stands for, um (the reference's).
+    #[cfg(feature = "std")]
+    pub(crate) fn sin_cos_um(&self) -> [f64; 2] {
+        let a = self.amp_q17 as f64 / (1u64 << 17) as f64;
+        let t = self.phase_q32 as f64 / (1u64 << 32) as f64 * core::f64::consts::TAU;
+        [a * t.cos(), a * t.sin()]
+    }
+}
+
+/// [`Model4Coeffs`]'s play weights' rows, by [`Direction`]'s discriminant: the tick indexes
+/// them with the registered direction as it is (3 instructions a tick fewer than by a flag).
+pub(crate) const FORWARD: usize = Direction::Forward as usize;
+pub(crate) const REVERSE: usize = Direction::Reverse as usize;
+const _: () = assert!(FORWARD != REVERSE && FORWARD < 2 && REVERSE < 2);
+
 /// Model 4's fixed-point coefficients (see the module docs for the formats).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Model4Coeffs {
     pub(crate) widths_counts: [i32; N_OPS],
-    /// Play weights while moving in reverse (`[0]`) and forward (`[1]`), um per count Q24.
+    /// Play weights while moving forward ([`FORWARD`]) and in reverse ([`REVERSE`]), um per
+    /// count Q24.
     pub(crate) weight_q24: [[i32; N_OPS]; 2],
     pub(crate) x_ref_counts: i32,
-    pub(crate) offset_um: I16F16,
+    /// The offset, um in Q31 (I16F16 bits shifted by 15: it starts the slope's sum).
+    pub(crate) offset_q31: i64,
     pub(crate) slope_q31: i32,
     pub(crate) hat_start_counts: i32,
     pub(crate) hat_recip_q32: u32,
     pub(crate) knot_um: [I16F16; N_KNOTS],
     pub(crate) pitch_rate: u32,
-    pub(crate) pitch_um: [I16F16; 2],
+    /// The belt pitch's harmonic.
+    pub(crate) pitch: Harmonic,
     pub(crate) turn_rate: u32,
-    pub(crate) turn_um: [I16F16; 2],
+    /// The pulley turn's harmonic.
+    pub(crate) turn: Harmonic,
     pub(crate) current_um_per_a: I16F16,
     pub(crate) current_lp_um_per_a: I16F16,
     /// The belt-slip observer.
@@ -443,13 +491,11 @@ fn sine_q15(phase: u32) -> i32 {
     a + (((b - a) * frac) >> 16)
 }
 
-/// `w[0] sin + w[1] cos` at phase `ph`, Q31 um (`|.| < 2^47`: the two harmonics are summed
+/// `h` at phase `ph`, Q32 um (`|.| < 2^46`: the two harmonics and the two currents are summed
 /// before their one shift).
 #[inline(always)]
-fn harmonic(ph: u32, w: &[I16F16; 2]) -> i64 {
-    let s = sine_q15(ph) as i64;
-    let co = sine_q15(ph.wrapping_add(1 << 30)) as i64;
-    w[0].to_bits() as i64 * s + w[1].to_bits() as i64 * co
+fn harmonic(ph: u32, h: &Harmonic) -> i64 {
+    h.amp_q17 as i64 * sine_q15(ph.wrapping_add(h.phase_q32)) as i64
 }
 
 /// Phase in turns (Q32) of `x` along a period with `rate` turns per count.
@@ -464,18 +510,19 @@ fn phase(x: i32, x_ref: i32, rate: u32) -> u32 {
 /// is outside the knots; `None`: outside the support.
 #[inline(always)]
 fn hat(x: i32, start: i32, recip_q32: u32) -> Option<(usize, i32)> {
-    let s = x as i64 - start as i64;
-    if s < 0 {
+    if x < start {
         return None;
     }
-    // s < 2^32 (x in i32, |start| <= 2^30 + 2^24) and recip < 2^32: the product fits a u64
-    // for any coefficients `build` accepts (a step of 1 count has recip = u32::MAX).
-    let pos = (s as u64 * recip_q32 as u64) >> 16; // Q16 knots from the start of the support
-    let seg = pos >> 16;
-    if seg > N_KNOTS as u64 {
+    // 0 <= x - start < 2^32 (x in i32, |start| <= 2^30 + 2^24): exact in a `u32`; times
+    // recip < 2^32 it fits a u64 for any coefficients `build` accepts (a step of 1 count has
+    // recip = u32::MAX). Knots from the start of the support in Q32: the segment is the high
+    // word, the weight the low word's top half (32-bit compares, no 64-bit shift).
+    let p = (x.wrapping_sub(start) as u32) as u64 * recip_q32 as u64;
+    let seg = (p >> 32) as u32;
+    if seg > N_KNOTS as u32 {
         return None;
     }
-    Some((seg as usize, (pos & 0xffff) as i32))
+    Some((seg as usize, (p as u32 >> 16) as i32))
 }
 
 /// Model 4's plays: each tick every play is clamped, `p = clamp(p, x - w, x + w)`, and enters
@@ -510,8 +557,8 @@ impl Plays {
         self.valid = true;
     }
 
-    /// Moves the plays with `x` and returns `sum (x - p_i) weight_i` with weight set `k` (0
-    /// reverse, 1 forward), Q24 um.
+    /// Moves the plays with `x` and returns `sum (x - p_i) weight_i` with weight set `k`
+    /// ([`FORWARD`] or [`REVERSE`]), Q24 um.
     #[inline(always)]
     fn step(&mut self, c: &Model4Coeffs, k: usize, x: i32) -> i64 {
         let weight = &c.weight_q24[k];
@@ -553,7 +600,7 @@ fn mesh_offset_term(
         if !starting {
             state.belt.tick(&b.c, x, current_bits);
         }
-        state.belt_rest.valid = false;
+        // `belt_rest` stays invalid: only a prediction's copy ever sets it.
         // The weight times the offset in Q36 m, to Q24 um, without rounding the offset to
         // I16F16 um first: `w_q16 1e6 2^-36 2^24 = (w_q16 15625 / 4) 2^-20`, the factor in an
         // `i32` for |w| <= 8 (2 instructions a tick fewer than through micrometres; stored
@@ -624,6 +671,11 @@ impl BeltRest {
     };
 }
 
+/// Model 4's output range, I16F16 bits: +-2^14 um, the range whose differences fit Q16.16
+/// ([`MAX_ABS_UM`] is the parameters' bound, within it). A power of two: the clamp is one
+/// `SSAT` (7 instructions a tick fewer than the clamp to +-`MAX_ABS_UM`).
+pub(crate) const OUT_BITS: (i32, i32) = (-(1 << 30), (1 << 30) - 1);
+
 /// One tick of Model 4: moves the plays and the observer with `x` and sums every term. Out of
 /// line: inlined into the dispatch it made every other model's tick dearer (measured).
 #[inline(never)]
@@ -631,7 +683,6 @@ pub(crate) fn eval(c: &Model4Coeffs, state: &mut ModelState, x: i32, current_a: 
     let predict = state.predicting;
     let forward = state.dir == Direction::Forward;
     let current_bits = current_a.to_bits();
-    let mut acc: i64 = (c.offset_um.to_bits() as i64) << 8;
     let starting = !state.plays.valid;
     if starting {
         state.plays.start(c, state.dir, x);
@@ -639,11 +690,11 @@ pub(crate) fn eval(c: &Model4Coeffs, state: &mut ModelState, x: i32, current_a: 
     } else {
         state.current_lp_bits = current_lowpass(state.current_lp_bits, current_bits);
     }
-    acc += mesh_offset_term(c, state, starting, predict, forward, x, current_bits);
-    // `x - x_ref` saturated to `i32`.
+    let mut acc = mesh_offset_term(c, state, starting, predict, forward, x, current_bits);
+    // `x - x_ref` saturated to `i32`; the offset in the same sum (Q31: exact under the shift).
     let dx = x.saturating_sub(c.x_ref_counts);
-    acc += (dx as i64 * c.slope_q31 as i64) >> 7;
-    acc += state.plays.step(c, forward as usize, x);
+    acc += (c.offset_q31 + dx as i64 * c.slope_q31 as i64) >> 7;
+    acc += state.plays.step(c, state.dir as usize, x);
     if let Some((seg, t)) = hat(x, c.hat_start_counts, c.hat_recip_q32) {
         // Both hats under one shift (each product below 2^47).
         let mut hats = 0i64;
@@ -655,16 +706,15 @@ pub(crate) fn eval(c: &Model4Coeffs, state: &mut ModelState, x: i32, current_a: 
         }
         acc += hats >> 8;
     }
-    acc += (harmonic(phase(x, c.x_ref_counts, c.pitch_rate), &c.pitch_um)
-        + harmonic(phase(x, c.x_ref_counts, c.turn_rate), &c.turn_um))
-        >> 7;
-    // Both currents under one shift (each product below 2^61: weights within MAX_ABS_UM).
-    acc += (c.current_um_per_a.to_bits() as i64 * current_bits as i64
+    // Both harmonics and both currents under one shift, all Q32 (the currents' products below
+    // 2^61: weights within MAX_ABS_UM).
+    acc += (harmonic(phase(x, c.x_ref_counts, c.pitch_rate), &c.pitch)
+        + harmonic(phase(x, c.x_ref_counts, c.turn_rate), &c.turn)
+        + c.current_um_per_a.to_bits() as i64 * current_bits as i64
         + c.current_lp_um_per_a.to_bits() as i64 * state.current_lp_bits as i64)
         >> 8;
-    // Saturated to `i32` first: the bounds' compare in 32 bits.
-    const MOST: i32 = (MAX_ABS_UM as i32) << 16;
-    I16F16::from_bits(sat_i32(acc >> 8).clamp(-MOST, MOST))
+    // Saturated to `i32` first, then to the output's range: one `SSAT`.
+    I16F16::from_bits(sat_i32(acc >> 8).clamp(OUT_BITS.0, OUT_BITS.1))
 }
 
 #[cfg(test)]
