@@ -2,12 +2,13 @@
 //! `hil-sim calibrate` writes it (`calibration.bin`). The drive loads the image built from it
 //! on the host ([`crate::image::from_blob`]): the coefficients, with no `f64` on the drive.
 //!
-//! Layout (little-endian), version 6 (version 5 had no belt observer; version 4 weighted Model
+//! Layout (little-endian), version 7 (version 6 had no tracking discount for the belt observer,
+//! always 0.95; version 5 had no belt observer; version 4 weighted Model
 //! 2 in Model 4 and had ten plays and no slip observer; version 3 weighted Model 1, not Model 2, and had no low-passed current;
 //! version 2 recorded only counts/mm and had no Model 4; version 1 had no baselines):
 //! ```text
 //! 0   magic "BDCB"
-//! 4   version u16 (= 6)          6  reserved u16 (= 0)
+//! 4   version u16 (= 7)          6  reserved u16 (= 0)
 //! 8   payload length u32        12  CRC-32 (IEEE) of bytes 0..12 followed by the payload
 //! 16  payload:
 //!     geometry        encoder lines u32, pulley teeth u32, gear ratio f64, belt pitch mm f64:
@@ -30,8 +31,8 @@
 //!                     I16F16, creep per mm I8F24, limit um, half gap um, weight I16F16,
 //!                     belt observer: present u32 (0: none, the rest absent), tick s f64,
 //!                     ticks a step u32, weight I16F16, rest reverse, forward um I16F16,
-//!                     half travels fast, slow mm f64, fast share I8F24, 21 physics f64 (SI, `BeltParams`'
-//!                     order), guide points u32, guide start m, step m f64, points x N f64
+//!                     half travels fast, slow mm f64, fast share I8F24, 22 physics f64
+//!                     (SI, `BeltParams`' order), guide points u32, guide start m, step m f64, points x N f64
 //! ```
 //! Slopes are I16F16 um per mm, errors I16F16 um, Model 2 rates I8F24 per mm. Decoding checks
 //! every length and count before reading and never panics; a blob that fails any check is
@@ -55,7 +56,7 @@ use belt_link::Crc32;
 /// First four bytes of every blob.
 pub const MAGIC: [u8; 4] = *b"BDCB";
 /// The version this code writes and reads.
-pub const VERSION: u16 = 6;
+pub const VERSION: u16 = 7;
 const HEADER: usize = 16;
 const BAND_BYTES: usize = 4 + 8 * MAX_BAND_POINTS;
 const TRANSITION_BYTES: usize = 12 + 2 * MAX_TRANSITION_D * MAX_TRANSITION_G0;
@@ -66,9 +67,9 @@ const BIDIR_BYTES: usize = 12 + 8 * MAX_BIDIR_ROWS;
 pub const MODEL4_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 8) + BELT_BYTES;
 /// Size of Model 4's section without a belt observer (its presence word only).
 pub const MODEL4_NO_BELT_BYTES: usize = 4 * (3 * N_OPS + 5 + N_KNOTS + 8 + 8) + 4;
-/// Model 4's belt observer: presence, tick, step and weight, 21 physics and the guide
+/// Model 4's belt observer: presence, tick, step and weight, 22 physics and the guide
 /// profile's count, start, step and points.
-const BELT_BYTES: usize = 4 + 8 + 4 + 4 + 8 + 16 + 4 + 8 * 21 + 4 + 16 + 8 * MAX_GUIDE_BINS;
+const BELT_BYTES: usize = 4 + 8 + 4 + 4 + 8 + 16 + 4 + 8 * 22 + 4 + 16 + 8 * MAX_GUIDE_BINS;
 const RIG_BYTES: usize = 24;
 /// Largest blob: header, rig and dead band, Models 1 and 2, two full bands, two full tables,
 /// backlash and a full bidirectional table.
@@ -651,8 +652,8 @@ fn write_model4(w: &mut Writer<'_>, m4: &Model4Params) -> Result<(), BlobError> 
     write_belt(w, m4.belt.as_ref())
 }
 
-/// [`BeltParams`]'s 21 scalars, in the blob's order.
-fn belt_scalars(p: &mut BeltParams) -> [&mut f64; 21] {
+/// [`BeltParams`]'s 22 scalars, in the blob's order.
+fn belt_scalars(p: &mut BeltParams) -> [&mut f64; 22] {
     [
         &mut p.mass_kg,
         &mut p.guide_n,
@@ -675,6 +676,7 @@ fn belt_scalars(p: &mut BeltParams) -> [&mut f64; 21] {
         &mut p.span_damping_n_s_per_m,
         &mut p.accel_per_a,
         &mut p.m_per_count,
+        &mut p.track_discount,
     ]
 }
 

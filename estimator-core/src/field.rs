@@ -150,6 +150,7 @@ config_fields! {
     Model4BeltStepTicks = "model4.belt.step_ticks",
     Model4BeltStribeckMPerS = "model4.belt.stribeck_m_per_s",
     Model4BeltToothNPerM = "model4.belt.tooth_n_per_m",
+    Model4BeltTrackDiscount = "model4.belt.track_discount",
     Model4BeltFastShare = "model4.belt.fast_share",
     Model4BeltHalfTravelMm = "model4.belt.half_travel_mm",
     Model4BeltRestUm = "model4.belt.rest_um",

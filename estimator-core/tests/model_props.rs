@@ -8,7 +8,7 @@
 use std::cell::Cell;
 
 use estimator_core::fixed::types::I16F16;
-use estimator_core::model::belt::{BeltParams, MAX_GUIDE_BINS};
+use estimator_core::model::belt::{BeltParams, MAX_GUIDE_BINS, TRACK_DISCOUNT_RANGE};
 use estimator_core::model::slip::SlipParams;
 use estimator_core::model::BeltTerm;
 use estimator_core::model::{
@@ -302,32 +302,38 @@ fn belt(cpm: f64) -> impl Strategy<Value = Option<BeltTerm>> {
         -1.5f64..1.5,
         prop::array::uniform2(-200.0f64..200.0),
         0.01f64..100.0,
+        0.0f64..1.0,
     )
-        .prop_map(move |(scale, bins, step_ticks, weight, rest_um, half)| {
-            let f = |k: usize| 2f64.powf(scale[k]);
-            let mut physics = BeltParams::PAPER;
-            physics.mass_kg *= f(0);
-            physics.preload_n *= f(1);
-            physics.half_gap_m *= f(2);
-            physics.mu_kinetic *= f(3).min(2.0);
-            physics.mu_static = physics.mu_kinetic * 1.3;
-            physics.kappa_per_m *= f(4);
-            physics.m_per_count = 1e-3 / cpm;
-            physics.guide_bins = bins;
-            for (k, d) in physics.guide_delta_n.iter_mut().enumerate() {
-                *d = (k as f64).sin();
-            }
-            BeltTerm {
-                physics,
-                tick_s: 1.0 / 2000.0,
-                step_ticks,
-                weight,
-                rest_um,
-                half_travel_mm: [half.max(2.0 / cpm) / 20.0, half.max(2.0 / cpm)]
-                    .map(|h| h.max(2.0 / cpm)),
-                fast_share: (weight.abs() / 1.5).min(1.0),
-            }
-        });
+        .prop_map(
+            move |(scale, bins, step_ticks, weight, rest_um, half, track)| {
+                let f = |k: usize| 2f64.powf(scale[k]);
+                let mut physics = BeltParams::PAPER;
+                physics.mass_kg *= f(0);
+                physics.preload_n *= f(1);
+                physics.half_gap_m *= f(2);
+                physics.mu_kinetic *= f(3).min(2.0);
+                physics.mu_static = physics.mu_kinetic * 1.3;
+                physics.kappa_per_m *= f(4);
+                physics.m_per_count = 1e-3 / cpm;
+                // Any tracking discount the builder accepts.
+                let (lo, hi) = (*TRACK_DISCOUNT_RANGE.start(), *TRACK_DISCOUNT_RANGE.end());
+                physics.track_discount = lo + track * (hi - lo);
+                physics.guide_bins = bins;
+                for (k, d) in physics.guide_delta_n.iter_mut().enumerate() {
+                    *d = (k as f64).sin();
+                }
+                BeltTerm {
+                    physics,
+                    tick_s: 1.0 / 2000.0,
+                    step_ticks,
+                    weight,
+                    rest_um,
+                    half_travel_mm: [half.max(2.0 / cpm) / 20.0, half.max(2.0 / cpm)]
+                        .map(|h| h.max(2.0 / cpm)),
+                    fast_share: (weight.abs() / 1.5).min(1.0),
+                }
+            },
+        );
     prop_oneof![Just(None), term.prop_map(Some)]
 }
 

@@ -273,11 +273,6 @@ fn dead_zone(d: f64, h: f64) -> f64 {
     }
 }
 
-/// The tracking filter's discount: critically damped, ~16 Hz for the disturbance.
-pub const TRACK_THETA: f64 = 0.95;
-/// Its gains for position, velocity and acceleration (critically damped alpha-beta-gamma).
-const TRACK_GAINS: [f64; 3] = track_gains(TRACK_THETA);
-
 /// Critically damped alpha-beta-gamma gains for the discount `t` per step.
 const fn track_gains(t: f64) -> [f64; 3] {
     let d = 1.0 - t;
@@ -425,11 +420,9 @@ impl BeltObserver {
         let p = &self.p;
         let raw = counts as f64 * p.belt.m_per_count;
         // Alpha-beta-gamma with the current's acceleration as the model's.
-        let g = if n == 1 {
-            TRACK_GAINS
-        } else {
-            track_gains(TRACK_THETA.powi(n as i32))
-        };
+        // The physics' discount per tick (`BeltParams::track_discount`; 0.95 by default,
+        // critically damped, ~16 Hz for the disturbance).
+        let g = track_gains(p.belt.track_discount.powi(n as i32));
         let [p0, v0, a0] = self.track;
         let a = a0 + p.belt.accel_per_a * current_a;
         let pred = p0 + v0 * T + 0.5 * a * T * T;

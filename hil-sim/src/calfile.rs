@@ -314,6 +314,7 @@ fn models_of(p: &ModelParams) -> Models {
                     ("span_damping_n_s_per_m", p.span_damping_n_s_per_m),
                     ("accel_per_a", p.accel_per_a),
                     ("m_per_count", p.m_per_count),
+                    ("track_discount", p.track_discount),
                     ("guide_profile_start_m", p.guide_start_m),
                     ("guide_profile_step_m", p.guide_step_m),
                 ]);

@@ -14,6 +14,7 @@
 //! 5. the two baselines of today's controllers from the same data.
 
 use estimator_core::blob::{self, BlobError};
+use estimator_core::model::belt::TRACK_DISCOUNTS;
 use estimator_core::model::operator::{N_KNOTS, N_OPS};
 use estimator_core::model::slip::{SlipParams, MAX_SLIP_UM};
 use estimator_core::model::{
@@ -714,9 +715,41 @@ const BELT_ROUNDS: usize = 1;
 /// Model 4's belt observer on these recordings: the guide's friction along the travel, the
 /// physics identified from `start`, and the weights refitted with its offset exactly as the
 /// drive computes it (the blob's physics through [`Reference::model4_step`]). `None` where the
-/// identification or the fit find nothing.
+/// identification or the fit find nothing. Identified at each of the tracking filter's
+/// discounts ([`TRACK_DISCOUNTS`]), the one whose fit is best kept: the filter's bandwidth
+/// against the counts' quantisation is the machine's (README, "Model 4 with the belt
+/// observer").
 #[allow(clippy::too_many_arguments)]
 fn belt_term(
+    runs: &[Prepared],
+    cols: &[[f64; NB]],
+    y: &[f64],
+    start: &BeltPhysics,
+    m: &Model4Params,
+    base: &ModelParams,
+    rig: &Rig,
+    solve: &Solve,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Option<(BeltTerm, Vec<f64>, f64)>, CalibrationError> {
+    let mut best: Option<(BeltTerm, Vec<f64>, f64)> = None;
+    let n = TRACK_DISCOUNTS.len() as f64;
+    for (i, &discount) in TRACK_DISCOUNTS.iter().enumerate() {
+        let mut start = start.clone();
+        start.belt.track_discount = discount;
+        let mut part = |what: &str, f: f64| progress(what, (i as f64 + f) / n);
+        let found = belt_term_at(runs, cols, y, &start, m, base, rig, solve, &mut part)?;
+        if let Some(f) = found {
+            if best.as_ref().is_none_or(|b| f.2 < b.2) {
+                best = Some(f);
+            }
+        }
+    }
+    Ok(best)
+}
+
+/// [`belt_term`] at `start`'s tracking discount.
+#[allow(clippy::too_many_arguments)]
+fn belt_term_at(
     runs: &[Prepared],
     cols: &[[f64; NB]],
     y: &[f64],
