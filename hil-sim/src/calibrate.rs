@@ -731,35 +731,6 @@ fn belt_term(
     solve: &Solve,
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Option<(BeltTerm, Vec<f64>, f64)>, CalibrationError> {
-    let mut best: Option<(BeltTerm, Vec<f64>, f64)> = None;
-    let n = TRACK_DISCOUNTS.len() as f64;
-    for (i, &discount) in TRACK_DISCOUNTS.iter().enumerate() {
-        let mut start = start.clone();
-        start.belt.track_discount = discount;
-        let mut part = |what: &str, f: f64| progress(what, (i as f64 + f) / n);
-        let found = belt_term_at(runs, cols, y, &start, m, base, rig, solve, &mut part)?;
-        if let Some(f) = found {
-            if best.as_ref().is_none_or(|b| f.2 < b.2) {
-                best = Some(f);
-            }
-        }
-    }
-    Ok(best)
-}
-
-/// [`belt_term`] at `start`'s tracking discount.
-#[allow(clippy::too_many_arguments)]
-fn belt_term_at(
-    runs: &[Prepared],
-    cols: &[[f64; NB]],
-    y: &[f64],
-    start: &BeltPhysics,
-    m: &Model4Params,
-    base: &ModelParams,
-    rig: &Rig,
-    solve: &Solve,
-    progress: &mut dyn FnMut(&str, f64),
-) -> Result<Option<(BeltTerm, Vec<f64>, f64)>, CalibrationError> {
     let mut fit_runs = Vec::with_capacity(runs.len());
     let mut at = 0;
     for r in runs {
@@ -781,68 +752,79 @@ fn belt_term_at(
     physics.capstan_taylor = true;
     physics.decimation = BELT_STEP_TICKS;
     physics.guide_profile = belt_observer::guide_profile(&fit_runs, &physics);
-    let starts: Vec<BeltPhysics> = BELT_MASS_STARTS
-        .iter()
-        .map(|&f| {
-            let mut p = physics.clone();
-            p.scale(Param::Mass, f);
-            p
-        })
-        .collect();
     let fields: Vec<Param> = Param::ALL.iter().map(|(p, _)| *p).collect();
-    let Some(found) = belt_observer::identify_with(
-        &fit_runs,
-        &starts,
-        &fields,
-        BELT_EVALS,
-        BELT_ROUNDS,
-        &mut |f| progress("Model 4 belt observer", f),
-    ) else {
-        return Ok(None);
-    };
-    let mut term = BeltTerm {
-        physics: found.physics.core_params(),
-        tick_s: belt_observer::TICK_S,
-        step_ticks: BELT_STEP_TICKS,
-        weight: 0.0,
-        rest_um: [0.0; 2],
-        half_travel_mm: [0.3, 10.0],
-        fast_share: 0.5,
-    };
-    // Physics the drive's builder refuses are not a calibration (the search keeps to them).
-    if term.build(rig.counts_per_mm()).is_err() {
-        return Ok(None);
-    }
-    let mut probe_m4 = m.clone();
-    probe_m4.belt = Some(term);
-    let probe = ModelParams {
-        model4: blob::quantise_model4(&probe_m4).map_err(CalibrationError::Rejected)?,
-        ..quantised(base, rig).map_err(CalibrationError::Rejected)?
-    };
-    let mut offset = Vec::with_capacity(y.len());
-    for r in runs {
-        let Some(&x0) = r.x_counts.first() else {
+    let mut best: Option<(BeltTerm, Vec<f64>, f64)> = None;
+    let discounts = TRACK_DISCOUNTS.len() as f64;
+    for (i, &discount) in TRACK_DISCOUNTS.iter().enumerate() {
+        physics.belt.track_discount = discount;
+        let starts: Vec<BeltPhysics> = BELT_MASS_STARTS
+            .iter()
+            .map(|&f| {
+                let mut p = physics.clone();
+                p.scale(Param::Mass, f);
+                p
+            })
+            .collect();
+        let Some(found) = belt_observer::identify_with(
+            &fit_runs,
+            &starts,
+            &fields,
+            BELT_EVALS,
+            BELT_ROUNDS,
+            &mut |f| progress("Model 4 belt observer", (i as f64 + f) / discounts),
+        ) else {
             continue;
         };
-        let mut model4 = Reference::new(&probe, rig, x0).map_err(CalibrationError::Features)?;
-        for (&x, &a) in r.x_counts.iter().zip(&r.current_a) {
-            offset.push(model4.model4_step(x, a).1.slip_um);
-        }
-    }
-    if let Some((rest_um, half_travel_mm, fast_share)) = rest_of(runs, &offset, rig.counts_per_mm())
-    {
-        let fitted = BeltTerm {
-            rest_um,
-            half_travel_mm,
-            fast_share,
-            ..term
+        let mut term = BeltTerm {
+            physics: found.physics.core_params(),
+            tick_s: belt_observer::TICK_S,
+            step_ticks: BELT_STEP_TICKS,
+            weight: 0.0,
+            rest_um: [0.0; 2],
+            half_travel_mm: [0.3, 10.0],
+            fast_share: 0.5,
         };
-        // A fit the drive's formats refuse (a rest beyond their range) keeps the defaults.
-        if fitted.build(rig.counts_per_mm()).is_ok() {
-            term = fitted;
+        // Physics the drive's builder refuses are not a calibration (the search keeps to them).
+        if term.build(rig.counts_per_mm()).is_err() {
+            continue;
+        }
+        let mut probe_m4 = m.clone();
+        probe_m4.belt = Some(term);
+        let probe = ModelParams {
+            model4: blob::quantise_model4(&probe_m4).map_err(CalibrationError::Rejected)?,
+            ..quantised(base, rig).map_err(CalibrationError::Rejected)?
+        };
+        let mut offset = Vec::with_capacity(y.len());
+        for r in runs {
+            let Some(&x0) = r.x_counts.first() else {
+                continue;
+            };
+            let mut model4 = Reference::new(&probe, rig, x0).map_err(CalibrationError::Features)?;
+            for (&x, &a) in r.x_counts.iter().zip(&r.current_a) {
+                offset.push(model4.model4_step(x, a).1.slip_um);
+            }
+        }
+        if let Some((rest_um, half_travel_mm, fast_share)) =
+            rest_of(runs, &offset, rig.counts_per_mm())
+        {
+            let fitted = BeltTerm {
+                rest_um,
+                half_travel_mm,
+                fast_share,
+                ..term
+            };
+            // A fit the drive's formats refuse (a rest beyond their range) keeps the defaults.
+            if fitted.build(rig.counts_per_mm()).is_ok() {
+                term = fitted;
+            }
+        }
+        if let Some((v, sse)) = solve(&offset) {
+            if best.as_ref().is_none_or(|b| sse < b.2) {
+                best = Some((term, v, sse));
+            }
         }
     }
-    Ok(solve(&offset).map(|(v, sse)| (term, v, sse)))
+    Ok(best)
 }
 
 /// Ticks the motor must stand (within 2 counts) before and after a sample for it to be at rest:

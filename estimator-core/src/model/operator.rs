@@ -384,7 +384,10 @@ impl Harmonic {
 
     /// From the sine and cosine amplitudes in um; errors name `field`.
     fn build(w_um: [f64; 2], field: ConfigField) -> Result<Harmonic, ConfigError> {
-        let [s, c] = [finite(w_um[0], field)?, finite(w_um[1], field)?];
+        // Each within the bound (as when they were stored apart), then their amplitude too.
+        let [s, c] = w_um;
+        um(s, field)?;
+        um(c, field)?;
         let (amp, turns) = super::convert::polar(s, c);
         let amp_q17 = um(amp, field)?.to_bits() << 1;
         if amp_q17 == 0 {
